@@ -1,0 +1,132 @@
+"""Run independent per-scene tasks inline, on a local process pool, or as Ray tasks.
+
+Every executor yields results as tasks finish (in completion order) and forwards progress
+messages ``(key, done, total)`` that tasks send through the ``progress`` handle they receive.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import queue as queue_module
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from typing import Any, Literal, Protocol, TypeVar
+
+ExecutorName = Literal["local", "ray"]
+EXECUTORS: tuple[ExecutorName, ...] = ("local", "ray")
+
+T = TypeVar("T")
+R = TypeVar("R")
+ProgressMessage = tuple[str, int, int]
+
+
+class ProgressHandle(Protocol):
+    def put(self, item: ProgressMessage) -> None: ...
+
+
+class _CallbackHandle:
+    """A progress handle for inline execution: calls the callback directly."""
+
+    def __init__(self, callback: Callable[[ProgressMessage], None]):
+        self.callback = callback
+
+    def put(self, item: ProgressMessage) -> None:
+        self.callback(item)
+
+
+def run_tasks(
+    fn: Callable[[T, ProgressHandle | None], R],
+    tasks: Sequence[T],
+    executor: ExecutorName = "local",
+    workers: int = 1,
+    ray_address: str | None = None,
+    on_progress: Callable[[ProgressMessage], None] | None = None,
+) -> Iterator[R]:
+    """Runs ``fn(task, progress)`` for every task and yields the results as they complete.
+
+    ``local`` with ``workers <= 1`` runs inline in this process; with more workers it uses a
+    process pool (spawned processes, so native libraries start clean). ``ray`` submits Ray tasks
+    to the cluster at ``ray_address`` (or a local Ray started with ``workers`` CPUs).
+    A consumer that stops iterating early cancels the tasks not yet started.
+    """
+    if executor == "local":
+        if workers <= 1:
+            handle = _CallbackHandle(on_progress) if on_progress else None
+            for task in tasks:
+                yield fn(task, handle)
+            return
+        yield from _run_pool(fn, tasks, workers, on_progress)
+    elif executor == "ray":
+        yield from _run_ray(fn, tasks, workers, ray_address, on_progress)
+    else:
+        raise ValueError(f"unknown executor {executor!r}; choose one of {EXECUTORS}")
+
+
+def _drain(q: Any, on_progress: Callable[[ProgressMessage], None] | None) -> None:
+    while True:
+        try:
+            item = q.get_nowait()
+        except (queue_module.Empty, Exception):
+            return
+        if on_progress is not None:
+            on_progress(item)
+
+
+def _run_pool(
+    fn: Callable[[T, ProgressHandle | None], R],
+    tasks: Sequence[T],
+    workers: int,
+    on_progress: Callable[[ProgressMessage], None] | None,
+) -> Iterator[R]:
+    ctx = mp.get_context("spawn")
+    with ctx.Manager() as manager, ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        q = manager.Queue()
+        pending: set[Future[R]] = {pool.submit(fn, task, q) for task in tasks}
+        try:
+            while pending:
+                done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
+                _drain(q, on_progress)
+                for fut in done:
+                    yield fut.result()
+            _drain(q, on_progress)
+        finally:
+            for fut in pending:
+                fut.cancel()
+
+
+def _run_ray(
+    fn: Callable[[T, ProgressHandle | None], R],
+    tasks: Sequence[T],
+    workers: int,
+    ray_address: str | None,
+    on_progress: Callable[[ProgressMessage], None] | None,
+) -> Iterator[R]:
+    try:
+        import ray
+        from ray.util.queue import Queue
+    except ImportError as e:  # pragma: no cover - depends on the environment
+        raise RuntimeError("--executor ray needs Ray: pip install 'phigenesis[ray]'") from e
+    started_here = not ray.is_initialized()
+    if started_here:
+        if ray_address:
+            ray.init(address=ray_address, log_to_driver=False)
+        else:
+            ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False)
+    try:
+        q = Queue()
+        remote_fn = ray.remote(num_cpus=1, max_retries=0)(fn)
+        refs = {remote_fn.remote(task, q): i for i, task in enumerate(tasks)}
+        try:
+            while refs:
+                done, _ = ray.wait(list(refs), num_returns=1, timeout=0.2)
+                _drain(q, on_progress)
+                for ref in done:
+                    refs.pop(ref)
+                    yield ray.get(ref)
+            _drain(q, on_progress)
+        finally:
+            for ref in refs:
+                ray.cancel(ref)
+    finally:
+        if started_here:
+            ray.shutdown()

@@ -1,0 +1,428 @@
+"""The in-memory scene model: what every source produces and every stage consumes.
+
+Frames and units (see ../geometry.py for the conventions):
+
+- ``world``: a fixed frame per scene with its origin at the first frame's ego pose; metres.
+- ``ego``: x forward, y left, z up, origin on the ground below the rear axle; metres.
+- ``camera``: OpenCV axes (x right, y down, z forward).
+- Time: int64 microseconds (``*_micros``). Transforms: 4x4 float64 ``target_from_source``.
+- Boxes: upright, centre/size/yaw in the world frame, size as (length, width, height).
+- Semantic ids: the unified taxonomy in :mod:`phigenesis.data.taxonomy` (uint8, 255 = ignore).
+
+Records validate their shapes and dtypes on construction and say which field is wrong.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal, overload
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from phigenesis import geometry
+
+BoxStatus = Literal["annotated", "interpolated", "extrapolated"]
+BOX_STATUSES: tuple[BoxStatus, ...] = ("annotated", "interpolated", "extrapolated")
+ImageFormat = Literal["jpeg", "png"]
+
+
+def _check_array(
+    name: str, value: Any, shape: tuple[int | None, ...], dtype: type | None = None
+) -> np.ndarray:
+    """Returns ``value`` as an array after checking its shape (None = any size) and dtype."""
+    arr = np.asarray(value) if dtype is None else np.asarray(value, dtype=dtype)
+    ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape, strict=False))
+    if not ok:
+        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
+    return arr
+
+
+def _check_transform(name: str, value: Any) -> NDArray[np.float64]:
+    t = _check_array(name, value, (4, 4), np.float64)
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"{name} has non-finite entries")
+    if not np.allclose(t[3], [0, 0, 0, 1]):
+        raise ValueError(f"{name} is not a rigid transform: last row is {t[3]}")
+    return t
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    """A camera's fixed calibration.
+
+    Attributes:
+        name: the camera's name in its dataset (``FRONT``, ``CAM_FRONT_LEFT``); cameras are matched
+            by name, never by position.
+        width, height: image size in pixels.
+        intrinsics: (3, 3) float64 OpenCV K for images of this size.
+        distortion: (5,) float64 OpenCV coefficients (k1, k2, p1, p2, k3).
+        ego_from_camera: (4, 4) float64, camera axes OpenCV (x right, y down, z forward).
+    """
+
+    name: str
+    width: int
+    height: int
+    intrinsics: NDArray[np.float64]
+    distortion: NDArray[np.float64]
+    ego_from_camera: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(
+                f"camera {self.name}: image size must be positive, got {self.width}x{self.height}"
+            )
+        object.__setattr__(
+            self, "intrinsics", _check_array("intrinsics", self.intrinsics, (3, 3), np.float64)
+        )
+        object.__setattr__(self, "distortion", _check_array("distortion", self.distortion, (5,), np.float64))
+        object.__setattr__(self, "ego_from_camera", _check_transform("ego_from_camera", self.ego_from_camera))
+
+
+@dataclass
+class CameraTruth:
+    """Exact per-pixel truth of one image (synthetic sources), all (H, W) at the image's size.
+
+    Attributes:
+        depth_m: float32 z-depth along the camera's +z in metres; 0 where no surface (sky).
+        semantic: uint8 class id per pixel (unified taxonomy, 255 = ignore, e.g. the ego body).
+        instance: uint16 object instance id (the box's ``instance_id``), 0 for stuff.
+        flow_world_mps: float32 (H, W, 3) velocity of the visible surface point in the world frame,
+            m/s (0 for static surfaces and sky).
+    """
+
+    depth_m: NDArray[np.float32]
+    semantic: NDArray[np.uint8]
+    instance: NDArray[np.uint16]
+    flow_world_mps: NDArray[np.float32]
+
+    def __post_init__(self) -> None:
+        self.depth_m = _check_array("depth_m", self.depth_m, (None, None), np.float32)
+        h, w = self.depth_m.shape
+        self.semantic = _check_array("semantic", self.semantic, (h, w), np.uint8)
+        self.instance = _check_array("instance", self.instance, (h, w), np.uint16)
+        self.flow_world_mps = _check_array("flow_world_mps", self.flow_world_mps, (h, w, 3), np.float32)
+
+
+@dataclass
+class CameraImage:
+    """One image of one camera.
+
+    Attributes:
+        calibration: the camera's calibration.
+        timestamp_micros: capture time (the exposure's centre for a global shutter).
+        world_from_ego: (4, 4) ego pose at ``timestamp_micros`` (not the frame's pose).
+        image_bytes: the image encoded as stored (``image_format``), or None if the source has none.
+        image_format: "jpeg" or "png".
+        truth: exact per-pixel truth where the source has it.
+    """
+
+    calibration: CameraCalibration
+    timestamp_micros: int
+    world_from_ego: NDArray[np.float64]
+    image_bytes: bytes | None
+    image_format: ImageFormat = "jpeg"
+    truth: CameraTruth | None = None
+
+    def __post_init__(self) -> None:
+        self.timestamp_micros = int(self.timestamp_micros)
+        self.world_from_ego = _check_transform("world_from_ego", self.world_from_ego)
+        if self.truth is not None and self.truth.depth_m.shape != (
+            self.calibration.height,
+            self.calibration.width,
+        ):
+            raise ValueError(
+                f"camera {self.calibration.name}: truth is {self.truth.depth_m.shape}, "
+                f"calibration says {(self.calibration.height, self.calibration.width)}"
+            )
+
+    @property
+    def name(self) -> str:
+        return self.calibration.name
+
+    @property
+    def world_from_camera(self) -> NDArray[np.float64]:
+        """(4, 4) camera pose in the world at the capture time."""
+        return self.world_from_ego @ self.calibration.ego_from_camera
+
+    def decode_image(self) -> NDArray[np.uint8]:
+        """The image as (H, W, 3) uint8 RGB; raises if there is none or it does not decode."""
+        if self.image_bytes is None:
+            raise ValueError(f"camera {self.name} at {self.timestamp_micros}: this frame has no image")
+        return decode_rgb(self.image_bytes, f"camera {self.name} at {self.timestamp_micros}")
+
+
+def decode_rgb(data: bytes, what: str) -> NDArray[np.uint8]:
+    """Decodes JPEG/PNG bytes to (H, W, 3) uint8 RGB; ``what`` names the image in errors."""
+    bgr = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError(f"{what}: image bytes do not decode ({len(data)} bytes)")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def encode_rgb(rgb: NDArray[np.uint8], image_format: ImageFormat = "jpeg", jpeg_quality: int = 95) -> bytes:
+    """Encodes (H, W, 3) uint8 RGB as JPEG or PNG bytes."""
+    rgb = _check_array("rgb", rgb, (None, None, 3), np.uint8)
+    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+    if image_format == "jpeg":
+        ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+    else:
+        ok, buf = cv2.imencode(".png", bgr)
+    if not ok:
+        raise ValueError(f"could not encode a {rgb.shape} image as {image_format}")
+    return buf.tobytes()
+
+
+@dataclass
+class LidarSweep:
+    """One sweep of the LiDAR(s), points in the ego frame at the sweep's reference time.
+
+    Attributes (N points):
+        timestamp_micros: reference time; ``points_ego`` are in the ego frame at this time
+            (motion-compensated, as Waymo provides them).
+        world_from_ego: (4, 4) ego pose at ``timestamp_micros``.
+        points_ego: (N, 3) float32 metres.
+        intensity: (N,) float32, in [0, 1] for synthetic data, raw for datasets.
+        beam_index: (N,) uint16 laser row (0 = highest beam).
+        origins_ego: (N, 3) float32 position of the sensor when the point was measured, in the same
+            ego frame (ray origin; differs from the mount position when the ego moves).
+        time_offset_micros: (N,) int32 measurement time minus ``timestamp_micros``.
+        lidar_id: (N,) uint8 which sensor (0 for a single LiDAR).
+        semantic: (N,) uint8 truth class per point, or None.
+        instance: (N,) uint16 truth instance per point (0 = stuff), or None.
+    """
+
+    timestamp_micros: int
+    world_from_ego: NDArray[np.float64]
+    points_ego: NDArray[np.float32]
+    intensity: NDArray[np.float32]
+    beam_index: NDArray[np.uint16]
+    origins_ego: NDArray[np.float32]
+    time_offset_micros: NDArray[np.int32]
+    lidar_id: NDArray[np.uint8]
+    semantic: NDArray[np.uint8] | None = None
+    instance: NDArray[np.uint16] | None = None
+
+    def __post_init__(self) -> None:
+        self.timestamp_micros = int(self.timestamp_micros)
+        self.world_from_ego = _check_transform("world_from_ego", self.world_from_ego)
+        self.points_ego = _check_array("points_ego", self.points_ego, (None, 3), np.float32)
+        n = len(self.points_ego)
+        self.intensity = _check_array("intensity", self.intensity, (n,), np.float32)
+        self.beam_index = _check_array("beam_index", self.beam_index, (n,), np.uint16)
+        self.origins_ego = _check_array("origins_ego", self.origins_ego, (n, 3), np.float32)
+        self.time_offset_micros = _check_array("time_offset_micros", self.time_offset_micros, (n,), np.int32)
+        self.lidar_id = _check_array("lidar_id", self.lidar_id, (n,), np.uint8)
+        if self.semantic is not None:
+            self.semantic = _check_array("semantic", self.semantic, (n,), np.uint8)
+        if self.instance is not None:
+            self.instance = _check_array("instance", self.instance, (n,), np.uint16)
+
+    def __len__(self) -> int:
+        return len(self.points_ego)
+
+    def points_world(self) -> NDArray[np.float64]:
+        """(N, 3) float64 points in the world frame."""
+        return geometry.transform_points(self.world_from_ego, self.points_ego)
+
+    @classmethod
+    def empty(cls, timestamp_micros: int, world_from_ego: NDArray[np.float64]) -> LidarSweep:
+        """A sweep with no points (the LiDAR saw nothing or the frame has none)."""
+        return cls(
+            timestamp_micros=timestamp_micros,
+            world_from_ego=world_from_ego,
+            points_ego=np.zeros((0, 3), np.float32),
+            intensity=np.zeros(0, np.float32),
+            beam_index=np.zeros(0, np.uint16),
+            origins_ego=np.zeros((0, 3), np.float32),
+            time_offset_micros=np.zeros(0, np.int32),
+            lidar_id=np.zeros(0, np.uint8),
+        )
+
+
+@dataclass
+class Boxes:
+    """The 3D boxes of one timestamp, as parallel arrays (M boxes), in the world frame.
+
+    Attributes:
+        track_id: M strings, stable for an object within its scene.
+        class_id: (M,) uint8 unified-taxonomy class.
+        center_world: (M, 3) float64 box centre, metres.
+        size_lwh: (M, 3) float64 length (along heading), width, height, metres.
+        yaw_world: (M,) float64 heading about +z, radians in [-pi, pi).
+        velocity_world: (M, 3) float64 velocity of the centre, m/s.
+        status: (M,) uint8 index into :data:`BOX_STATUSES` (annotated, interpolated, extrapolated).
+        instance_id: (M,) uint16 id used in instance maps, 0 if the source has none.
+        num_lidar_points: (M,) int32 LiDAR points inside the box in its frame's sweep, -1 if unknown.
+    """
+
+    track_id: list[str]
+    class_id: NDArray[np.uint8]
+    center_world: NDArray[np.float64]
+    size_lwh: NDArray[np.float64]
+    yaw_world: NDArray[np.float64]
+    velocity_world: NDArray[np.float64]
+    status: NDArray[np.uint8]
+    instance_id: NDArray[np.uint16]
+    num_lidar_points: NDArray[np.int32]
+
+    def __post_init__(self) -> None:
+        self.track_id = [str(t) for t in self.track_id]
+        m = len(self.track_id)
+        self.class_id = _check_array("class_id", self.class_id, (m,), np.uint8)
+        self.center_world = _check_array("center_world", self.center_world, (m, 3), np.float64)
+        self.size_lwh = _check_array("size_lwh", self.size_lwh, (m, 3), np.float64)
+        self.yaw_world = geometry.wrap_angle(_check_array("yaw_world", self.yaw_world, (m,), np.float64))
+        self.velocity_world = _check_array("velocity_world", self.velocity_world, (m, 3), np.float64)
+        self.status = _check_array("status", self.status, (m,), np.uint8)
+        self.instance_id = _check_array("instance_id", self.instance_id, (m,), np.uint16)
+        self.num_lidar_points = _check_array("num_lidar_points", self.num_lidar_points, (m,), np.int32)
+        if np.any(self.status >= len(BOX_STATUSES)):
+            raise ValueError(f"box status codes must be < {len(BOX_STATUSES)}, got {np.unique(self.status)}")
+        if np.any(self.size_lwh < 0):
+            raise ValueError("box sizes must be non-negative")
+
+    def __len__(self) -> int:
+        return len(self.track_id)
+
+    @classmethod
+    def empty(cls) -> Boxes:
+        return cls(
+            track_id=[],
+            class_id=np.zeros(0, np.uint8),
+            center_world=np.zeros((0, 3)),
+            size_lwh=np.zeros((0, 3)),
+            yaw_world=np.zeros(0),
+            velocity_world=np.zeros((0, 3)),
+            status=np.zeros(0, np.uint8),
+            instance_id=np.zeros(0, np.uint16),
+            num_lidar_points=np.zeros(0, np.int32),
+        )
+
+    def select(self, index: NDArray[np.bool_] | NDArray[np.integer]) -> Boxes:
+        """The subset of boxes given by a boolean mask or an index array."""
+        idx = np.flatnonzero(index) if np.asarray(index).dtype == bool else np.asarray(index, dtype=np.int64)
+        return Boxes(
+            track_id=[self.track_id[i] for i in idx],
+            class_id=self.class_id[idx],
+            center_world=self.center_world[idx],
+            size_lwh=self.size_lwh[idx],
+            yaw_world=self.yaw_world[idx],
+            velocity_world=self.velocity_world[idx],
+            status=self.status[idx],
+            instance_id=self.instance_id[idx],
+            num_lidar_points=self.num_lidar_points[idx],
+        )
+
+    def corners_world(self) -> NDArray[np.float64]:
+        """(M, 8, 3) corners in the world frame (Waymo corner order)."""
+        return geometry.box_corners(self.center_world, self.size_lwh, self.yaw_world)
+
+    def status_names(self) -> list[BoxStatus]:
+        return [BOX_STATUSES[s] for s in self.status]
+
+
+@dataclass
+class Frame:
+    """One time step of a scene: a LiDAR sweep (if any), the images near it, and the boxes.
+
+    Attributes:
+        scene_id: the scene this frame belongs to.
+        frame_index: 0-based position in the scene.
+        timestamp_micros: the frame's reference time (the LiDAR sweep's reference time).
+        world_from_ego: (4, 4) ego pose at ``timestamp_micros``.
+        cameras: the images of this frame, one per camera, each at its own capture time.
+        lidar: the sweep, or None if the frame has no LiDAR.
+        boxes: the boxes at ``timestamp_micros``.
+    """
+
+    scene_id: str
+    frame_index: int
+    timestamp_micros: int
+    world_from_ego: NDArray[np.float64]
+    cameras: list[CameraImage]
+    lidar: LidarSweep | None
+    boxes: Boxes
+
+    def __post_init__(self) -> None:
+        self.timestamp_micros = int(self.timestamp_micros)
+        self.world_from_ego = _check_transform("world_from_ego", self.world_from_ego)
+        names = [c.name for c in self.cameras]
+        if len(set(names)) != len(names):
+            raise ValueError(f"frame {self.scene_id}/{self.frame_index}: duplicate camera names {names}")
+
+    def camera(self, name: str) -> CameraImage:
+        """The image of the camera called ``name``."""
+        for cam in self.cameras:
+            if cam.name == name:
+                return cam
+        raise KeyError(f"frame {self.scene_id}/{self.frame_index} has no camera {name!r}")
+
+
+class LazyFrames(Sequence[Frame]):
+    """A sequence of frames produced on demand by ``load(index)`` (nothing is cached).
+
+    Sources use it so a scene of hundreds of frames never sits in memory at once; stages can wrap
+    one lazily with :meth:`map`.
+    """
+
+    def __init__(self, count: int, load: Callable[[int], Frame]):
+        self._count = int(count)
+        self._load = load
+
+    def __len__(self) -> int:
+        return self._count
+
+    @overload
+    def __getitem__(self, index: int) -> Frame: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> list[Frame]: ...
+
+    def __getitem__(self, index: int | slice) -> Frame | list[Frame]:
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(self._count))]
+        if index < 0:
+            index += self._count
+        if not 0 <= index < self._count:
+            raise IndexError(f"frame index {index} out of range for {self._count} frames")
+        return self._load(index)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(self._count):
+            yield self._load(i)
+
+    def map(self, fn: Callable[[Frame], Frame]) -> LazyFrames:
+        """A lazy sequence that applies ``fn`` to each frame when it is loaded."""
+        return LazyFrames(self._count, lambda i: fn(self._load(i)))
+
+
+@dataclass
+class Scene:
+    """A driving sequence: its frames and what is fixed across them.
+
+    Attributes:
+        scene_id: unique within a cache (e.g. ``synthetic-s7-0003``, a Waymo segment name).
+        source: which source produced it ("synthetic", "waymo", "nuscenes").
+        calibrations: the cameras of the rig, in the rig's order.
+        frames: the frames in time order (often a :class:`LazyFrames`).
+        metadata: JSON-serialisable facts about the scene (rig name, seed, location, ...).
+    """
+
+    scene_id: str
+    source: str
+    calibrations: list[CameraCalibration]
+    frames: Sequence[Frame]
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def calibration(self, name: str) -> CameraCalibration:
+        for cal in self.calibrations:
+            if cal.name == name:
+                return cal
+        raise KeyError(f"scene {self.scene_id} has no camera {name!r}")

@@ -1,0 +1,428 @@
+"""The cache's Arrow schema, declared once in typed dataclasses, and frame <-> row conversion.
+
+One row per frame. Per-camera data is a list of structs (one per camera, in rig order), the
+LiDAR sweep a struct of flat arrays, the boxes a list of structs. Every field carries metadata
+(``doc``, ``unit``, ``frame``) so the files describe themselves to any Arrow reader; matrices are
+row-major flat lists (``world_from_ego``: 16 values), point arrays flat x, y, z triples.
+
+Which optional columns a cache holds is chosen by :class:`CacheContents` (from the pipeline
+spec): a cache holds only what its spec asks for.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from phigenesis.data import codec
+from phigenesis.data import taxonomy as tx
+from phigenesis.data.records import (
+    BOX_STATUSES,
+    Boxes,
+    CameraCalibration,
+    CameraImage,
+    CameraTruth,
+    Frame,
+    LidarSweep,
+)
+
+SCHEMA_VERSION = 1
+TRUTH_MAPS = ("depth", "semantic", "instance", "flow")
+
+
+@dataclass(frozen=True)
+class CacheContents:
+    """Which optional columns a cache holds.
+
+    Attributes:
+        camera_truth: exact per-pixel truth maps to store, any of depth, semantic, instance, flow.
+        lidar: store the LiDAR sweep.
+        lidar_truth: store per-point truth class and instance (sources that have them).
+    """
+
+    camera_truth: tuple[str, ...] = TRUTH_MAPS
+    lidar: bool = True
+    lidar_truth: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "camera_truth", tuple(self.camera_truth))
+        unknown = set(self.camera_truth) - set(TRUTH_MAPS)
+        if unknown:
+            raise ValueError(f"unknown camera truth maps {sorted(unknown)}; choose from {TRUTH_MAPS}")
+
+    def includes(self, group: str | None) -> bool:
+        if group is None:
+            return True
+        if group.startswith("truth_"):
+            return group.removeprefix("truth_") in self.camera_truth
+        if group == "lidar_truth":
+            return self.lidar and self.lidar_truth
+        raise ValueError(f"unknown column group {group!r}")
+
+
+def col(
+    arrow_type: pa.DataType | type,
+    doc: str,
+    unit: str = "",
+    frame: str = "",
+    group: str | None = None,
+    nullable: bool = False,
+    repeated: bool = False,
+) -> Any:
+    """Declares a cache column: its Arrow type (or a nested columns class), docs, unit and frame."""
+    return field(
+        default=None,
+        metadata={
+            "arrow": arrow_type,
+            "doc": doc,
+            "unit": unit,
+            "frame": frame,
+            "group": group,
+            "nullable": nullable,
+            "repeated": repeated,
+        },
+    )
+
+
+def _f64(n: int) -> pa.DataType:
+    return pa.list_(pa.float64(), n)
+
+
+@dataclass
+class CameraColumns:
+    camera_name: str = col(pa.string(), "camera name in its dataset; cameras are matched by name")
+    timestamp_micros: int = col(pa.int64(), "capture time", "microseconds")
+    width: int = col(pa.int32(), "image width", "px")
+    height: int = col(pa.int32(), "image height", "px")
+    intrinsics: list = col(_f64(9), "OpenCV camera matrix K, row-major 3x3", "px")
+    distortion: list = col(_f64(5), "OpenCV distortion k1, k2, p1, p2, k3")
+    ego_from_camera: list = col(_f64(16), "row-major 4x4 camera pose; camera axes OpenCV", "m", "ego<-camera")
+    world_from_ego: list = col(
+        _f64(16), "row-major 4x4 ego pose at this image's capture time", "m", "world<-ego"
+    )
+    image_format: str = col(pa.string(), "encoding of `image`: jpeg or png", nullable=True)
+    image: bytes = col(pa.binary(), "the image as stored (RGB), null if the frame has none", nullable=True)
+    truth_depth_png: bytes = col(
+        pa.binary(),
+        "exact z-depth, 16-bit PNG, metres = value / 256, 0 = none",
+        "m/256",
+        "camera",
+        "truth_depth",
+        True,
+    )
+    truth_semantic_png: bytes = col(
+        pa.binary(),
+        "exact class per pixel, 8-bit PNG, unified taxonomy, 255 = ignore",
+        "",
+        "",
+        "truth_semantic",
+        True,
+    )
+    truth_instance_png: bytes = col(
+        pa.binary(),
+        "exact instance id per pixel (boxes' instance_id), 16-bit PNG, 0 = none",
+        "",
+        "",
+        "truth_instance",
+        True,
+    )
+    truth_flow_png: bytes = col(
+        pa.binary(),
+        "exact world-frame velocity of the visible surface, 16-bit RGB PNG, m/s = (value - 32768) / 256",
+        "m/s",
+        "world",
+        "truth_flow",
+        True,
+    )
+
+
+@dataclass
+class LidarColumns:
+    timestamp_micros: int = col(
+        pa.int64(), "sweep reference time; points are in the ego frame at this time", "microseconds"
+    )
+    world_from_ego: list = col(_f64(16), "row-major 4x4 ego pose at timestamp_micros", "m", "world<-ego")
+    points_ego: list = col(pa.list_(pa.float32()), "flat x, y, z of N points", "m", "ego")
+    intensity: list = col(pa.list_(pa.float32()), "return strength per point")
+    beam_index: list = col(pa.list_(pa.uint16()), "laser row per point, 0 = highest beam")
+    origins_ego: list = col(
+        pa.list_(pa.float32()), "flat x, y, z of the sensor position per point (ray origin)", "m", "ego"
+    )
+    time_offset_micros: list = col(
+        pa.list_(pa.int32()), "measurement time minus timestamp_micros", "microseconds"
+    )
+    lidar_id: list = col(pa.list_(pa.uint8()), "which LiDAR measured the point (0 = the first)")
+    truth_semantic: list = col(pa.list_(pa.uint8()), "exact class per point", "", "", "lidar_truth", True)
+    truth_instance: list = col(
+        pa.list_(pa.uint16()), "exact instance id per point, 0 = none", "", "", "lidar_truth", True
+    )
+
+
+@dataclass
+class BoxColumns:
+    track_id: str = col(pa.string(), "object id, stable within the scene")
+    class_id: int = col(pa.uint8(), "unified taxonomy class id")
+    class_name: str = col(pa.string(), "unified taxonomy class name")
+    center_world: list = col(_f64(3), "box centre", "m", "world")
+    size_lwh: list = col(_f64(3), "length (along heading), width, height", "m")
+    yaw_world: float = col(pa.float64(), "heading about +z in [-pi, pi)", "rad", "world")
+    velocity_world: list = col(_f64(3), "velocity of the box centre", "m/s", "world")
+    status: str = col(pa.string(), "annotated, interpolated or extrapolated")
+    instance_id: int = col(pa.uint16(), "id in instance maps, 0 if none")
+    num_lidar_points: int = col(pa.int32(), "LiDAR points on the object in this frame's sweep, -1 if unknown")
+
+
+@dataclass
+class FrameColumns:
+    scene_id: str = col(pa.string(), "scene identifier, unique within the cache")
+    source: str = col(pa.string(), "source dataset: synthetic, waymo or nuscenes")
+    frame_index: int = col(pa.int32(), "0-based position of the frame in its scene")
+    frame_timestamp_micros: int = col(pa.int64(), "frame reference time (the LiDAR sweep's)", "microseconds")
+    world_from_ego: list = col(
+        _f64(16), "row-major 4x4 ego pose at frame_timestamp_micros", "m", "world<-ego"
+    )
+    cameras: list = col(CameraColumns, "one entry per camera, in rig order", repeated=True)
+    lidar: dict = col(LidarColumns, "the LiDAR sweep, null if the frame has none", group=None, nullable=True)
+    boxes: list = col(BoxColumns, "3D boxes at frame_timestamp_micros", repeated=True)
+
+
+def _arrow_fields(columns_cls: type, contents: CacheContents) -> list[pa.Field]:
+    out = []
+    for f in dataclasses.fields(columns_cls):
+        meta = f.metadata
+        if not contents.includes(meta["group"]):
+            continue
+        if f.name == "lidar" and not contents.lidar:
+            continue
+        t = meta["arrow"]
+        if isinstance(t, type):
+            t = pa.struct(_arrow_fields(t, contents))
+            if meta["repeated"]:
+                t = pa.list_(t)
+        md = {k: str(meta[k]) for k in ("doc", "unit", "frame") if meta[k]}
+        out.append(pa.field(f.name, t, nullable=meta["nullable"] or meta["repeated"], metadata=md))
+    return out
+
+
+def frame_schema(
+    contents: CacheContents = CacheContents(), extra_metadata: dict[str, str] | None = None
+) -> pa.Schema:
+    """The Arrow schema of a cache holding ``contents``."""
+    meta = {"phigenesis.schema_version": str(SCHEMA_VERSION), "phigenesis.format": "one row per frame"}
+    meta.update(extra_metadata or {})
+    return pa.schema(_arrow_fields(FrameColumns, contents), metadata=meta)
+
+
+# --------------------------------------------------------------------------------------------
+# Frame -> Arrow
+
+
+def _array(t: pa.DataType, values: Any) -> pa.Array:
+    """An Arrow array of type ``t`` from numpy-friendly values (one entry per row)."""
+    if pa.types.is_fixed_size_list(t):
+        flat = np.ascontiguousarray(values, dtype=t.value_type.to_pandas_dtype()).reshape(-1)
+        return pa.FixedSizeListArray.from_arrays(pa.array(flat, t.value_type), t.list_size)
+    if pa.types.is_list(t) and not pa.types.is_struct(t.value_type):
+        parts = [np.asarray(v, dtype=t.value_type.to_pandas_dtype()).reshape(-1) for v in values]
+        offsets = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int32)
+        flat = np.concatenate(parts) if parts else np.zeros(0, t.value_type.to_pandas_dtype())
+        return pa.ListArray.from_arrays(pa.array(offsets, pa.int32()), pa.array(flat, t.value_type))
+    return pa.array(values, t)
+
+
+def _struct(
+    t: pa.StructType, columns: dict[str, Any], length: int, mask: np.ndarray | None = None
+) -> pa.StructArray:
+    arrays = []
+    for f in t:
+        v = columns.get(f.name)
+        arrays.append(pa.nulls(length, f.type) if v is None else _array(f.type, v))
+    return pa.StructArray.from_arrays(arrays, fields=list(t), mask=None if mask is None else pa.array(mask))
+
+
+def _list_of_struct(t: pa.ListType, columns: dict[str, Any], length: int) -> pa.ListArray:
+    child = _struct(t.value_type, columns, length)
+    return pa.ListArray.from_arrays(pa.array([0, length], pa.int32()), child)
+
+
+def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBatch:
+    """One frame as a one-row RecordBatch of ``schema`` (encodes truth maps as PNG)."""
+    cams = frame.cameras
+    cam_type = schema.field("cameras").type
+    cam_names = {f.name for f in cam_type.value_type}
+
+    def truth_png(name: str, encode: Any, attr: str) -> list[bytes | None] | None:
+        if name not in cam_names:
+            return None
+        return [None if c.truth is None else encode(getattr(c.truth, attr)) for c in cams]
+
+    cameras = {
+        "camera_name": [c.name for c in cams],
+        "timestamp_micros": [c.timestamp_micros for c in cams],
+        "width": [c.calibration.width for c in cams],
+        "height": [c.calibration.height for c in cams],
+        "intrinsics": np.array([c.calibration.intrinsics for c in cams]).reshape(len(cams), 9),
+        "distortion": np.array([c.calibration.distortion for c in cams]).reshape(len(cams), 5),
+        "ego_from_camera": np.array([c.calibration.ego_from_camera for c in cams]).reshape(len(cams), 16),
+        "world_from_ego": np.array([c.world_from_ego for c in cams]).reshape(len(cams), 16),
+        "image_format": [c.image_format if c.image_bytes is not None else None for c in cams],
+        "image": [c.image_bytes for c in cams],
+        "truth_depth_png": truth_png("truth_depth_png", codec.encode_depth, "depth_m"),
+        "truth_semantic_png": truth_png("truth_semantic_png", codec.encode_semantic, "semantic"),
+        "truth_instance_png": truth_png("truth_instance_png", codec.encode_instance, "instance"),
+        "truth_flow_png": truth_png("truth_flow_png", codec.encode_flow, "flow_world_mps"),
+    }
+    b = frame.boxes
+    boxes = {
+        "track_id": b.track_id,
+        "class_id": b.class_id,
+        "class_name": [tx.class_name(int(c)) for c in b.class_id],
+        "center_world": b.center_world,
+        "size_lwh": b.size_lwh,
+        "yaw_world": b.yaw_world,
+        "velocity_world": b.velocity_world,
+        "status": b.status_names(),
+        "instance_id": b.instance_id,
+        "num_lidar_points": b.num_lidar_points,
+    }
+    arrays: dict[str, pa.Array] = {
+        "scene_id": pa.array([frame.scene_id], pa.string()),
+        "source": pa.array([source], pa.string()),
+        "frame_index": pa.array([frame.frame_index], pa.int32()),
+        "frame_timestamp_micros": pa.array([frame.timestamp_micros], pa.int64()),
+        "world_from_ego": _array(schema.field("world_from_ego").type, frame.world_from_ego.reshape(1, 16)),
+        "cameras": _list_of_struct(cam_type, cameras, len(cams)),
+        "boxes": _list_of_struct(schema.field("boxes").type, boxes, len(b)),
+    }
+    if "lidar" in schema.names:
+        lt = schema.field("lidar").type
+        s = frame.lidar
+        if s is None:
+            arrays["lidar"] = _struct(lt, {}, 1, mask=np.array([True]))
+        else:
+            lidar = {
+                "timestamp_micros": [s.timestamp_micros],
+                "world_from_ego": s.world_from_ego.reshape(1, 16),
+                "points_ego": [s.points_ego],
+                "intensity": [s.intensity],
+                "beam_index": [s.beam_index],
+                "origins_ego": [s.origins_ego],
+                "time_offset_micros": [s.time_offset_micros],
+                "lidar_id": [s.lidar_id],
+                "truth_semantic": None if s.semantic is None else [s.semantic],
+                "truth_instance": None if s.instance is None else [s.instance],
+            }
+            arrays["lidar"] = _struct(lt, lidar, 1)
+    return pa.RecordBatch.from_arrays([arrays[name] for name in schema.names], schema=schema)
+
+
+# --------------------------------------------------------------------------------------------
+# Arrow -> Frame
+
+
+def _mat(values: pa.Array, n: int, shape: tuple[int, ...]) -> np.ndarray:
+    """A fixed-size-list column of ``n`` rows as a float64 array of ``(n, *shape)``."""
+    return values.flatten().to_numpy(zero_copy_only=False).reshape(n, *shape)
+
+
+def _fields(struct: pa.StructArray) -> dict[str, pa.Array]:
+    return {f.name: a for f, a in zip(struct.type, struct.flatten(), strict=True)}
+
+
+def cameras_of(batch: pa.RecordBatch, row: int = 0) -> dict[str, pa.Array]:
+    """The camera struct fields of one row, as arrays with one entry per camera."""
+    return _fields(batch.column("cameras").slice(row, 1).flatten())
+
+
+def row_to_frame(batch: pa.RecordBatch, row: int = 0, decode_truth: bool = True) -> Frame:
+    """Rebuilds the :class:`Frame` record of one row (truth maps decoded if ``decode_truth``)."""
+    scalar = {
+        name: batch.column(name)[row].as_py()
+        for name in ("scene_id", "frame_index", "frame_timestamp_micros")
+    }
+    world_from_ego = _mat(batch.column("world_from_ego").slice(row, 1), 1, (4, 4))[0]
+    cf = cameras_of(batch, row)
+    n_cam = len(cf["camera_name"])
+    intr = _mat(cf["intrinsics"], n_cam, (3, 3))
+    dist = _mat(cf["distortion"], n_cam, (5,))
+    e_from_c = _mat(cf["ego_from_camera"], n_cam, (4, 4))
+    w_from_e = _mat(cf["world_from_ego"], n_cam, (4, 4))
+    names = cf["camera_name"].to_pylist()
+    widths, heights = cf["width"].to_pylist(), cf["height"].to_pylist()
+    times = cf["timestamp_micros"].to_pylist()
+    images = cf["image"].to_pylist()
+    formats = cf["image_format"].to_pylist()
+    cameras = []
+    for i in range(n_cam):
+        cal = CameraCalibration(names[i], widths[i], heights[i], intr[i], dist[i], e_from_c[i])
+        truth = _camera_truth(cf, i, heights[i], widths[i]) if decode_truth else None
+        cameras.append(CameraImage(cal, times[i], w_from_e[i], images[i], formats[i] or "jpeg", truth))
+    lidar = None
+    if "lidar" in batch.schema.names and batch.column("lidar")[row].is_valid:
+        lidar = _lidar(_fields(batch.column("lidar").slice(row, 1)))
+    boxes = _boxes(_fields(batch.column("boxes").slice(row, 1).flatten()))
+    return Frame(
+        scene_id=scalar["scene_id"],
+        frame_index=scalar["frame_index"],
+        timestamp_micros=scalar["frame_timestamp_micros"],
+        world_from_ego=world_from_ego,
+        cameras=cameras,
+        lidar=lidar,
+        boxes=boxes,
+    )
+
+
+def _camera_truth(cf: dict[str, pa.Array], i: int, h: int, w: int) -> CameraTruth | None:
+    def get(name: str) -> bytes | None:
+        return cf[name][i].as_py() if name in cf else None
+
+    depth, sem, inst, flow = (get(f"truth_{m}_png") for m in TRUTH_MAPS)
+    if depth is None and sem is None and inst is None and flow is None:
+        return None
+    return CameraTruth(
+        depth_m=codec.decode_depth(depth) if depth is not None else np.zeros((h, w), np.float32),
+        semantic=codec.decode_semantic(sem) if sem is not None else np.full((h, w), tx.IGNORE_ID, np.uint8),
+        instance=codec.decode_instance(inst) if inst is not None else np.zeros((h, w), np.uint16),
+        flow_world_mps=codec.decode_flow(flow) if flow is not None else np.zeros((h, w, 3), np.float32),
+    )
+
+
+def _flat(arr: pa.Array, dtype: type) -> np.ndarray:
+    return arr.flatten().to_numpy(zero_copy_only=False).astype(dtype, copy=False)
+
+
+def _lidar(lf: dict[str, pa.Array]) -> LidarSweep:
+    sem = lf.get("truth_semantic")
+    inst = lf.get("truth_instance")
+    return LidarSweep(
+        timestamp_micros=lf["timestamp_micros"][0].as_py(),
+        world_from_ego=_mat(lf["world_from_ego"], 1, (4, 4))[0],
+        points_ego=_flat(lf["points_ego"], np.float32).reshape(-1, 3),
+        intensity=_flat(lf["intensity"], np.float32),
+        beam_index=_flat(lf["beam_index"], np.uint16),
+        origins_ego=_flat(lf["origins_ego"], np.float32).reshape(-1, 3),
+        time_offset_micros=_flat(lf["time_offset_micros"], np.int32),
+        lidar_id=_flat(lf["lidar_id"], np.uint8),
+        semantic=None if sem is None or sem.null_count else _flat(sem, np.uint8),
+        instance=None if inst is None or inst.null_count else _flat(inst, np.uint16),
+    )
+
+
+def _boxes(bf: dict[str, pa.Array]) -> Boxes:
+    m = len(bf["track_id"])
+    status_index = {s: i for i, s in enumerate(BOX_STATUSES)}
+    return Boxes(
+        track_id=bf["track_id"].to_pylist(),
+        class_id=bf["class_id"].to_numpy(zero_copy_only=False).astype(np.uint8),
+        center_world=_mat(bf["center_world"], m, (3,)),
+        size_lwh=_mat(bf["size_lwh"], m, (3,)),
+        yaw_world=bf["yaw_world"].to_numpy(zero_copy_only=False).astype(np.float64),
+        velocity_world=_mat(bf["velocity_world"], m, (3,)),
+        status=np.array([status_index[s] for s in bf["status"].to_pylist()], np.uint8),
+        instance_id=bf["instance_id"].to_numpy(zero_copy_only=False).astype(np.uint16),
+        num_lidar_points=bf["num_lidar_points"].to_numpy(zero_copy_only=False).astype(np.int32),
+    )

@@ -1,0 +1,146 @@
+"""Sensor rigs of the synthetic source: camera layouts modelled on Waymo and nuScenes, and a LiDAR.
+
+Camera mounting (ego frame: x forward, y left, z up, metres) and fields of view follow the real
+rigs closely enough for the geometry to be realistic; image sizes are configurable (default
+160 x 240, the paper's Waymo resolution).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from phigenesis import geometry
+from phigenesis.data.records import CameraCalibration
+
+RigName = Literal["waymo5", "nuscenes6"]
+RIG_NAMES: tuple[RigName, ...] = ("waymo5", "nuscenes6")
+
+#: OpenCV camera axes expressed in a "looking along +x" body frame (x fwd, y left, z up):
+#: camera x (right) = -y, camera y (down) = -z, camera z (forward) = +x.
+BODY_FROM_OPENCV = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """One camera of a rig.
+
+    Attributes:
+        name: dataset-style camera name.
+        yaw_deg: optical axis azimuth in the ego frame (0 = forward, +90 = left).
+        pitch_deg: downward tilt of the optical axis (positive looks down).
+        hfov_deg: horizontal field of view.
+        position_m: (x, y, z) of the optical centre in the ego frame.
+        distortion: OpenCV (k1, k2, p1, p2, k3).
+        height_scale: image height relative to the configured height (Waymo side cameras are shorter).
+    """
+
+    name: str
+    yaw_deg: float
+    pitch_deg: float
+    hfov_deg: float
+    position_m: tuple[float, float, float]
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    height_scale: float = 1.0
+
+
+# Waymo's five cameras look forward and to the sides (about 50 degrees wide each, 1920 wide images),
+# with a small measured radial distortion; they fire in the order the LiDAR sweeps past them.
+_WAYMO_DISTORTION = (0.035, -0.012, 0.0004, -0.0003, 0.0)
+WAYMO5: tuple[CameraSpec, ...] = (
+    CameraSpec("FRONT", 0.0, 1.0, 50.4, (1.55, 0.0, 2.10), _WAYMO_DISTORTION),
+    CameraSpec("FRONT_LEFT", 45.0, 1.0, 50.4, (1.50, 0.10, 2.10), _WAYMO_DISTORTION),
+    CameraSpec("FRONT_RIGHT", -45.0, 1.0, 50.4, (1.50, -0.10, 2.10), _WAYMO_DISTORTION),
+    CameraSpec("SIDE_LEFT", 90.0, 1.0, 50.4, (1.20, 0.15, 2.10), _WAYMO_DISTORTION, 886 / 1280),
+    CameraSpec("SIDE_RIGHT", -90.0, 1.0, 50.4, (1.20, -0.15, 2.10), _WAYMO_DISTORTION, 886 / 1280),
+)
+
+# nuScenes' six cameras cover 360 degrees: 70 degree cameras and a 110 degree rear one; the
+# images are rectified (no distortion).
+NUSCENES6: tuple[CameraSpec, ...] = (
+    CameraSpec("CAM_FRONT", 0.0, 0.0, 70.0, (1.70, 0.00, 1.55)),
+    CameraSpec("CAM_FRONT_RIGHT", -55.0, 0.0, 70.0, (1.55, -0.49, 1.50)),
+    CameraSpec("CAM_FRONT_LEFT", 55.0, 0.0, 70.0, (1.52, 0.49, 1.51)),
+    CameraSpec("CAM_BACK", 180.0, 0.0, 110.0, (0.03, 0.00, 1.57)),
+    CameraSpec("CAM_BACK_LEFT", 110.0, 0.0, 70.0, (1.04, 0.48, 1.56)),
+    CameraSpec("CAM_BACK_RIGHT", -110.0, 0.0, 70.0, (1.05, -0.48, 1.56)),
+)
+
+RIGS: dict[str, tuple[CameraSpec, ...]] = {"waymo5": WAYMO5, "nuscenes6": NUSCENES6}
+#: Frame (LiDAR sweep) rate of each rig, Hz: Waymo runs at 10 Hz; nuScenes cameras at 12 Hz.
+RIG_FRAME_RATE_HZ: dict[str, float] = {"waymo5": 10.0, "nuscenes6": 12.0}
+
+
+def camera_calibrations(
+    rig: str, height: int, width: int, uniform_size: bool = True
+) -> tuple[list[CameraCalibration], list[CameraSpec]]:
+    """Calibrations of a rig's cameras at the given image size (per-camera heights if not uniform)."""
+    if rig not in RIGS:
+        raise ValueError(f"unknown rig {rig!r}; choose one of {sorted(RIGS)}")
+    cals = []
+    for spec in RIGS[rig]:
+        h = height if uniform_size else max(8, round(height * spec.height_scale))
+        fx = 0.5 * width / np.tan(np.radians(spec.hfov_deg) / 2)
+        k = geometry.intrinsic_matrix(fx, fx, (width - 1) / 2.0, (h - 1) / 2.0)
+        body = geometry.rotation_z(np.radians(spec.yaw_deg)) @ _rotation_y(np.radians(spec.pitch_deg))
+        ego_from_camera = geometry.make_transform(body @ BODY_FROM_OPENCV, spec.position_m)
+        cals.append(CameraCalibration(spec.name, width, h, k, np.array(spec.distortion), ego_from_camera))
+    return cals, list(RIGS[rig])
+
+
+def _rotation_y(angle_rad: float) -> np.ndarray:
+    """Rotation about +y; a positive angle tilts +x downwards (towards -z)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+@dataclass(frozen=True)
+class LidarSpec:
+    """A spinning multi-beam LiDAR (Waymo-TOP-like by default).
+
+    Attributes:
+        beams: number of lasers (rows); row 0 is the highest beam.
+        columns: azimuth steps per revolution.
+        inclination_top_deg, inclination_bottom_deg: elevation of the highest/lowest beam.
+        inclination_warp: >1 packs beams more densely near the top (horizon), as real sensors do.
+        position_m: sensor origin in the ego frame.
+        max_range_m, min_range_m: returns outside are dropped.
+        range_noise_m: standard deviation of Gaussian range noise.
+        dropout: probability of losing any return, before the reflectance-dependent losses.
+        sectors: the sweep is ray cast in this many time slices; a point's time is its slice's time.
+    """
+
+    beams: int = 64
+    columns: int = 1024
+    inclination_top_deg: float = 2.5
+    inclination_bottom_deg: float = -22.0
+    inclination_warp: float = 1.6
+    position_m: tuple[float, float, float] = (1.2, 0.0, 2.15)
+    max_range_m: float = 75.0
+    min_range_m: float = 1.0
+    range_noise_m: float = 0.02
+    dropout: float = 0.01
+    sectors: int = 16
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "position_m", tuple(float(x) for x in self.position_m))
+        if self.beams < 1 or self.columns < self.sectors or self.sectors < 1:
+            raise ValueError(
+                "LiDAR needs beams >= 1 and columns >= sectors >= 1, got "
+                f"beams={self.beams}, columns={self.columns}, sectors={self.sectors}"
+            )
+
+    def inclinations_rad(self) -> np.ndarray:
+        """(beams,) elevation angles, row 0 highest."""
+        u = np.linspace(0.0, 1.0, self.beams)
+        warped = u**self.inclination_warp
+        deg = self.inclination_top_deg + (self.inclination_bottom_deg - self.inclination_top_deg) * warped
+        return np.radians(deg)
+
+    def column_azimuths_rad(self) -> np.ndarray:
+        """(columns,) azimuth of each column in the sensor frame: column 0 just left of the rear,
+        decreasing (clockwise seen from above) through the front at the middle column, as Waymo."""
+        c = np.arange(self.columns)
+        return np.pi * (1.0 - (2.0 * c + 1.0) / self.columns)

@@ -1,0 +1,94 @@
+"""Build, check and look at caches: the library behind ``phigenesis-prep``.
+
+Each function here is what the command of the same name runs::
+
+    phigenesis-prep synthetic --out cache/ --scenes 2     ->  synthetic("cache/", scenes=2)
+    phigenesis-prep verify cache/                         ->  verify("cache/")
+    phigenesis-prep preview cache/ --frame 3 --out a.png  ->  preview("cache/", frame=3, out="a.png")
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from phigenesis.data.executors import ExecutorName
+from phigenesis.data.pipeline import OnError, PipelineSpec, PrepSummary, prepare
+from phigenesis.data.shards import CacheReader, VerifyReport, verify_cache
+
+
+def synthetic(
+    out: str | os.PathLike[str],
+    *,
+    scenes: int = 2,
+    frames: int = 40,
+    seed: int = 0,
+    rig: str | None = None,
+    height: int | None = None,
+    width: int | None = None,
+    pipeline: str | os.PathLike[str] | PipelineSpec = "synthetic",
+    executor: ExecutorName = "local",
+    workers: int = 1,
+    ray_address: str | None = None,
+    overwrite: bool = False,
+    on_error: OnError = "raise",
+    progress: bool = True,
+    **source_params: Any,
+) -> PrepSummary:
+    """Renders ``scenes`` synthetic scenes of ``frames`` frames into a cache at ``out``.
+
+    ``rig``, ``height``, ``width`` and any other synthetic source parameter
+    (:class:`~phigenesis.data.sources.synthetic.SyntheticConfig`) override the pipeline spec's
+    defaults. See :func:`~phigenesis.data.pipeline.prepare` for the run options.
+    """
+    overrides = {
+        "scenes": scenes,
+        "frames": frames,
+        "seed": seed,
+        "rig": rig,
+        "height": height,
+        "width": width,
+    }
+    overrides.update(source_params)
+    return prepare(
+        out,
+        "synthetic",
+        overrides,
+        pipeline=pipeline,
+        executor=executor,
+        workers=workers,
+        ray_address=ray_address,
+        overwrite=overwrite,
+        on_error=on_error,
+        progress=progress,
+    )
+
+
+def verify(cache_dir: str | os.PathLike[str]) -> VerifyReport:
+    """Re-checks every shard of a cache against its manifest (see :func:`verify_cache`)."""
+    return verify_cache(cache_dir)
+
+
+def preview(
+    cache_dir: str | os.PathLike[str],
+    frame: int = 0,
+    out: str | os.PathLike[str] | None = None,
+    scale: int = 2,
+) -> NDArray[np.uint8]:
+    """Draws global frame ``frame`` of a cache; writes a PNG to ``out`` if given. Returns RGB."""
+    from phigenesis.data.preview import draw_frame
+
+    reader = CacheReader(cache_dir)
+    image = draw_frame(reader.frame(frame), scale=scale)
+    if out is not None:
+        out = Path(out)
+        if out.parent and not out.parent.exists():
+            out.parent.mkdir(parents=True)
+        if not cv2.imwrite(str(out), image[..., ::-1]):
+            raise OSError(f"could not write {out}")
+    return image

@@ -1,0 +1,1 @@
+"""Pipeline specs (YAML), installed as the package ``phigenesis.pipelines``."""
