@@ -17,15 +17,15 @@ ego_from_camera            float64 [C, 4, 4]             camera axes OpenCV
 camera_world_from_ego      float64 [C, 4, 4]             ego pose at each image's capture time
 camera_timestamp_micros    int64 [C]                     capture times
 truth_depth                float32 [C, H, W]             metres along camera z, 0 = none
-truth_semantic             int64 [C, H, W]               unified classes, 255 = ignore
-truth_instance             int64 [C, H, W]               instance ids, 0 = none
+truth_semantic             uint8 [C, H, W]               unified classes, 255 = ignore
+truth_instance             int32 [C, H, W]               instance ids, 0 = none
 truth_flow                 float32 [C, 3, H, W]          surface velocity, world frame, m/s
 lidar_points_ego           float32 [N, 3]                LiDAR points, ego frame at frame time
 lidar_intensity            float32 [N]
 lidar_beam_index           int64 [N]
 lidar_origins_ego          float32 [N, 3]                ray origins
-lidar_truth_semantic       int64 [N]                     (synthetic)
-lidar_truth_instance       int64 [N]
+lidar_truth_semantic       uint8 [N]                     (synthetic)
+lidar_truth_instance       int32 [N]
 boxes_center_world         float64 [M, 3]
 boxes_size_lwh             float64 [M, 3]
 boxes_yaw_world            float64 [M]
@@ -36,14 +36,16 @@ boxes_track_id             list[str] (M)
 =========================  ===========================  ==========================================
 
 Choose groups with ``fields`` ("images", "cameras", "truth", "lidar", "boxes"); only what is
-asked for is decoded. :func:`collate_frames` stacks fixed-size entries over the batch and keeps
-variable-size ones (LiDAR, boxes, per-camera lists) as lists.
+asked for is read, checked and decoded. Label maps stay compact (uint8 classes, int32 instances);
+cast them on the device (``.long()`` for a cross-entropy target). :func:`collate_frames` stacks
+fixed-size entries over the batch and keeps variable-size ones (LiDAR, boxes, per-camera lists)
+as lists.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import cv2
@@ -66,10 +68,43 @@ def _bytes_view(arr: pa.BinaryArray, i: int) -> np.ndarray | None:
     return np.frombuffer(arr[i].as_buffer(), dtype=np.uint8)
 
 
-def _stack_or_list(items: list[torch.Tensor]) -> torch.Tensor | list[torch.Tensor]:
-    if items and all(t.shape == items[0].shape for t in items):
-        return torch.stack(items)
-    return items
+def _decode_per_camera(
+    column: pa.BinaryArray, names: list[str], decode: Callable[[np.ndarray], np.ndarray]
+) -> torch.Tensor | list[torch.Tensor] | None:
+    """Decodes one encoded map per camera into a stacked tensor (one copy), or a list when the
+    cameras' sizes differ; None if any camera lacks the map."""
+    maps = []
+    for i, name in enumerate(names):
+        data = _bytes_view(column, i)
+        if data is None:
+            return None
+        m = decode(data)
+        if m is None:
+            raise ValueError(f"camera {name}: stored map does not decode")
+        maps.append(m)
+    if all(m.shape == maps[0].shape for m in maps):
+        out = np.empty((len(maps), *maps[0].shape), maps[0].dtype)
+        for i, m in enumerate(maps):
+            out[i] = m
+        return torch.from_numpy(out)
+    return [torch.from_numpy(np.ascontiguousarray(m)) for m in maps]
+
+
+def _decode_rgb_chw(data: np.ndarray) -> np.ndarray:
+    bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    return None if bgr is None else bgr.transpose(2, 0, 1)[::-1]  # a view: copied once when stacked
+
+
+def _decode_flow_chw(data: np.ndarray) -> np.ndarray:
+    return codec.decode_flow(data).transpose(2, 0, 1)
+
+
+_TRUTH_DECODERS: dict[str, tuple[str, Callable[[np.ndarray], np.ndarray]]] = {
+    "truth_depth": ("truth_depth_png", codec.decode_depth),
+    "truth_semantic": ("truth_semantic_png", codec.decode_semantic),
+    "truth_instance": ("truth_instance_png", lambda d: codec.decode_instance(d).astype(np.int32)),
+    "truth_flow": ("truth_flow_png", _decode_flow_chw),
+}
 
 
 def _flat(arr: pa.Array) -> np.ndarray:
@@ -98,14 +133,18 @@ class FrameDataset(Dataset):
         return len(self.reader)
 
     def __getitem__(self, index: int) -> dict[str, Any]:
-        batch = self.reader.read(index)
+        batch = self.reader.read(index, self._columns(index))
         try:
             return self._convert(batch)
         except ValueError as e:
-            shard, row = self.reader._index[index]
-            raise CacheError(
-                f"{self.reader.cache_dir / self.reader.shards[shard].path}: row {row}: {e}"
-            ) from e
+            path, row = self.reader.locate(index)
+            raise CacheError(f"{path}: row {row}: {e}") from e
+
+    def _columns(self, index: int) -> list[str]:
+        """The columns this dataset's fields need (only these are read and CRC-checked)."""
+        available = self.reader.columns_of(index)
+        cols = ["scene_id", "frame_index", "frame_timestamp_micros", "world_from_ego", "cameras"]
+        return cols + [c for c in ("lidar", "boxes") if c in self.fields and c in available]
 
     def _convert(self, batch: pa.RecordBatch) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -116,18 +155,13 @@ class FrameDataset(Dataset):
         }
         cf = cameras_of(batch)
         n_cam = len(cf["camera_name"])
-        out["camera_names"] = cf["camera_name"].to_pylist()
+        names = cf["camera_name"].to_pylist()
+        out["camera_names"] = names
         if "images" in self.fields:
-            imgs = []
-            for i in range(n_cam):
-                data = _bytes_view(cf["image"], i)
-                if data is None:
-                    raise ValueError(f"camera {out['camera_names'][i]} has no image")
-                bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
-                if bgr is None:
-                    raise ValueError(f"camera {out['camera_names'][i]}: image does not decode")
-                imgs.append(torch.from_numpy(np.ascontiguousarray(bgr[..., ::-1].transpose(2, 0, 1))))
-            out["images"] = _stack_or_list(imgs)
+            images = _decode_per_camera(cf["image"], names, _decode_rgb_chw)
+            if images is None:
+                raise ValueError("a camera of this frame has no image")
+            out["images"] = images
         if "cameras" in self.fields:
             out["intrinsics"] = torch.from_numpy(
                 _flat(cf["intrinsics"]).reshape(n_cam, 3, 3).astype(np.float32)
@@ -141,27 +175,11 @@ class FrameDataset(Dataset):
             )
             out["camera_timestamp_micros"] = torch.from_numpy(cf["timestamp_micros"].to_numpy().copy())
         if "truth" in self.fields:
-            decoders = {
-                "truth_depth": ("truth_depth_png", codec.decode_depth, None),
-                "truth_semantic": ("truth_semantic_png", codec.decode_semantic, np.int64),
-                "truth_instance": ("truth_instance_png", codec.decode_instance, np.int64),
-                "truth_flow": ("truth_flow_png", codec.decode_flow, None),
-            }
-            for key, (column, decode, dtype) in decoders.items():
-                if column not in cf:
-                    continue
-                maps = []
-                for i in range(n_cam):
-                    data = _bytes_view(cf[column], i)
-                    if data is None:
-                        break
-                    m = decode(data)
-                    m = m.transpose(2, 0, 1) if m.ndim == 3 else m
-                    maps.append(
-                        torch.from_numpy(np.ascontiguousarray(m if dtype is None else m.astype(dtype)))
-                    )
-                else:
-                    out[key] = _stack_or_list(maps)
+            for key, (column, decode) in _TRUTH_DECODERS.items():
+                if column in cf:
+                    maps = _decode_per_camera(cf[column], names, decode)
+                    if maps is not None:
+                        out[key] = maps
         if "lidar" in self.fields and "lidar" in batch.schema.names and batch.column("lidar")[0].is_valid:
             lf = {
                 f.name: a
@@ -173,9 +191,10 @@ class FrameDataset(Dataset):
             out["lidar_intensity"] = torch.from_numpy(_flat(lf["intensity"]).copy())
             out["lidar_beam_index"] = torch.from_numpy(_flat(lf["beam_index"]).astype(np.int64))
             out["lidar_origins_ego"] = torch.from_numpy(_flat(lf["origins_ego"]).reshape(-1, 3).copy())
-            for name in ("truth_semantic", "truth_instance"):
-                if name in lf and lf[name][0].is_valid:
-                    out[f"lidar_{name}"] = torch.from_numpy(_flat(lf[name]).astype(np.int64))
+            if "truth_semantic" in lf and lf["truth_semantic"][0].is_valid:
+                out["lidar_truth_semantic"] = torch.from_numpy(_flat(lf["truth_semantic"]).copy())
+            if "truth_instance" in lf and lf["truth_instance"][0].is_valid:
+                out["lidar_truth_instance"] = torch.from_numpy(_flat(lf["truth_instance"]).astype(np.int32))
         if "boxes" in self.fields:
             bx = batch.column("boxes").flatten()
             bf = {f.name: a for f, a in zip(bx.type, bx.flatten(), strict=True)}

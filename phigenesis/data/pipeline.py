@@ -242,6 +242,8 @@ def _check_out_dir(out: Path) -> None:
 def _describe_difference(
     old: Manifest, source: str, arguments: dict[str, Any], pipeline: dict[str, Any]
 ) -> str:
+    # Compare as the manifest stores them (JSON: tuples become lists), like the fingerprint does.
+    arguments, pipeline = json.loads(json.dumps([arguments, pipeline], default=str))
     diffs = []
     if old.source != source:
         diffs.append(f"source {old.source} -> {source}")
@@ -286,12 +288,14 @@ def _clean_unfinished(out: Path, manifest: Manifest) -> list[str]:
 
 
 def _is_foreign(out: Path) -> bool:
-    """True if ``out`` holds files that are not (the beginnings of) a phigenesis cache."""
+    """True if ``out`` (which has no manifest) holds anything but the temporary files of a run
+    killed before its first manifest write. Our runs write the manifest before any shard, so
+    shard files without a manifest are someone else's and are never deleted."""
     for p in out.iterdir():
         if p.name == SHARDS_DIR and p.is_dir():
-            if any(not (q.suffix == ".arrow" or TMP_MARKER in q.name) for q in p.iterdir()):
+            if any(TMP_MARKER not in q.name for q in p.iterdir()):
                 return True
-        elif not p.name.startswith(MANIFEST_NAME):
+        elif not p.name.startswith(f"{MANIFEST_NAME}{TMP_MARKER}"):
             return True
     return False
 
@@ -411,8 +415,9 @@ def prepare(
                 summary.frames_written += result.frames
                 summary.bytes_written += sum(s.bytes for s in result.shards)
             else:
+                status = "skipped" if on_error == "skip" else "failed"
                 manifest.record_scene(
-                    SceneEntry(result.scene_id, result.source, 0, "skipped", [], result.error), []
+                    SceneEntry(result.scene_id, result.source, 0, status, [], result.error), []
                 )
                 summary.scenes_skipped[result.scene_id] = result.error
             manifest.scenes.sort(key=lambda s: order.get(s.id, len(order)))

@@ -6,10 +6,11 @@ Layout of a cache directory::
     shards/<scene>-00000.arrow  Arrow IPC files, one row per frame, one record batch per row
 
 Integrity: the manifest records each shard's size and SHA-256 and, for every record batch (row),
-the byte offset where it ends and the CRC-32 of its bytes (the last block is the file footer).
-The reader checks a shard's size and footer when it opens it and each row's CRC when it reads the
-row, so a flipped byte raises an error naming the shard and row at the cost of one CRC over the
-row's bytes; :func:`verify_cache` re-hashes everything.
+where it ends, where its body starts, the CRC-32 of its metadata and the CRC-32 of each top-level
+column's bytes, plus the CRC-32 of the file footer. The reader checks a shard's size and footer
+when it opens it, and a row's metadata and the columns it returns when it reads the row: a flipped
+byte in anything a caller reads raises an error naming the shard, row and column, and reading only
+the images of a frame never hashes its LiDAR. :func:`verify_cache` re-hashes everything.
 
 Atomicity: every file is written under a temporary name, flushed with fsync and renamed; the
 manifest is rewritten the same way after each scene completes. A killed run leaves only complete
@@ -23,7 +24,7 @@ import json
 import os
 import uuid
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -93,8 +94,11 @@ class ShardInfo:
         rows: number of rows (frames), one record batch each.
         bytes: file size.
         sha256: hex digest of the whole file.
-        block_ends: byte offset where each row's block ends; the last block (to EOF) is the footer.
-        block_crc32: CRC-32 of each row's block, then of the footer block (rows + 1 values).
+        columns: the top-level columns, in schema order.
+        row_index: per row ``[end, body_start, metadata_crc32, crc32 of each column...]``: the byte
+            offset where the row's record batch ends, where its body (the column buffers) starts,
+            the CRC-32 of the bytes from the row's start to its body, and of each column's bytes.
+        footer_crc32: CRC-32 of the bytes from the last row's end to the end of the file.
     """
 
     path: str
@@ -102,14 +106,34 @@ class ShardInfo:
     rows: int
     bytes: int
     sha256: str
-    block_ends: list[int] = field(default_factory=list)
-    block_crc32: list[int] = field(default_factory=list)
+    columns: list[str] = field(default_factory=list)
+    row_index: list[list[int]] = field(default_factory=list)
+    footer_crc32: int = 0
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ShardInfo:
-        return cls(
-            **{k: d[k] for k in ("path", "scene_id", "rows", "bytes", "sha256", "block_ends", "block_crc32")}
-        )
+        keys = ("path", "scene_id", "rows", "bytes", "sha256", "columns", "row_index", "footer_crc32")
+        return cls(**{k: d[k] for k in keys})
+
+    def row_start(self, row: int) -> int:
+        return 0 if row == 0 else self.row_index[row - 1][0]
+
+
+def column_ranges(batch: pa.RecordBatch, base_address: int) -> list[tuple[int, int]]:
+    """Byte range ``[lo, hi)`` of each top-level column's buffers, relative to ``base_address``.
+
+    Valid for batches read zero-copy from a memory-mapped IPC file, where an IPC body lays out
+    each column's buffers (children included) contiguously.
+    """
+    out = []
+    for column in batch.columns:
+        spans = [
+            (b.address - base_address, b.address - base_address + b.size)
+            for b in column.buffers()
+            if b is not None and b.size
+        ]
+        out.append((min(a for a, _ in spans), max(b for _, b in spans)) if spans else (0, 0))
+    return out
 
 
 class ShardWriter:
@@ -169,7 +193,7 @@ class ShardWriter:
         with open(self._tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         final = self._final_path(len(self.shards))
-        info = shard_info(self._tmp, self.cache_dir, self.scene_id, self._ends)
+        info = shard_info(self._tmp, self.scene_id, self._ends)
         os.replace(self._tmp, final)
         fsync_dir(final.parent)
         info.path = final.relative_to(self.cache_dir).as_posix()
@@ -196,20 +220,39 @@ class ShardWriter:
         self._writer = self._sink = self._tmp = None
 
 
-def shard_info(path: Path, cache_dir: Path, scene_id: str, block_ends: list[int]) -> ShardInfo:
-    """Size, SHA-256 and per-block CRCs of a finished shard file."""
+def shard_info(path: Path, scene_id: str, row_ends: list[int]) -> ShardInfo:
+    """Size, SHA-256 and the per-row, per-column CRC index of a finished shard file.
+
+    ``row_ends`` are the file positions after each record batch, as the writer saw them.
+    """
     data = Path(path).read_bytes()
-    starts = [0, *block_ends]
-    ends = [*block_ends, len(data)]
-    crcs = [zlib.crc32(memoryview(data)[a:b]) for a, b in zip(starts, ends, strict=True)]
+    buffer = pa.py_buffer(data)
+    reader = pa.ipc.open_file(buffer)
+    view = memoryview(data)
+    if reader.num_record_batches != len(row_ends):
+        raise CacheError(
+            f"{path}: {reader.num_record_batches} record batches, the writer wrote {len(row_ends)}"
+        )
+    row_index, start = [], 0
+    for i, end in enumerate(row_ends):
+        ranges = column_ranges(reader.get_batch(i), buffer.address)
+        body_start = min((lo for lo, hi in ranges if hi > lo), default=end)
+        if not all(start <= lo <= hi <= end for lo, hi in ranges if hi > lo):
+            raise CacheError(f"{path}: row {i}'s buffers lie outside its record batch; cannot index it")
+        row_index.append(
+            [end, body_start, zlib.crc32(view[start:body_start])]
+            + [zlib.crc32(view[lo:hi]) for lo, hi in ranges]
+        )
+        start = end
     return ShardInfo(
         path=Path(path).name,
         scene_id=scene_id,
-        rows=len(block_ends),
+        rows=reader.num_record_batches,
         bytes=len(data),
         sha256=hashlib.sha256(data).hexdigest(),
-        block_ends=list(block_ends),
-        block_crc32=crcs,
+        columns=list(reader.schema.names),
+        row_index=row_index,
+        footer_crc32=zlib.crc32(view[start:]),
     )
 
 
@@ -317,7 +360,7 @@ class Manifest:
 
 
 class ShardReader:
-    """Random access to the rows of one shard, checking the manifest's CRCs."""
+    """Random access to the rows of one shard, checking the manifest's CRCs of what it returns."""
 
     def __init__(self, cache_dir: Path, info: ShardInfo, check_crc: bool = True):
         self.info = info
@@ -332,8 +375,9 @@ class ShardReader:
             )
         self._mmap = pa.memory_map(str(self.path), "r")
         self._buffer = self._mmap.read_buffer()
-        if check_crc:
-            self._check_block(info.rows, "footer")
+        self._view = memoryview(self._buffer)
+        if check_crc and info.rows:
+            self._check(info.row_index[-1][0], info.bytes, info.footer_crc32, "the footer")
         try:
             self._reader = pa.ipc.open_file(self._buffer)
         except (pa.ArrowInvalid, OSError) as e:
@@ -342,28 +386,38 @@ class ShardReader:
             raise CacheError(
                 f"{self.path}: holds {self._reader.num_record_batches} rows, the manifest says {info.rows}"
             )
+        self._column_index = {name: i for i, name in enumerate(info.columns)}
 
-    def _check_block(self, block: int, what: str) -> None:
-        ends = self.info.block_ends
-        start = 0 if block == 0 else ends[block - 1]
-        end = ends[block] if block < len(ends) else self.info.bytes
-        crc = zlib.crc32(memoryview(self._buffer)[start:end])
-        if crc != self.info.block_crc32[block]:
+    def _check(self, start: int, end: int, expected: int, what: str) -> None:
+        if zlib.crc32(self._view[start:end]) != expected:
             raise CacheError(f"{self.path}: {what} is corrupt (CRC-32 mismatch in bytes {start}..{end})")
 
     def __len__(self) -> int:
         return self.info.rows
 
-    def read(self, row: int) -> pa.RecordBatch:
-        """The one-row batch of ``row``, after checking its CRC."""
+    def read(self, row: int, columns: Sequence[str] | None = None) -> pa.RecordBatch:
+        """The one-row batch of ``row`` (only ``columns``, if given), after checking the CRCs of its
+        metadata and of the columns returned."""
         if not 0 <= row < self.info.rows:
             raise IndexError(f"{self.path}: row {row} out of range ({self.info.rows} rows)")
+        names = list(self.info.columns if columns is None else columns)
+        unknown = [c for c in names if c not in self._column_index]
+        if unknown:
+            raise KeyError(f"{self.path}: no columns {unknown}; it has {self.info.columns}")
+        entry = self.info.row_index[row]
         if self.check_crc:
-            self._check_block(row, f"row {row}")
+            self._check(self.info.row_start(row), entry[1], entry[2], f"row {row} (metadata)")
         try:
-            return self._reader.get_batch(row)
+            batch = self._reader.get_batch(row)
         except (pa.ArrowInvalid, OSError) as e:
             raise CacheError(f"{self.path}: row {row} does not decode ({e})") from e
+        if self.check_crc:
+            ranges = column_ranges(batch, self._buffer.address)
+            for name in names:
+                k = self._column_index[name]
+                lo, hi = ranges[k]
+                self._check(lo, hi, entry[3 + k], f"row {row}, column {name!r}")
+        return batch if columns is None else batch.select(names)
 
     @property
     def schema(self) -> pa.Schema:
@@ -400,12 +454,21 @@ class CacheReader:
             self._open[index] = ShardReader(self.cache_dir, self.shards[index], self.check_crc)
         return self._open[index]
 
-    def read(self, frame: int) -> pa.RecordBatch:
-        """The one-row batch of global frame index ``frame``."""
+    def read(self, frame: int, columns: Sequence[str] | None = None) -> pa.RecordBatch:
+        """The one-row batch of global frame index ``frame`` (only ``columns``, if given)."""
         if not -len(self) <= frame < len(self):
             raise IndexError(f"frame {frame} out of range for a cache of {len(self)} frames")
         shard, row = self._index[frame]
-        return self.shard(shard).read(row)
+        return self.shard(shard).read(row, columns)
+
+    def columns_of(self, frame: int) -> list[str]:
+        """The top-level columns of the shard holding global frame index ``frame``."""
+        return self.shards[self._index[frame][0]].columns
+
+    def locate(self, frame: int) -> tuple[Path, int]:
+        """The shard file and row holding global frame index ``frame``."""
+        shard, row = self._index[frame]
+        return self.cache_dir / self.shards[shard].path, row
 
     def __iter__(self) -> Iterator[pa.RecordBatch]:
         for i in range(len(self)):
@@ -452,6 +515,35 @@ class VerifyReport:
         return not self.errors
 
 
+def _locate_damage(path: Path, info: ShardInfo) -> list[str]:
+    """Which rows, columns or footer of a shard fail their CRCs (for a shard whose hash is wrong)."""
+    data = path.read_bytes()
+    view = memoryview(data)
+    buffer = pa.py_buffer(data)
+    bad = []
+    try:
+        reader = (
+            pa.ipc.open_file(buffer)
+            if zlib.crc32(view[info.row_index[-1][0] :]) == info.footer_crc32
+            else None
+        )
+    except pa.ArrowInvalid:
+        reader = None
+    if reader is None:
+        bad.append("footer")
+    for row, entry in enumerate(info.row_index):
+        if zlib.crc32(view[info.row_start(row) : entry[1]]) != entry[2]:
+            bad.append(f"row {row} (metadata)")
+            continue
+        if reader is None:
+            continue
+        ranges = column_ranges(reader.get_batch(row), buffer.address)
+        for k, (lo, hi) in enumerate(ranges):
+            if zlib.crc32(view[lo:hi]) != entry[3 + k]:
+                bad.append(f"row {row}, column {info.columns[k]!r}")
+    return bad or ["bytes between buffers"]
+
+
 def verify_cache(cache_dir: str | os.PathLike[str]) -> VerifyReport:
     """Re-checks every shard of a cache against its manifest: presence, size, SHA-256, each row's
     CRC, Arrow structure, row counts and the schema version. Names every bad file."""
@@ -475,15 +567,9 @@ def verify_cache(cache_dir: str | os.PathLike[str]) -> VerifyReport:
             report.errors.append(f"{path}: {size} bytes, manifest says {info.bytes}")
             continue
         if sha256_file(path) != info.sha256:
-            data = path.read_bytes()
-            starts = [0, *info.block_ends]
-            ends = [*info.block_ends, len(data)]
-            bad = [
-                ("footer" if k == info.rows else f"row {k}")
-                for k, (a, b) in enumerate(zip(starts, ends, strict=True))
-                if zlib.crc32(memoryview(data)[a:b]) != info.block_crc32[k]
-            ]
-            report.errors.append(f"{path}: SHA-256 mismatch (corrupt: {', '.join(bad) or 'unknown block'})")
+            report.errors.append(
+                f"{path}: SHA-256 mismatch (corrupt: {', '.join(_locate_damage(path, info))})"
+            )
             continue
         try:
             with pa.memory_map(str(path)) as mm:

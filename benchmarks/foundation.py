@@ -1,0 +1,391 @@
+"""Foundation benchmark: synthetic rendering time, cache bytes per frame and loader throughput.
+
+Usage (from the repository root)::
+
+    python benchmarks/foundation.py [--frames N] [--scenes S] [--quick]
+
+Measures, in one run:
+
+1. Render time of the synthetic source per camera image, per frame's cameras and per LiDAR sweep,
+   for the waymo5 and nuscenes6 rigs at the default image size and LiDAR; world building,
+   renderer setup and the first (warm-up) frame are reported separately.
+2. Bytes per frame of a cache built with :func:`phigenesis.prep.synthetic` (default pipeline),
+   broken down by column group from the Arrow buffers of the shards.
+3. Frames/s of :class:`~phigenesis.data.loader.FrameDataset` through a torch DataLoader, against
+   the "decode floor": decoding the same stored images (and truth PNGs) from memory with
+   ``cv2.imdecode`` in one process.
+
+Prints the tables and replaces the ``foundation`` section of BENCHMARKS.md. No timing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pyarrow as pa
+from _report import Report
+from torch.utils.data import DataLoader
+
+from phigenesis import prep
+from phigenesis._open3d import open3d
+from phigenesis.data.loader import FrameDataset, collate_frames
+from phigenesis.data.schema import TRUTH_MAPS, cameras_of
+from phigenesis.data.shards import CacheReader
+from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene
+
+RIGS = ("waymo5", "nuscenes6")
+#: The loader's field groups for a training step, and for images alone.
+TRAINING_FIELDS = ("images", "cameras", "truth", "boxes")
+IMAGE_FIELDS = ("images",)
+WORKER_COUNTS = (0, 2)
+#: Goal: the loader with 0 workers takes at most this multiple of the decode floor's time.
+FLOOR_RATIO_GOAL = 1.5
+KIB = 1024
+
+
+def median_ms(seconds: Sequence[float]) -> str:
+    """The median of ``seconds``, formatted in milliseconds."""
+    return f"{1e3 * float(np.median(seconds)):.1f}"
+
+
+def p90_ms(seconds: Sequence[float]) -> str:
+    """The 90th percentile of ``seconds``, formatted in milliseconds."""
+    return f"{1e3 * float(np.percentile(seconds, 90)):.1f}"
+
+
+# --------------------------------------------------------------------------------------------
+# 1. Rendering
+
+
+@dataclass
+class RenderTimes:
+    """Render timings of one rig (seconds) and the LiDAR points per sweep."""
+
+    rig: str
+    cameras: int
+    image_size: str
+    lidar_size: str
+    world_s: float
+    renderer_s: float
+    first_frame_s: float
+    per_camera: list[float] = field(default_factory=list)
+    cameras_per_frame: list[float] = field(default_factory=list)
+    lidar: list[float] = field(default_factory=list)
+    whole_frame: list[float] = field(default_factory=list)
+    lidar_points: list[int] = field(default_factory=list)
+
+
+def time_rendering(rig: str, frames: int) -> RenderTimes:
+    """Times ``frames`` frames of scene 0 of a default-config ``rig`` run, after one warm-up frame.
+
+    Each frame's cameras and LiDAR are rendered exactly as ``SyntheticScene.render_frame`` does
+    (same capture times, poses and random stream) and timed separately; the frame is then rendered
+    again whole with ``render_frame`` (which adds JPEG encoding and the boxes).
+    """
+    scene = SyntheticScene(SyntheticConfig(rig=rig, scenes=1, frames=frames + 1), 0)
+    cfg = scene.config
+    t0 = time.perf_counter()
+    _ = scene.world
+    t1 = time.perf_counter()
+    renderer = scene.renderer
+    t2 = time.perf_counter()
+    scene.render_frame(0)
+    t3 = time.perf_counter()
+    result = RenderTimes(
+        rig=rig,
+        cameras=len(scene.calibrations),
+        image_size=f"{cfg.height}x{cfg.width}",
+        lidar_size=f"{cfg.lidar.beams}x{cfg.lidar.columns}",
+        world_s=t1 - t0,
+        renderer_s=t2 - t1,
+        first_frame_s=t3 - t2,
+    )
+    for k in range(1, frames + 1):
+        t_micros = scene.frame_micros[k]
+        frame_cameras = 0.0
+        for i, calibration in enumerate(scene.calibrations):
+            cam_micros = scene.camera_time_micros(t_micros, i)
+            pose = scene.world_from_ego(cam_micros)
+            t0 = time.perf_counter()
+            renderer.render_camera(calibration, pose, scene.seconds(cam_micros))
+            elapsed = time.perf_counter() - t0
+            result.per_camera.append(elapsed)
+            frame_cameras += elapsed
+        result.cameras_per_frame.append(frame_cameras)
+        rng = np.random.default_rng([*scene.seed_sequence, k])
+        world_from_ego = scene.world_from_ego(t_micros)
+        t0 = time.perf_counter()
+        sweep = scene._lidar(t_micros, world_from_ego, rng)
+        result.lidar.append(time.perf_counter() - t0)
+        result.lidar_points.append(len(sweep.points_ego))
+        t0 = time.perf_counter()
+        scene.render_frame(k)
+        result.whole_frame.append(time.perf_counter() - t0)
+    return result
+
+
+def report_rendering(report: Report, frames: int) -> None:
+    """Section 1: render times of both rigs, then their one-time costs and LiDAR points."""
+    t0 = time.perf_counter()
+    open3d()
+    import_s = time.perf_counter() - t0
+    results = [time_rendering(rig, frames) for rig in RIGS]
+    rows = []
+    for r in results:
+        rows += [
+            [r.rig, "one camera image", median_ms(r.per_camera), p90_ms(r.per_camera), len(r.per_camera)],
+            [
+                r.rig,
+                f"all {r.cameras} cameras of a frame",
+                median_ms(r.cameras_per_frame),
+                p90_ms(r.cameras_per_frame),
+                len(r.cameras_per_frame),
+            ],
+            [r.rig, "LiDAR sweep", median_ms(r.lidar), p90_ms(r.lidar), len(r.lidar)],
+            [
+                r.rig,
+                "whole frame (render_frame: + JPEG, boxes)",
+                median_ms(r.whole_frame),
+                p90_ms(r.whole_frame),
+                len(r.whole_frame),
+            ],
+        ]
+    report.table(
+        "Render time",
+        ["rig", "what", "median ms", "p90 ms", "samples"],
+        rows,
+        f"{frames} frames of scene 0 per rig after one warm-up frame; images "
+        f"{results[0].image_size} (HxW), LiDAR {results[0].lidar_size} (beams x columns).",
+    )
+    report.table(
+        "Render setup (once per scene) and LiDAR points",
+        ["rig", "world build s", "renderer setup ms", "first frame s", "LiDAR points/sweep (median)"],
+        [
+            [
+                r.rig,
+                f"{r.world_s:.2f}",
+                f"{1e3 * r.renderer_s:.1f}",
+                f"{r.first_frame_s:.2f}",
+                f"{int(np.median(r.lidar_points)):,}",
+            ]
+            for r in results
+        ],
+        f"The Open3D import ({import_s:.2f} s, once per process) is excluded. The first frame includes "
+        "Open3D's lazy build of the static scene's ray-casting structure.",
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# 2. Cache bytes
+
+
+def buffer_bytes(array: pa.Array, path: str) -> Iterator[tuple[str, int]]:
+    """(field path, bytes) of the Arrow buffers of ``array`` and of its nested children.
+
+    A list's or struct's own buffers (validity, offsets) count under its own path. Arrays read
+    from IPC files are unsliced, so each buffer's size is what the field stores.
+    """
+    own = array.buffers()[: array.type.num_buffers]
+    yield path, sum(b.size for b in own if b is not None)
+    t = array.type
+    if pa.types.is_struct(t):
+        for i in range(t.num_fields):
+            yield from buffer_bytes(array.field(i), f"{path}.{t.field(i).name}")
+    elif pa.types.is_list(t) or pa.types.is_fixed_size_list(t):
+        yield from buffer_bytes(array.values, path)
+
+
+def column_group(path: str) -> str:
+    """The reported group of a field path: images, each truth map, LiDAR fields, boxes, metadata."""
+    top, _, rest = path.partition(".")
+    child = rest.split(".", 1)[0]
+    if top == "cameras":
+        if child == "image":
+            return "images (JPEG)"
+        if child.startswith("truth_"):
+            return f"truth {child.removeprefix('truth_').removesuffix('_png')} (PNG)"
+        return "camera metadata"
+    if top == "lidar":
+        return f"LiDAR: {child or 'struct validity'}"
+    if top == "boxes":
+        return "boxes"
+    return "frame metadata"
+
+
+def report_cache_bytes(report: Report, cache_dir: Path, build_s: float) -> None:
+    """Section 2: bytes per frame of the cache at ``cache_dir`` (built in ``build_s``), by group."""
+    reader = CacheReader(cache_dir)
+    frames = len(reader)
+    by_group: dict[str, int] = defaultdict(int)
+    cameras = 0
+    for batch in reader:
+        cameras += len(cameras_of(batch)["camera_name"])
+        for name, column in zip(batch.schema.names, batch.columns, strict=True):
+            for path, size in buffer_bytes(column, name):
+                by_group[column_group(path)] += size
+    arrow_total = sum(by_group.values())
+    file_total = sum(sh.bytes for sh in reader.shards)
+    lidar_total = sum(v for k, v in by_group.items() if k.startswith("LiDAR"))
+    images = by_group["images (JPEG)"]
+
+    def row(name: str, size: int) -> list[str]:
+        return [name, f"{size / frames / KIB:,.1f}", f"{100 * size / file_total:.1f}%"]
+
+    order = ["images (JPEG)", *(f"truth {m} (PNG)" for m in TRUTH_MAPS), "camera metadata"]
+    rows = [row(g, by_group[g]) for g in order if g in by_group]
+    rows.append(row("LiDAR (all fields)", lidar_total))
+    lidar_fields = sorted(((v, g) for g, v in by_group.items() if g.startswith("LiDAR") and v), reverse=True)
+    rows += [row(f"  {g}", v) for v, g in lidar_fields]
+    rows += [row("boxes", by_group["boxes"]), row("frame metadata", by_group["frame metadata"])]
+    rows += [row("Arrow buffers, total", arrow_total), row("shard files", file_total)]
+    args = reader.manifest.arguments
+    report.table(
+        "Cache bytes per frame",
+        ["column group", "KiB/frame", "share of file bytes"],
+        rows,
+        f"Cache built by `phigenesis.prep.synthetic` (default pipeline: rig {args['rig']}, "
+        f"{args['height']}x{args['width']} images, JPEG quality {args['jpeg_quality']}): "
+        f"{len(reader.scene_ids())} scenes x {args['frames']} frames = {frames} frames in "
+        f"{len(reader.shards)} shards, built in {build_s:.1f} s "
+        f"({build_s / frames:.2f} s/frame in one process). "
+        f"One JPEG image is {images / cameras / KIB:.1f} KiB on average. Shard files add the IPC framing "
+        "and footer to the Arrow buffers.",
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# 3. Loader throughput
+
+
+def stored_bytes(cache_dir: Path, with_truth: bool) -> list[list[tuple[np.ndarray, int]]]:
+    """Per frame, the stored (encoded bytes, cv2 imread flag) of every image and truth PNG."""
+    columns = [("image", cv2.IMREAD_COLOR)]
+    if with_truth:
+        columns += [(f"truth_{m}_png", cv2.IMREAD_UNCHANGED) for m in TRUTH_MAPS]
+    out = []
+    for batch in CacheReader(cache_dir):
+        cf = cameras_of(batch)
+        out.append(
+            [
+                (np.frombuffer(data, np.uint8), flag)
+                for name, flag in columns
+                if name in cf
+                for data in cf[name].to_pylist()
+                if data is not None
+            ]
+        )
+    return out
+
+
+def median_pass_s(run_pass: Callable[[], None], passes: int) -> float:
+    """Median wall time of ``passes`` calls of ``run_pass`` after one untimed warm-up call."""
+    run_pass()
+    times = []
+    for _ in range(passes):
+        t0 = time.perf_counter()
+        run_pass()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def decode_floor_s(encoded: list[list[tuple[np.ndarray, int]]], passes: int) -> float:
+    """Median time to ``cv2.imdecode`` every stored buffer of every frame, in this process."""
+
+    def run_pass() -> None:
+        for frame in encoded:
+            for data, flag in frame:
+                cv2.imdecode(data, flag)
+
+    return median_pass_s(run_pass, passes)
+
+
+def loader_s(cache_dir: Path, fields: Sequence[str], workers: int, passes: int) -> float:
+    """Median time of a full pass of a batch-size-1 DataLoader over the cache's frames."""
+    loader = DataLoader(
+        FrameDataset(cache_dir, fields=fields),
+        batch_size=1,
+        collate_fn=collate_frames,
+        num_workers=workers,
+        persistent_workers=workers > 0,
+    )
+
+    def run_pass() -> None:
+        for _ in loader:
+            pass
+
+    return median_pass_s(run_pass, passes)
+
+
+def report_loader(report: Report, cache_dir: Path, passes: int) -> None:
+    """Section 3: DataLoader frames/s per field set and worker count, against the decode floor."""
+    frames = len(CacheReader(cache_dir))
+    rows = []
+    variants = [
+        ("images+cameras+truth+boxes", TRAINING_FIELDS, "images + 4 truth PNGs", True),
+        ("images", IMAGE_FIELDS, "images", False),
+    ]
+    for label, fields, floor_label, with_truth in variants:
+        floor = decode_floor_s(stored_bytes(cache_dir, with_truth), passes)
+        rows.append([label, f"decode floor ({floor_label})", f"{frames / floor:.1f}", "1.00", "—"])
+        for workers in WORKER_COUNTS:
+            seconds = loader_s(cache_dir, fields, workers, passes)
+            ratio = seconds / floor
+            goal = "—"
+            if workers == 0:
+                goal = f"≤ {FLOOR_RATIO_GOAL}: " + ("met" if ratio <= FLOOR_RATIO_GOAL else "missed")
+            rows.append(
+                [label, f"DataLoader, {workers} workers", f"{frames / seconds:.1f}", f"{ratio:.2f}", goal]
+            )
+    report.table(
+        "Loader throughput",
+        ["fields", "reader", "frames/s", "time / floor", "goal (0 workers)"],
+        rows,
+        f"{frames} frames per pass, batch_size=1 with `collate_frames`, FrameDataset defaults (per-row "
+        f"CRC check on); median of {passes} passes after "
+        "one warm-up pass (workers are persistent, so their start-up is not timed). The decode floor "
+        "decodes the same stored buffers, already in memory, with `cv2.imdecode` in one process.",
+    )
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Runs the three measurements, prints their tables and updates BENCHMARKS.md."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--frames", type=int, help="frames timed per rig, and frames per cache scene (default 20)"
+    )
+    parser.add_argument("--scenes", type=int, help="scenes of the benchmark cache (default 2)")
+    parser.add_argument("--quick", action="store_true", help="small numbers, for a smoke test (< 1 min)")
+    args = parser.parse_args(argv)
+    frames = args.frames if args.frames is not None else (2 if args.quick else 20)
+    scenes = args.scenes if args.scenes is not None else (1 if args.quick else 2)
+    passes = 2 if args.quick else 7
+
+    report = Report(
+        "foundation",
+        "Foundation: rendering, cache size, loader throughput",
+        "Written by `benchmarks/foundation.py`."
+        + (" **Smoke test (`--quick`): numbers are not representative.**" if args.quick else ""),
+    )
+    report_rendering(report, frames)
+    with tempfile.TemporaryDirectory(prefix="phigenesis-bench-") as tmp:
+        cache_dir = Path(tmp) / "cache"
+        t0 = time.perf_counter()
+        prep.synthetic(cache_dir, scenes=scenes, frames=frames, progress=False)
+        report_cache_bytes(report, cache_dir, time.perf_counter() - t0)
+        report_loader(report, cache_dir, passes)
+    print(f"wrote section 'foundation' of {report.write()}")
+
+
+if __name__ == "__main__":
+    main()

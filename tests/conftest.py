@@ -1,0 +1,48 @@
+"""Shared fixtures: tiny synthetic configurations and a small cache built once per session."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from phigenesis.data.sources.synthetic import SyntheticConfig
+from phigenesis.data.sources.synthetic.rigs import LidarSpec
+
+#: A LiDAR small enough for fast tests (16 beams x 256 columns).
+TINY_LIDAR = LidarSpec(beams=16, columns=256, sectors=8)
+
+
+def tiny_config(**overrides: object) -> SyntheticConfig:
+    """A synthetic config that renders a frame in well under a second (60 x 90 images)."""
+    values: dict[str, object] = {
+        "scenes": 2,
+        "frames": 3,
+        "seed": 7,
+        "height": 60,
+        "width": 90,
+        "lidar": TINY_LIDAR,
+    }
+    values.update(overrides)
+    return SyntheticConfig(**values)  # type: ignore[arg-type]
+
+
+#: The arguments of the session cache, as passed to phigenesis.prep.synthetic.
+TINY_PREP_ARGS: dict[str, object] = {
+    "scenes": 2,
+    "frames": 3,
+    "seed": 7,
+    "height": 60,
+    "width": 90,
+    "lidar": {"beams": 16, "columns": 256, "sectors": 8},
+}
+
+
+@pytest.fixture(scope="session")
+def tiny_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A cache of 2 scenes x 3 frames built with the default pipeline (read-only for tests)."""
+    from phigenesis import prep
+
+    out = tmp_path_factory.mktemp("tiny_cache")
+    prep.synthetic(out, progress=False, **TINY_PREP_ARGS)  # type: ignore[arg-type]
+    return out
