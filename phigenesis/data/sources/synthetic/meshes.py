@@ -200,13 +200,14 @@ def vehicle(size_lwh: NDArray[np.float64], class_id: int, rng: np.random.Generat
         cab_l = 2.2
         parts.append(
             box(
-                (cab_l, w, h * 0.75 - clearance),
-                (l / 2 - cab_l / 2, 0, z0 + (clearance + h * 0.75) / 2),
+                (cab_l - 0.04, w, h * 0.75 - clearance),
+                (l / 2 - cab_l / 2 - 0.02, 0, z0 + (clearance + h * 0.75) / 2),
                 "car_paint",
                 class_id,
             )
         )
-        parts.append(box((0.15, w * 0.85, h * 0.2), (l / 2 + 0.02, 0, z0 + h * 0.6), "glass", class_id))
+        # The windscreen stands 4 cm proud of the cab's front and ends flush with the box's front.
+        parts.append(box((0.15, w * 0.85, h * 0.2), (l / 2 - 0.075, 0, z0 + h * 0.6), "glass", class_id))
         cargo_l = l - cab_l - 0.3
         parts.append(
             box(
@@ -217,8 +218,11 @@ def vehicle(size_lwh: NDArray[np.float64], class_id: int, rng: np.random.Generat
             )
         )
     else:  # bus
-        parts.append(box((l, w, h - clearance), (0, 0, z0 + (clearance + h) / 2), "car_paint", class_id))
-        parts.append(box((l * 0.96, w + 0.04, h * 0.3), (0, 0, z0 + h * 0.6), "glass", class_id))
+        # The window band stands 2 cm proud of the body on each side, within the box's width.
+        parts.append(
+            box((l, w - 0.04, h - clearance), (0, 0, z0 + (clearance + h) / 2), "car_paint", class_id)
+        )
+        parts.append(box((l * 0.96, w, h * 0.3), (0, 0, z0 + h * 0.6), "glass", class_id))
     axle = l / 2 - max(0.8, 0.18 * l)
     for x in (axle, -axle):
         for y in (w / 2 - 0.15, -(w / 2 - 0.15)):

@@ -133,10 +133,12 @@ def _advance(xy0: ArrayLike, heading0: ArrayLike, kappa: ArrayLike, ds: ArrayLik
     k = np.asarray(kappa, dtype=np.float64)
     ds = np.asarray(ds, dtype=np.float64)
     h1 = h0 + k * ds
-    straight = np.abs(k) < 1e-12
-    safe_k = np.where(straight, 1.0, k)
-    dx = np.where(straight, ds * np.cos(h0), (np.sin(h1) - np.sin(h0)) / safe_k)
-    dy = np.where(straight, ds * np.sin(h0), -(np.cos(h1) - np.cos(h0)) / safe_k)
+    # Chord of length ds * sinc(k ds / 2) along the mean heading: exact for arcs and lines, and
+    # without the cancellation of (sin(h1) - sin(h0)) / k for nearly straight arcs.
+    half = 0.5 * k * ds
+    chord = ds * np.sinc(half / np.pi)
+    dx = chord * np.cos(h0 + half)
+    dy = chord * np.sin(h0 + half)
     return xy0 + np.stack([dx, dy], axis=-1), h1
 
 
@@ -188,7 +190,7 @@ class SpeedProfile:
                     raise ValueError("a ramp needs a positive acceleration magnitude")
                 if abs(target - v) > 1e-9:
                     phases.append(SpeedPhase(abs(target - v) / accel, np.sign(target - v) * accel))
-                v = target
+                    v = target  # a skipped ramp leaves the speed as it is (no drift from the plan)
             else:
                 raise ValueError(f"unknown speed plan step {kind!r}")
         return cls(t0_s, s0_m, v0_mps, phases)

@@ -283,7 +283,8 @@ class Renderer:
         cos_inc = np.abs(np.sum(hits.normal * dirs, axis=1))
         intensity = (mt.REFLECTIVITY[hits.material] * cos_inc).astype(np.float32)
         rng_range = hits.t + rng.normal(0.0, spec.range_noise_m, size=len(dirs))
-        keep = hits.hit & (hits.t >= spec.min_range_m) & (hits.t <= spec.max_range_m)
+        # Gate on the measured (noisy) range, as the returned points are at that range.
+        keep = hits.hit & (rng_range >= spec.min_range_m) & (rng_range <= spec.max_range_m)
         keep &= rng.uniform(size=len(dirs)) >= spec.dropout
         # Weak returns (dark or grazing surfaces, far away) are lost more often.
         p_loss = 0.5 * np.exp(-25.0 * intensity / (1.0 + (np.where(keep, hits.t, 0.0) / 40.0) ** 2))
