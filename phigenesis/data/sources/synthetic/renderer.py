@@ -66,6 +66,7 @@ class Renderer:
         self.shadows = shadows
         self.static_scene = self._scene([world.static_mesh])
         self.moving = [a for a in world.agents if not a.is_static]
+        self._rays: dict[tuple, NDArray[np.float64]] = {}
 
     # ------------------------------------------------------------------ scenes and casting
     def _scene(
@@ -84,11 +85,14 @@ class Renderer:
             )
         return scene
 
-    def bodies_at(self, t_s: float) -> Bodies:
-        """The ray-casting scene of all moving bodies at ``t_s``."""
+    def bodies_at(self, t_s: float, near_xy: NDArray | None = None, radius_m: float = np.inf) -> Bodies:
+        """The ray-casting scene of the moving bodies at ``t_s`` (those whose centre is within
+        ``radius_m`` of ``near_xy``, if given; the ego body always)."""
         meshes, poses, vels, rates = [], [], [], []
         for agent in self.moving:
             pos, yaw, vel, rate = agent.trajectory.state(t_s)
+            if near_xy is not None and np.hypot(*(pos[:2] - near_xy)) > radius_m:
+                continue
             meshes.append(agent.mesh)
             poses.append(geometry.yaw_pose_to_transform(pos, yaw))
             vels.append(vel)
@@ -167,7 +171,7 @@ class Renderer:
     ) -> tuple[NDArray[np.uint8], CameraTruth]:
         """RGB image (H, W, 3) uint8 and exact truth of one camera at time ``t_s``."""
         h, w = calibration.height, calibration.width
-        rays_cam = camera_rays(calibration)  # (H*W, 3), z = 1
+        rays_cam = self.camera_rays(calibration)  # (H*W, 3), z = 1
         world_from_camera = world_from_ego @ calibration.ego_from_camera
         dirs = geometry.transform_directions(world_from_camera, rays_cam)
         origins = np.broadcast_to(world_from_camera[:3, 3], dirs.shape)
@@ -184,6 +188,18 @@ class Renderer:
             flow_world_mps=flow.reshape(h, w, 3),
         )
         return to_srgb8(rgb).reshape(h, w, 3), truth
+
+    def camera_rays(self, calibration: CameraCalibration) -> NDArray[np.float64]:
+        """:func:`camera_rays`, computed once per calibration (undistortion is iterative)."""
+        key = (
+            calibration.width,
+            calibration.height,
+            calibration.intrinsics.tobytes(),
+            calibration.distortion.tobytes(),
+        )
+        if key not in self._rays:
+            self._rays[key] = camera_rays(calibration)
+        return self._rays[key]
 
     def _shade(
         self, hits: Hits, origins: NDArray, dirs: NDArray, points: NDArray, bodies: Bodies
@@ -276,8 +292,11 @@ class Renderer:
         ray_sector = np.broadcast_to(sector_of_col[None], (beams, cols)).reshape(-1)
         # Static world for all rays at once, then each sector's moving bodies at its own time.
         hits = self.cast_static(origins, dirs)
+        # Only bodies that can be within range (centre within the max range + half a bus length).
+        reach = spec.max_range_m + 8.0
         for k in range(spec.sectors):
-            bodies = self.bodies_at((sector_micros[k] - start_micros) * 1e-6)
+            t_k = (sector_micros[k] - start_micros) * 1e-6
+            bodies = self.bodies_at(t_k, self.world.world_from_ego(t_k)[:2, 3], reach)
             self.merge_bodies(hits, origins, dirs, bodies, np.flatnonzero(ray_sector == k))
         hits = finish_hits(hits, dirs)
         cos_inc = np.abs(np.sum(hits.normal * dirs, axis=1))
