@@ -210,3 +210,19 @@ def test_collate_of_real_samples_stacks_images_and_keeps_lidar_of_different_size
     assert isinstance(batch["lidar_points_ego"], list)
     assert torch.equal(batch["lidar_points_ego"][1], other["lidar_points_ego"])
     assert batch["boxes_track_id"] == [first["boxes_track_id"], other["boxes_track_id"]]
+
+
+def test_a_collated_batch_crosses_processes_in_one_buffer_and_arrives_unchanged(tiny_cache: Path) -> None:
+    import pickle
+
+    ds = FrameDataset(tiny_cache, fields=FIELD_GROUPS)
+    batch = collate_frames([ds[0], ds[1]])
+    rebuilt = pickle.loads(pickle.dumps(batch))
+    assert_same(dict(rebuilt), dict(batch))
+    storages = {
+        t.untyped_storage().data_ptr()
+        for v in rebuilt.values()
+        for t in (v if isinstance(v, list) else [v])
+        if isinstance(t, torch.Tensor)
+    }
+    assert len(storages) == 1

@@ -119,21 +119,25 @@ class ShardInfo:
         return 0 if row == 0 else self.row_index[row - 1][0]
 
 
-def column_ranges(batch: pa.RecordBatch, base_address: int) -> list[tuple[int, int]]:
-    """Byte range ``[lo, hi)`` of each top-level column's buffers, relative to ``base_address``.
+def column_range(column: pa.Array, base_address: int) -> tuple[int, int]:
+    """Byte range ``[lo, hi)`` of a column's buffers (children included) relative to
+    ``base_address``; ``(0, 0)`` for a column without data.
 
     Valid for batches read zero-copy from a memory-mapped IPC file, where an IPC body lays out
-    each column's buffers (children included) contiguously.
+    each top-level column's buffers contiguously.
     """
-    out = []
-    for column in batch.columns:
-        spans = [
-            (b.address - base_address, b.address - base_address + b.size)
-            for b in column.buffers()
-            if b is not None and b.size
-        ]
-        out.append((min(a for a, _ in spans), max(b for _, b in spans)) if spans else (0, 0))
-    return out
+    lo = hi = None
+    for b in column.buffers():
+        if b is not None and b.size:
+            a = b.address - base_address
+            lo = a if lo is None else min(lo, a)
+            hi = a + b.size if hi is None else max(hi, a + b.size)
+    return (0, 0) if lo is None else (lo, hi)
+
+
+def column_ranges(batch: pa.RecordBatch, base_address: int) -> list[tuple[int, int]]:
+    """:func:`column_range` of every top-level column of ``batch``, in schema order."""
+    return [column_range(c, base_address) for c in batch.columns]
 
 
 class ShardWriter:
@@ -412,10 +416,9 @@ class ShardReader:
         except (pa.ArrowInvalid, OSError) as e:
             raise CacheError(f"{self.path}: row {row} does not decode ({e})") from e
         if self.check_crc:
-            ranges = column_ranges(batch, self._buffer.address)
             for name in names:
                 k = self._column_index[name]
-                lo, hi = ranges[k]
+                lo, hi = column_range(batch.column(k), self._buffer.address)
                 self._check(lo, hi, entry[3 + k], f"row {row}, column {name!r}")
         return batch if columns is None else batch.select(names)
 
