@@ -45,6 +45,9 @@ LIDAR_SPIN_PERIOD_S = {"waymo5": 0.1, "nuscenes6": 0.05}
 class SyntheticConfig:
     """What the synthetic source generates (every field changes the output; all are recorded).
 
+    A scene's world (road lengths, agents' timing) is laid out for the scene's duration, so the
+    same seed with another frame count or rate gives another scene; truth is exact at any time.
+
     Attributes:
         scenes: number of scenes.
         frames: frames per scene.

@@ -441,13 +441,13 @@ class _WorldBuilder:
         rng = self.rng
         times = np.arange(-0.5, duration_s + 0.51, 0.1)
         accepted: list[Agent] = []
-        ego_box = (
-            np.array([meshes.EGO_BODY_LENGTH_M, 1.95]),
-            meshes.EGO_BODY_REAR_M + meshes.EGO_BODY_LENGTH_M / 2,
-        )
+        # Footprints (centres (T, 2), yaws (T,), length/width) that new agents must not overlap,
+        # over the scene's duration; the ego's box centre lies ahead of its rear-axle origin.
+        ego_size = np.array([meshes.EGO_BODY_LENGTH_M, 1.95])
+        ego_ahead = meshes.EGO_BODY_REAR_M + meshes.EGO_BODY_LENGTH_M / 2
         ego_pos, ego_yaw, _, _ = ego.state(times)
-        ego_centre = ego_pos[:, :2] + ego_box[1] * np.stack([np.cos(ego_yaw), np.sin(ego_yaw)], axis=1)
-        occupied = [(ego_centre, ego_yaw, ego_box[0])]
+        ego_centre = ego_pos[:, :2] + ego_ahead * np.stack([np.cos(ego_yaw), np.sin(ego_yaw)], axis=1)
+        occupied = [(ego_centre, ego_yaw, ego_size)]
 
         def try_add(kind: AgentKind, class_id: int, size: np.ndarray, traj: Trajectory) -> bool:
             pos, yaw, _, _ = traj.state(times)
