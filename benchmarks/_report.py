@@ -9,6 +9,7 @@ versions of the main libraries, so numbers are never quoted without their contex
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import os
 import platform
@@ -63,23 +64,19 @@ def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> 
 
 def cpu_model() -> str:
     """The CPU's model name from /proc/cpuinfo (``platform.processor()`` where that is missing)."""
-    try:
+    with contextlib.suppress(OSError):
         for text_line in Path("/proc/cpuinfo").read_text().splitlines():
             if text_line.lower().startswith("model name"):
                 return text_line.split(":", 1)[1].strip()
-    except OSError:
-        pass
     return platform.processor() or "unknown CPU"
 
 
 def ram_gib() -> float | None:
     """Total RAM in GiB from /proc/meminfo, or None where that is unavailable."""
-    try:
+    with contextlib.suppress(OSError, ValueError, IndexError):
         for text_line in Path("/proc/meminfo").read_text().splitlines():
             if text_line.startswith("MemTotal:"):
                 return int(text_line.split()[1]) / 2**20
-    except (OSError, ValueError, IndexError):
-        pass
     return None
 
 

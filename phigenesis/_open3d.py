@@ -7,6 +7,7 @@ import without a system package.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import importlib
 from types import ModuleType
@@ -18,13 +19,11 @@ def open3d() -> ModuleType:
     """The ``open3d`` module, imported once."""
     global _module
     if _module is None:
-        try:
+        with contextlib.suppress(ImportError):  # without the wheel, a system libusb-1.0 may serve
             import libusb_package
 
             path = libusb_package.get_library_path()
             if path is not None:
                 ctypes.CDLL(str(path), mode=ctypes.RTLD_GLOBAL)
-        except ImportError:  # fall back to a system libusb-1.0
-            pass
         _module = importlib.import_module("open3d")
     return _module

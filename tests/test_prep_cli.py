@@ -233,6 +233,18 @@ def test_out_in_an_unwritable_location_is_refused_naming_the_path(
     assert not target.exists()
 
 
+def test_out_below_a_file_cannot_be_created_and_the_error_names_it(
+    tiny_pipeline: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("keep me")
+    target = blocker / "cache"
+    assert main(cli_args(target, tiny_pipeline)) == 2
+    err = capsys.readouterr().err
+    assert f"--out {target} cannot be created" in err and "Traceback" not in err
+    assert blocker.read_text() == "keep me"
+
+
 def test_out_that_is_an_existing_unwritable_directory_is_refused_naming_the_path(
     tiny_pipeline: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -211,7 +211,7 @@ class PrepSummary:
 
     def describe(self) -> str:
         lines = [
-            f"cache {self.cache_dir}: wrote {len(self.scenes_written)} scenes ({self.frames_written} frames, "
+            f"{self.cache_dir}: wrote {len(self.scenes_written)} scenes ({self.frames_written} frames, "
             f"{self.bytes_written / 1e6:.1f} MB) in {self.seconds:.1f} s"
             + (f" ({self.seconds / self.frames_written:.2f} s/frame)" if self.frames_written else "")
         ]

@@ -19,6 +19,7 @@ files under final names, and the manifest lists only scenes whose shards are all
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -53,9 +54,8 @@ def fsync_dir(path: Path) -> None:
     except OSError:
         return
     try:
-        os.fsync(fd)
-    except OSError:
-        pass
+        with contextlib.suppress(OSError):  # some file systems cannot fsync a directory
+            os.fsync(fd)
     finally:
         os.close(fd)
 
@@ -212,13 +212,11 @@ class ShardWriter:
 
     def abort(self) -> None:
         """Drops the unfinished shard (complete shards stay, unlisted until a manifest names them)."""
-        try:
+        with contextlib.suppress(OSError, pa.ArrowException):  # already failing; drop the file below
             if self._writer is not None:
                 self._writer.close()
             if self._sink is not None:
                 self._sink.close()
-        except (OSError, pa.ArrowException):
-            pass
         if self._tmp is not None:
             self._tmp.unlink(missing_ok=True)
         self._writer = self._sink = self._tmp = None
