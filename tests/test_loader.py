@@ -226,3 +226,20 @@ def test_a_collated_batch_crosses_processes_in_one_buffer_and_arrives_unchanged(
         if isinstance(t, torch.Tensor)
     }
     assert len(storages) == 1
+
+
+def test_cameras_of_different_sizes_come_as_per_camera_lists(tmp_path: Path) -> None:
+    from phigenesis import prep
+
+    args = {**TINY_PREP_ARGS, "scenes": 1, "frames": 1, "uniform_image_size": False}
+    prep.synthetic(tmp_path, progress=False, **args)
+    sample = FrameDataset(tmp_path, fields=("images", "truth"))[0]
+    heights = [t.shape[1] for t in sample["images"]]
+    assert isinstance(sample["images"], list) and len(set(heights)) == 2  # Waymo's side cameras are shorter
+    for key in ("truth_depth", "truth_semantic", "truth_instance"):
+        assert [t.shape[0] for t in sample[key]] == heights
+    assert [t.shape[:2] for t in sample["truth_flow"]] == [(3, h) for h in heights]
+    frame = CacheReader(tmp_path).frame(0)
+    for cam, image, depth in zip(frame.cameras, sample["images"], sample["truth_depth"], strict=True):
+        assert np.array_equal(image.numpy().transpose(1, 2, 0), cam.decode_image())
+        assert np.array_equal(depth.numpy(), cam.truth.depth_m)

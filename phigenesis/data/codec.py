@@ -46,25 +46,36 @@ def encode_depth(depth_m: NDArray[np.floating]) -> bytes:
     return _encode_png(q.astype(np.uint16), "depth")
 
 
-def decode_depth(data: bytes) -> NDArray[np.float32]:
-    """16-bit PNG to (H, W) float32 metres (0 = unknown)."""
-    return _decode_png(data, np.uint16, 1, "depth").astype(np.float32) / np.float32(DEPTH_SCALE)
+def decode_depth(data: bytes, out: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
+    """16-bit PNG to (H, W) float32 metres (0 = unknown), written into ``out`` if given."""
+    q = _decode_png(data, np.uint16, 1, "depth")
+    out = np.empty(q.shape, np.float32) if out is None else out
+    return np.multiply(q, np.float32(1.0 / DEPTH_SCALE), out=out, dtype=np.float32)
 
 
 def encode_semantic(semantic: NDArray[np.uint8]) -> bytes:
     return _encode_png(np.asarray(semantic, dtype=np.uint8), "semantic map")
 
 
-def decode_semantic(data: bytes) -> NDArray[np.uint8]:
-    return _decode_png(data, np.uint8, 1, "semantic map")
+def decode_semantic(data: bytes, out: NDArray[np.uint8] | None = None) -> NDArray[np.uint8]:
+    q = _decode_png(data, np.uint8, 1, "semantic map")
+    if out is None:
+        return q
+    np.copyto(out, q)
+    return out
 
 
 def encode_instance(instance: NDArray[np.uint16]) -> bytes:
     return _encode_png(np.asarray(instance, dtype=np.uint16), "instance map")
 
 
-def decode_instance(data: bytes) -> NDArray[np.uint16]:
-    return _decode_png(data, np.uint16, 1, "instance map")
+def decode_instance(data: bytes, out: NDArray[np.integer] | None = None) -> NDArray[np.integer]:
+    """16-bit PNG to (H, W) uint16 ids, or written (widened) into ``out`` (e.g. int32)."""
+    q = _decode_png(data, np.uint16, 1, "instance map")
+    if out is None:
+        return q
+    np.copyto(out, q, casting="safe")
+    return out
 
 
 def encode_flow(flow_mps: NDArray[np.floating]) -> bytes:
@@ -74,6 +85,17 @@ def encode_flow(flow_mps: NDArray[np.floating]) -> bytes:
     return _encode_png(q[..., ::-1], "flow map")  # OpenCV writes BGR
 
 
-def decode_flow(data: bytes) -> NDArray[np.float32]:
-    q = _decode_png(data, np.uint16, 3, "flow map")[..., ::-1]
-    return (q.astype(np.float32) - FLOW_OFFSET) / np.float32(FLOW_SCALE)
+def decode_flow(
+    data: bytes, out: NDArray[np.float32] | None = None, channels_first: bool = False
+) -> NDArray[np.float32]:
+    """16-bit RGB PNG to float32 m/s, (H, W, 3) or (3, H, W) with ``channels_first``, written
+    into ``out`` if given."""
+    q = _decode_png(data, np.uint16, 3, "flow map")  # OpenCV order: B, G, R = z, y, x
+    h, w = q.shape[:2]
+    if out is None:
+        out = np.empty((3, h, w) if channels_first else (h, w, 3), np.float32)
+    planes = out if channels_first else np.moveaxis(out, -1, 0)
+    for axis, channel in enumerate(cv2.split(q)[::-1]):
+        np.subtract(channel, np.float32(FLOW_OFFSET), out=planes[axis], dtype=np.float32)
+    out *= np.float32(1.0 / FLOW_SCALE)
+    return out
