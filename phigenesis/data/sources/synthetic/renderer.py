@@ -277,12 +277,14 @@ class Renderer:
             ((np.arange(spec.sectors) + 0.5) / spec.sectors - 0.5) * spin_period_s * 1e6
         ).astype(np.int64)
         sector_micros = frame_time_micros + offsets
+        sector_s = (sector_micros - start_micros) * 1e-6
+        sector_poses = self.world.world_from_ego(sector_s)  # (sectors, 4, 4)
         mount = np.asarray(spec.position_m, dtype=np.float64)
         origins = np.empty((beams, cols, 3))
         dirs = np.empty((beams, cols, 3))
         for k in range(spec.sectors):
             cols_k = sector_of_col == k
-            pose = self.world.world_from_ego((sector_micros[k] - start_micros) * 1e-6)
+            pose = sector_poses[k]
             origins[:, cols_k] = geometry.transform_points(pose, mount[None])[0]
             dirs[:, cols_k] = geometry.transform_directions(pose, d_sensor[:, cols_k].reshape(-1, 3)).reshape(
                 beams, -1, 3
@@ -295,8 +297,7 @@ class Renderer:
         # Only bodies that can be within range (centre within the max range + half a bus length).
         reach = spec.max_range_m + 8.0
         for k in range(spec.sectors):
-            t_k = (sector_micros[k] - start_micros) * 1e-6
-            bodies = self.bodies_at(t_k, self.world.world_from_ego(t_k)[:2, 3], reach)
+            bodies = self.bodies_at(sector_s[k], sector_poses[k, :2, 3], reach)
             self.merge_bodies(hits, origins, dirs, bodies, np.flatnonzero(ray_sector == k))
         hits = finish_hits(hits, dirs)
         cos_inc = np.abs(np.sum(hits.normal * dirs, axis=1))
