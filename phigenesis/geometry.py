@@ -25,6 +25,9 @@ F64 = NDArray[np.float64]
 
 #: Below this norm a quaternion is treated as "no rotation given" and normalises to identity.
 QUATERNION_ZERO_NORM = 1e-12
+#: OpenCV camera axes expressed in a "looking along +x" body frame (x forward, y left, z up, the
+#: axes of Waymo's camera frame): camera x (right) = -y, camera y (down) = -z, camera z = +x.
+BODY_FROM_OPENCV = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=np.float64)
 #: Points closer to the camera plane than this (metres along +z) are not projected.
 MIN_PROJECTION_DEPTH_M = 1e-6
 
@@ -201,6 +204,42 @@ def rotation_z(yaw_rad: ArrayLike) -> F64:
 
 # --------------------------------------------------------------------------------------------
 # Rigid transforms (4x4)
+
+
+def euler_zyx_to_matrix(roll_rad: ArrayLike, pitch_rad: ArrayLike, yaw_rad: ArrayLike) -> F64:
+    """Rotation ``(..., 3, 3)`` = Rz(yaw) @ Ry(pitch) @ Rx(roll) (3-2-1 Euler angles, as Waymo)."""
+    roll, pitch, yaw = np.broadcast_arrays(
+        np.asarray(roll_rad, np.float64), np.asarray(pitch_rad, np.float64), np.asarray(yaw_rad, np.float64)
+    )
+    cr, sr, cp, sp, cy, sy = (
+        np.cos(roll),
+        np.sin(roll),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(yaw),
+        np.sin(yaw),
+    )
+    out = np.empty((*roll.shape, 3, 3))
+    out[..., 0, 0] = cy * cp
+    out[..., 0, 1] = cy * sp * sr - sy * cr
+    out[..., 0, 2] = cy * sp * cr + sy * sr
+    out[..., 1, 0] = sy * cp
+    out[..., 1, 1] = sy * sp * sr + cy * cr
+    out[..., 1, 2] = sy * sp * cr - cy * sr
+    out[..., 2, 0] = -sp
+    out[..., 2, 1] = cp * sr
+    out[..., 2, 2] = cp * cr
+    return out
+
+
+def matrix_to_euler_zyx(rotation: ArrayLike) -> tuple[F64, F64, F64]:
+    """(roll, pitch, yaw) radians of a rotation ``(..., 3, 3)``; inverse of :func:`euler_zyx_to_matrix`
+    for pitch in (-pi/2, pi/2)."""
+    r = np.asarray(rotation, dtype=np.float64)
+    pitch = -np.arcsin(np.clip(r[..., 2, 0], -1.0, 1.0))
+    roll = np.arctan2(r[..., 2, 1], r[..., 2, 2])
+    yaw = np.arctan2(r[..., 1, 0], r[..., 0, 0])
+    return roll, pitch, yaw
 
 
 def make_transform(rotation: ArrayLike, translation: ArrayLike) -> F64:
@@ -443,11 +482,15 @@ BOX_EDGES = ((0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0,
 
 def box_corners(center: ArrayLike, size_lwh: ArrayLike, yaw_rad: ArrayLike) -> F64:
     """Corners ``(..., 8, 3)`` of upright boxes (order: :data:`BOX_CORNER_SIGNS`)."""
+    return rotated_box_corners(center, size_lwh, rotation_z(yaw_rad))
+
+
+def rotated_box_corners(center: ArrayLike, size_lwh: ArrayLike, rotation: ArrayLike) -> F64:
+    """Corners ``(..., 8, 3)`` of boxes with any orientation ``rotation`` ``(..., 3, 3)`` (box -> frame)."""
     c = np.asarray(center, dtype=np.float64)
     s = np.asarray(size_lwh, dtype=np.float64)
     local = 0.5 * s[..., None, :] * BOX_CORNER_SIGNS  # (..., 8, 3)
-    r = rotation_z(yaw_rad)  # (..., 3, 3)
-    return local @ np.swapaxes(r, -1, -2) + c[..., None, :]
+    return local @ np.swapaxes(np.asarray(rotation, dtype=np.float64), -1, -2) + c[..., None, :]
 
 
 def points_in_box(

@@ -3,6 +3,7 @@
 Each function here is what the command of the same name runs::
 
     phigenesis-prep synthetic --out cache/ --scenes 2     ->  synthetic("cache/", scenes=2)
+    phigenesis-prep waymo --input seg.tfrecord --out c/  ->  waymo("c/", input="seg.tfrecord")
     phigenesis-prep verify cache/                         ->  verify("cache/")
     phigenesis-prep preview cache/ --frame 3 --out a.png  ->  preview("cache/", frame=3, out="a.png")
 """
@@ -58,6 +59,51 @@ def synthetic(
     return prepare(
         out,
         "synthetic",
+        overrides,
+        pipeline=pipeline,
+        executor=executor,
+        workers=workers,
+        ray_address=ray_address,
+        overwrite=overwrite,
+        on_error=on_error,
+        progress=progress,
+    )
+
+
+def waymo(
+    out: str | os.PathLike[str],
+    *,
+    input: str | os.PathLike[str],
+    split: str | None = None,
+    segments: list[str] | tuple[str, ...] = (),
+    format: str = "auto",
+    check_crc: bool = True,
+    pipeline: str | os.PathLike[str] | PipelineSpec = "waymo",
+    executor: ExecutorName = "local",
+    workers: int = 1,
+    ray_address: str | None = None,
+    overwrite: bool = False,
+    on_error: OnError = "raise",
+    progress: bool = True,
+) -> PrepSummary:
+    """Converts Waymo Open Dataset segments (v1 TFRecord or v2 Parquet, detected) into a cache.
+
+    ``input`` is a ``.tfrecord`` file, a folder of them, or a v2 root; ``split`` picks a subfolder
+    and ``segments`` keeps segments by name or shell pattern (see
+    :class:`~phigenesis.data.sources.waymo.WaymoConfig`). A segment that cannot be read fails
+    with an error naming the file and record (or component); with ``on_error="skip"`` the others
+    are converted and the manifest lists the skipped ones with the reason.
+    """
+    overrides = {
+        "input": str(Path(input).expanduser().resolve()),
+        "split": split,
+        "segments": list(segments),
+        "format": format,
+        "check_crc": check_crc,
+    }
+    return prepare(
+        out,
+        "waymo",
         overrides,
         pipeline=pipeline,
         executor=executor,

@@ -49,6 +49,26 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--width", type=_positive, help="image width in pixels (default 240)")
     _run_options(s)
 
+    w = sub.add_parser("waymo", help="convert Waymo Open Dataset segments (v1 TFRecord or v2 Parquet)")
+    w.add_argument(
+        "--input",
+        required=True,
+        help="a .tfrecord file, a folder of them, or a v2 root ({component}/{segment}.parquet)",
+    )
+    w.add_argument("--split", help="subfolder of --input to read (training, validation, testing)")
+    w.add_argument(
+        "--segment",
+        action="append",
+        default=[],
+        dest="segments",
+        help="keep this segment (name or shell pattern); repeat for more (default: all)",
+    )
+    w.add_argument(
+        "--format", choices=("auto", "v1", "v2"), default="auto", help="input format (default: detect)"
+    )
+    w.add_argument("--no-crc", action="store_true", help="do not check the TFRecord CRCs (faster, unsafe)")
+    _run_options(w)
+
     v = sub.add_parser("verify", help="re-check every shard of a cache against its manifest")
     v.add_argument("cache", help="cache directory")
 
@@ -76,6 +96,24 @@ def main(argv: list[str] | None = None) -> int:
                 height=args.height,
                 width=args.width,
                 pipeline=args.pipeline or "synthetic",
+                executor=args.executor,
+                workers=args.workers,
+                ray_address=args.ray_address,
+                overwrite=args.overwrite,
+                on_error=args.on_error,
+                progress=not args.no_progress,
+            )
+            print(summary.describe())
+            return 0
+        if args.command == "waymo":
+            summary = prep.waymo(
+                args.out,
+                input=args.input,
+                split=args.split,
+                segments=args.segments,
+                format=args.format,
+                check_crc=not args.no_crc,
+                pipeline=args.pipeline or "waymo",
                 executor=args.executor,
                 workers=args.workers,
                 ray_address=args.ray_address,

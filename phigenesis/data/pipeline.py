@@ -179,7 +179,10 @@ def process_scene(task: SceneTask, progress: ProgressHandle | None = None) -> Sc
         scene = source.load(task.scene_id)
         for st in spec.stages:
             scene = get_stage(st.name)(scene, st.params)
-        schema = frame_schema(spec.contents, {"phigenesis.source": scene.source})
+        schema = frame_schema(
+            spec.contents,
+            {"phigenesis.source": scene.source, "phigenesis.scene_metadata": json.dumps(scene.metadata)},
+        )
         total = len(scene.frames)
         with ShardWriter(Path(task.cache_dir), scene.scene_id, schema, spec.shard_max_bytes) as writer:
             for i, frame in enumerate(scene.frames):
@@ -340,6 +343,10 @@ def prepare(
         src = make_source(source, _merge(spec.source_params, source_overrides or {}))
     except (TypeError, ValueError) as e:
         raise PrepError(f"invalid {source} arguments: {e}") from e
+    try:
+        scene_ids = src.scene_ids()  # before anything is written: a bad input leaves no trace
+    except (ValueError, OSError) as e:
+        raise PrepError(f"cannot list the {source} scenes: {e}") from e
     arguments = src.arguments()
     pipeline_dict = spec.to_dict()
     fp = fingerprint(source, arguments, pipeline_dict)
@@ -386,7 +393,7 @@ def prepare(
         )
     manifest.save(out)
 
-    order = {sid: i for i, sid in enumerate(src.scene_ids())}
+    order = {sid: i for i, sid in enumerate(scene_ids)}
     summary = PrepSummary(str(out))
     pending = []
     for sid in order:

@@ -11,18 +11,39 @@ from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import CameraImage, Frame
 
 BEV_RANGE_M = 60.0
+#: Camera images taller than this are drawn shrunk to it (real datasets' 1280-pixel images).
+MAX_CAMERA_HEIGHT_PX = 320
 
 
 def draw_frame(frame: Frame, scale: int = 2) -> NDArray[np.uint8]:
     """An RGB picture of a frame: rows of camera images (left to right as seen from the car) with
-    projected boxes, then truth depth and semantics where the frame has them, and a bird's-eye
-    view of the LiDAR and boxes on the right."""
+    projected boxes, then truth depth and semantics (or the dataset's labels) where the frame has
+    them, and a bird's-eye view of the LiDAR and boxes on the right."""
     cams = sorted(frame.cameras, key=lambda c: -_camera_yaw(c))
-    height = max(c.calibration.height for c in cams)
-    rows = [[_with_boxes(c, frame) for c in cams]]
+    factor = min(1.0, MAX_CAMERA_HEIGHT_PX / max(c.calibration.height for c in cams))
+
+    def shrink(img: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        if factor == 1.0:
+            return img
+        size = (round(img.shape[1] * factor), round(img.shape[0] * factor))
+        return cv2.resize(img, size, interpolation=cv2.INTER_NEAREST)
+
+    height = max(round(c.calibration.height * factor) for c in cams)
+    rows = [[_with_boxes(c, frame, factor) for c in cams]]
     if all(c.truth is not None for c in cams):
-        rows.append([_depth_color(c.truth.depth_m) for c in cams])
-        rows.append([tx.PALETTE_RGB[c.truth.semantic] for c in cams])
+        rows.append([shrink(_depth_color(c.truth.depth_m)) for c in cams])
+        rows.append([shrink(tx.PALETTE_RGB[c.truth.semantic]) for c in cams])
+    elif any(c.labels is not None for c in cams):
+        rows.append(
+            [
+                shrink(tx.PALETTE_RGB[c.labels.semantic])
+                if c.labels is not None
+                else np.zeros(
+                    (round(c.calibration.height * factor), round(c.calibration.width * factor), 3), np.uint8
+                )
+                for c in cams
+            ]
+        )
     mosaic = np.concatenate([np.concatenate([_pad(p, height) for p in row], axis=1) for row in rows], axis=0)
     mosaic = cv2.resize(mosaic, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     bev = _bev(frame, mosaic.shape[0])
@@ -57,24 +78,29 @@ def _box_color(class_id: int) -> tuple[int, int, int]:
     return (255, 255, 0) if class_id == tx.CAR else tuple(int(x) for x in np.clip(c.astype(int) + 60, 0, 255))
 
 
-def _with_boxes(cam: CameraImage, frame: Frame) -> NDArray[np.uint8]:
-    img = (
-        cam.decode_image().copy()
-        if cam.image_bytes is not None
-        else np.zeros((cam.calibration.height, cam.calibration.width, 3), np.uint8)
-    )
+def _with_boxes(cam: CameraImage, frame: Frame, factor: float = 1.0) -> NDArray[np.uint8]:
+    """The image shrunk by ``factor`` with the frame's boxes drawn at the image's capture time."""
+    cal = cam.calibration
+    width, height = round(cal.width * factor), round(cal.height * factor)
+    if cam.image_bytes is None:
+        img = np.zeros((height, width, 3), np.uint8)
+    else:
+        img = cam.decode_image()
+        img = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA) if factor != 1.0 else img.copy()
     b = frame.boxes
     if len(b) == 0:
         return img
     # Move boxes to the image's capture time with their velocity, then into the camera.
     dt = (cam.timestamp_micros - frame.timestamp_micros) * 1e-6
-    corners = geometry.box_corners(b.center_world + b.velocity_world * dt, b.size_lwh, b.yaw_world)
+    corners = b.corners_world() + (b.velocity_world * dt)[:, None, :]
     camera_from_world = geometry.invert_transform(cam.world_from_camera)
-    cal = cam.calibration
+    # Pixel centres stay centres when shrinking: u' = (u + 0.5) * factor - 0.5.
+    shrink = np.array([[factor, 0, 0.5 * factor - 0.5], [0, factor, 0.5 * factor - 0.5], [0, 0, 1]])
+    intrinsics = shrink @ cal.intrinsics
     for i in range(len(b)):
         pts = geometry.transform_points(camera_from_world, corners[i])
-        uv, valid = geometry.project_points(pts, cal.intrinsics, cal.distortion)
-        if valid.sum() < 8 or not np.any(geometry.in_image(uv, cal.width, cal.height)):
+        uv, valid = geometry.project_points(pts, intrinsics, cal.distortion)
+        if valid.sum() < 8 or not np.any(geometry.in_image(uv, width, height)):
             continue
         for a, c in geometry.BOX_EDGES:
             p, q = np.round(uv[a]).astype(int), np.round(uv[c]).astype(int)

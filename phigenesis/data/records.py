@@ -27,6 +27,18 @@ from phigenesis import geometry
 BoxStatus = Literal["annotated", "interpolated", "extrapolated"]
 BOX_STATUSES: tuple[BoxStatus, ...] = ("annotated", "interpolated", "extrapolated")
 ImageFormat = Literal["jpeg", "png"]
+#: How a camera reads its pixels out: all at once ("global"), or line by line in a direction.
+ReadoutDirection = Literal[
+    "global", "top_to_bottom", "left_to_right", "bottom_to_top", "right_to_left", "unknown"
+]
+READOUT_DIRECTIONS: tuple[ReadoutDirection, ...] = (
+    "global",
+    "top_to_bottom",
+    "left_to_right",
+    "bottom_to_top",
+    "right_to_left",
+    "unknown",
+)
 
 
 def _check_array(
@@ -61,6 +73,8 @@ class CameraCalibration:
         intrinsics: (3, 3) float64 OpenCV K for images of this size.
         distortion: (5,) float64 OpenCV coefficients (k1, k2, p1, p2, k3).
         ego_from_camera: (4, 4) float64, camera axes OpenCV (x right, y down, z forward).
+        readout_direction: "global" for a global shutter, else the rolling shutter's direction
+            (see :meth:`CameraImage.pixel_time_micros`).
     """
 
     name: str
@@ -69,11 +83,17 @@ class CameraCalibration:
     intrinsics: NDArray[np.float64]
     distortion: NDArray[np.float64]
     ego_from_camera: NDArray[np.float64]
+    readout_direction: ReadoutDirection = "global"
 
     def __post_init__(self) -> None:
         if self.width <= 0 or self.height <= 0:
             raise ValueError(
                 f"camera {self.name}: image size must be positive, got {self.width}x{self.height}"
+            )
+        if self.readout_direction not in READOUT_DIRECTIONS:
+            raise ValueError(
+                f"camera {self.name}: readout_direction must be one of {READOUT_DIRECTIONS}, "
+                f"got {self.readout_direction!r}"
             )
         object.__setattr__(
             self, "intrinsics", _check_array("intrinsics", self.intrinsics, (3, 3), np.float64)
@@ -108,16 +128,42 @@ class CameraTruth:
 
 
 @dataclass
+class CameraLabels:
+    """Human per-pixel labels of one image (a dataset's panoptic labels), (H, W) at the image's size.
+
+    Attributes:
+        semantic: uint8 class id per pixel, mapped into the unified taxonomy (255 = unlabelled).
+        instance: uint16 instance id per pixel (the dataset's id, consistent across the cameras and
+            frames of a scene where the dataset says so), 0 for stuff and unlabelled pixels.
+    """
+
+    semantic: NDArray[np.uint8]
+    instance: NDArray[np.uint16]
+
+    def __post_init__(self) -> None:
+        self.semantic = _check_array("semantic", self.semantic, (None, None), np.uint8)
+        self.instance = _check_array("instance", self.instance, self.semantic.shape, np.uint16)
+
+
+@dataclass
 class CameraImage:
     """One image of one camera.
 
     Attributes:
         calibration: the camera's calibration.
-        timestamp_micros: capture time (the exposure's centre for a global shutter).
+        timestamp_micros: capture time: the centre of the exposure (for a rolling shutter, of the
+            image's middle line; Waymo gives the time of its image pose, within a few ms of it).
         world_from_ego: (4, 4) ego pose at ``timestamp_micros`` (not the frame's pose).
         image_bytes: the image encoded as stored (``image_format``), or None if the source has none.
         image_format: "jpeg" or "png".
         truth: exact per-pixel truth where the source has it.
+        labels: human per-pixel labels where the dataset has them.
+        trigger_micros: when the sensor was triggered (None: taken as ``timestamp_micros``).
+        shutter_micros: exposure time of each line, microseconds (0 for an instantaneous capture).
+        readout_micros: time from the first to the last line's readout, microseconds (0 for a
+            global shutter).
+        velocity_world_mps: (3,) ego velocity at ``timestamp_micros`` in the world frame, or None.
+        angular_velocity_world_radps: (3,) ego angular velocity (world axes), or None.
     """
 
     calibration: CameraCalibration
@@ -126,18 +172,60 @@ class CameraImage:
     image_bytes: bytes | None
     image_format: ImageFormat = "jpeg"
     truth: CameraTruth | None = None
+    labels: CameraLabels | None = None
+    trigger_micros: int | None = None
+    shutter_micros: float = 0.0
+    readout_micros: float = 0.0
+    velocity_world_mps: NDArray[np.float64] | None = None
+    angular_velocity_world_radps: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         self.timestamp_micros = int(self.timestamp_micros)
         self.world_from_ego = _check_transform("world_from_ego", self.world_from_ego)
-        if self.truth is not None and self.truth.depth_m.shape != (
-            self.calibration.height,
-            self.calibration.width,
-        ):
+        size = (self.calibration.height, self.calibration.width)
+        for what, maps in (("truth", self.truth), ("labels", self.labels)):
+            shape = None if maps is None else maps.semantic.shape
+            if shape is not None and shape != size:
+                raise ValueError(
+                    f"camera {self.calibration.name}: {what} is {shape}, calibration says {size}"
+                )
+        if self.trigger_micros is not None:
+            self.trigger_micros = int(self.trigger_micros)
+        self.shutter_micros = float(self.shutter_micros)
+        self.readout_micros = float(self.readout_micros)
+        if self.shutter_micros < 0 or self.readout_micros < 0:
             raise ValueError(
-                f"camera {self.calibration.name}: truth is {self.truth.depth_m.shape}, "
-                f"calibration says {(self.calibration.height, self.calibration.width)}"
+                f"camera {self.calibration.name}: shutter and readout must be >= 0, "
+                f"got {self.shutter_micros} and {self.readout_micros}"
             )
+        if self.velocity_world_mps is not None:
+            self.velocity_world_mps = _check_array(
+                "velocity_world_mps", self.velocity_world_mps, (3,), np.float64
+            )
+        if self.angular_velocity_world_radps is not None:
+            self.angular_velocity_world_radps = _check_array(
+                "angular_velocity_world_radps", self.angular_velocity_world_radps, (3,), np.float64
+            )
+
+    def pixel_time_micros(self, u: NDArray[np.floating], v: NDArray[np.floating]) -> NDArray[np.float64]:
+        """Capture time (microseconds) of pixels at (u, v) (OpenCV pixel-centre coordinates).
+
+        A line's time is the centre of its exposure: ``trigger + shutter / 2 + readout * f`` with
+        ``f`` the line's position along the readout direction (0 first line, 1 last). A global
+        shutter (or no timing) gives ``timestamp_micros`` everywhere.
+        """
+        u, v = np.broadcast_arrays(np.asarray(u, np.float64), np.asarray(v, np.float64))
+        cal = self.calibration
+        direction = cal.readout_direction
+        if self.trigger_micros is None or direction in ("global", "unknown") or self.readout_micros == 0:
+            return np.full(u.shape, float(self.timestamp_micros))
+        position = {
+            "top_to_bottom": (v + 0.5) / cal.height,
+            "bottom_to_top": 1.0 - (v + 0.5) / cal.height,
+            "left_to_right": (u + 0.5) / cal.width,
+            "right_to_left": 1.0 - (u + 0.5) / cal.width,
+        }[direction]
+        return self.trigger_micros + 0.5 * self.shutter_micros + self.readout_micros * position
 
     @property
     def name(self) -> str:
@@ -193,6 +281,9 @@ class LidarSweep:
         lidar_id: (N,) uint8 which sensor (0 for a single LiDAR).
         semantic: (N,) uint8 truth class per point, or None.
         instance: (N,) uint16 truth instance per point (0 = stuff), or None.
+        elongation: (N,) float32 pulse elongation per point (Waymo), or None.
+        return_index: (N,) uint8 0 for the strongest (first) return, 1 for the second; None =
+            all first returns.
     """
 
     timestamp_micros: int
@@ -205,6 +296,8 @@ class LidarSweep:
     lidar_id: NDArray[np.uint8]
     semantic: NDArray[np.uint8] | None = None
     instance: NDArray[np.uint16] | None = None
+    elongation: NDArray[np.float32] | None = None
+    return_index: NDArray[np.uint8] | None = None
 
     def __post_init__(self) -> None:
         self.timestamp_micros = int(self.timestamp_micros)
@@ -220,6 +313,10 @@ class LidarSweep:
             self.semantic = _check_array("semantic", self.semantic, (n,), np.uint8)
         if self.instance is not None:
             self.instance = _check_array("instance", self.instance, (n,), np.uint16)
+        if self.elongation is not None:
+            self.elongation = _check_array("elongation", self.elongation, (n,), np.float32)
+        if self.return_index is not None:
+            self.return_index = _check_array("return_index", self.return_index, (n,), np.uint8)
 
     def __len__(self) -> int:
         return len(self.points_ego)
@@ -257,6 +354,12 @@ class Boxes:
         status: (M,) uint8 index into :data:`BOX_STATUSES` (annotated, interpolated, extrapolated).
         instance_id: (M,) uint16 id used in instance maps, 0 if the source has none.
         num_lidar_points: (M,) int32 LiDAR points inside the box in its frame's sweep, -1 if unknown.
+        acceleration_world: (M, 3) float64 acceleration of the centre, m/s^2; NaN where unknown
+            (None on construction means unknown for all).
+        orientation_world: (M, 4) float64 wxyz quaternion world <- box. Boxes are upright in the
+            world unless a dataset tilts them (Waymo labels are upright in the tilted ego frame);
+            None on construction means upright at ``yaw_world``. ``yaw_world`` is the heading of
+            the box's +x axis in the ground plane either way.
     """
 
     track_id: list[str]
@@ -268,6 +371,8 @@ class Boxes:
     status: NDArray[np.uint8]
     instance_id: NDArray[np.uint16]
     num_lidar_points: NDArray[np.int32]
+    acceleration_world: NDArray[np.float64] | None = None
+    orientation_world: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         self.track_id = [str(t) for t in self.track_id]
@@ -280,6 +385,16 @@ class Boxes:
         self.status = _check_array("status", self.status, (m,), np.uint8)
         self.instance_id = _check_array("instance_id", self.instance_id, (m,), np.uint16)
         self.num_lidar_points = _check_array("num_lidar_points", self.num_lidar_points, (m,), np.int32)
+        if self.acceleration_world is None:
+            self.acceleration_world = np.full((m, 3), np.nan)
+        self.acceleration_world = _check_array(
+            "acceleration_world", self.acceleration_world, (m, 3), np.float64
+        )
+        if self.orientation_world is None:
+            self.orientation_world = geometry.yaw_to_quaternion(self.yaw_world).reshape(m, 4)
+        self.orientation_world = geometry.quaternion_normalize(
+            _check_array("orientation_world", self.orientation_world, (m, 4), np.float64)
+        )
         if np.any(self.status >= len(BOX_STATUSES)):
             raise ValueError(f"box status codes must be < {len(BOX_STATUSES)}, got {np.unique(self.status)}")
         if np.any(self.size_lwh < 0):
@@ -315,11 +430,14 @@ class Boxes:
             status=self.status[idx],
             instance_id=self.instance_id[idx],
             num_lidar_points=self.num_lidar_points[idx],
+            acceleration_world=self.acceleration_world[idx],
+            orientation_world=self.orientation_world[idx],
         )
 
     def corners_world(self) -> NDArray[np.float64]:
-        """(M, 8, 3) corners in the world frame (Waymo corner order)."""
-        return geometry.box_corners(self.center_world, self.size_lwh, self.yaw_world)
+        """(M, 8, 3) corners in the world frame (Waymo corner order), tilt included."""
+        rotation = geometry.quaternion_to_matrix(self.orientation_world)
+        return geometry.rotated_box_corners(self.center_world, self.size_lwh, rotation)
 
     def status_names(self) -> list[BoxStatus]:
         return [BOX_STATUSES[s] for s in self.status]
@@ -337,6 +455,9 @@ class Frame:
         cameras: the images of this frame, one per camera, each at its own capture time.
         lidar: the sweep, or None if the frame has no LiDAR.
         boxes: the boxes at ``timestamp_micros``.
+        source_timestamp_micros: the frame's timestamp as its dataset keys it (Waymo's
+            ``frame_timestamp_micros`` is the start of the LiDAR scan, 50 ms before the pose's
+            time); None means ``timestamp_micros``.
     """
 
     scene_id: str
@@ -346,9 +467,13 @@ class Frame:
     cameras: list[CameraImage]
     lidar: LidarSweep | None
     boxes: Boxes
+    source_timestamp_micros: int | None = None
 
     def __post_init__(self) -> None:
         self.timestamp_micros = int(self.timestamp_micros)
+        self.source_timestamp_micros = int(
+            self.timestamp_micros if self.source_timestamp_micros is None else self.source_timestamp_micros
+        )
         self.world_from_ego = _check_transform("world_from_ego", self.world_from_ego)
         names = [c.name for c in self.cameras]
         if len(set(names)) != len(names):

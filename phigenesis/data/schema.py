@@ -25,12 +25,13 @@ from phigenesis.data.records import (
     Boxes,
     CameraCalibration,
     CameraImage,
+    CameraLabels,
     CameraTruth,
     Frame,
     LidarSweep,
 )
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 TRUTH_MAPS = ("depth", "semantic", "instance", "flow")
 
 
@@ -42,11 +43,13 @@ class CacheContents:
         camera_truth: exact per-pixel truth maps to store, any of depth, semantic, instance, flow.
         lidar: store the LiDAR sweep.
         lidar_truth: store per-point truth class and instance (sources that have them).
+        camera_labels: store the dataset's human per-pixel labels (Waymo panoptic), where present.
     """
 
     camera_truth: tuple[str, ...] = TRUTH_MAPS
     lidar: bool = True
     lidar_truth: bool = True
+    camera_labels: bool = True
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "camera_truth", tuple(self.camera_truth))
@@ -61,6 +64,8 @@ class CacheContents:
             return group.removeprefix("truth_") in self.camera_truth
         if group == "lidar_truth":
             return self.lidar and self.lidar_truth
+        if group == "camera_labels":
+            return self.camera_labels
         raise ValueError(f"unknown column group {group!r}")
 
 
@@ -104,6 +109,23 @@ class CameraColumns:
     world_from_ego: list = col(
         _f64(16), "row-major 4x4 ego pose at this image's capture time", "m", "world<-ego"
     )
+    readout_direction: str = col(
+        pa.string(),
+        "shutter readout: global, top_to_bottom, left_to_right, bottom_to_top, right_to_left or unknown",
+    )
+    trigger_micros: int = col(
+        pa.int64(), "when the sensor was triggered, null if unknown", "microseconds", nullable=True
+    )
+    shutter_micros: float = col(pa.float64(), "exposure time of each line", "microseconds")
+    readout_micros: float = col(
+        pa.float64(), "time from the first to the last line's readout", "microseconds"
+    )
+    velocity_world_mps: list = col(
+        _f64(3), "ego velocity at the capture time, null if unknown", "m/s", "world", nullable=True
+    )
+    angular_velocity_world_radps: list = col(
+        _f64(3), "ego angular velocity at the capture time, null if unknown", "rad/s", "world", nullable=True
+    )
     image_format: str = col(pa.string(), "encoding of `image`: jpeg or png", nullable=True)
     image: bytes = col(pa.binary(), "the image as stored (RGB), null if the frame has none", nullable=True)
     truth_depth_png: bytes = col(
@@ -138,6 +160,22 @@ class CameraColumns:
         "truth_flow",
         True,
     )
+    label_semantic_png: bytes = col(
+        pa.binary(),
+        "the dataset's human class labels (unified taxonomy), 8-bit PNG, 255 = unlabelled; null if none",
+        "",
+        "",
+        "camera_labels",
+        True,
+    )
+    label_instance_png: bytes = col(
+        pa.binary(),
+        "the dataset's human instance labels, 16-bit PNG, 0 = none; null if none",
+        "",
+        "",
+        "camera_labels",
+        True,
+    )
 
 
 @dataclass
@@ -156,6 +194,14 @@ class LidarColumns:
         pa.list_(pa.int32()), "measurement time minus timestamp_micros", "microseconds"
     )
     lidar_id: list = col(pa.list_(pa.uint8()), "which LiDAR measured the point (0 = the first)")
+    elongation: list = col(
+        pa.list_(pa.float32()),
+        "pulse elongation per point (Waymo), null if the source has none",
+        nullable=True,
+    )
+    return_index: list = col(
+        pa.list_(pa.uint8()), "0 = first (strongest) return, 1 = second; null = all first", nullable=True
+    )
     truth_semantic: list = col(pa.list_(pa.uint8()), "exact class per point", "", "", "lidar_truth", True)
     truth_instance: list = col(
         pa.list_(pa.uint16()), "exact instance id per point, 0 = none", "", "", "lidar_truth", True
@@ -170,7 +216,16 @@ class BoxColumns:
     center_world: list = col(_f64(3), "box centre", "m", "world")
     size_lwh: list = col(_f64(3), "length (along heading), width, height", "m")
     yaw_world: float = col(pa.float64(), "heading about +z in [-pi, pi)", "rad", "world")
+    orientation_world: list = col(
+        _f64(4),
+        "w, x, y, z quaternion world<-box (yaw only unless the dataset tilts boxes)",
+        "",
+        "world<-box",
+    )
     velocity_world: list = col(_f64(3), "velocity of the box centre", "m/s", "world")
+    acceleration_world: list = col(
+        _f64(3), "acceleration of the box centre, NaN if unknown", "m/s^2", "world"
+    )
     status: str = col(pa.string(), "annotated, interpolated or extrapolated")
     instance_id: int = col(pa.uint16(), "id in instance maps, 0 if none")
     num_lidar_points: int = col(pa.int32(), "LiDAR points on the object in this frame's sweep, -1 if unknown")
@@ -182,6 +237,9 @@ class FrameColumns:
     source: str = col(pa.string(), "source dataset: synthetic, waymo or nuscenes")
     frame_index: int = col(pa.int32(), "0-based position of the frame in its scene")
     frame_timestamp_micros: int = col(pa.int64(), "frame reference time (the LiDAR sweep's)", "microseconds")
+    source_timestamp_micros: int = col(
+        pa.int64(), "the frame's timestamp as its dataset keys it (Waymo: start of the scan)", "microseconds"
+    )
     world_from_ego: list = col(
         _f64(16), "row-major 4x4 ego pose at frame_timestamp_micros", "m", "world<-ego"
     )
@@ -224,8 +282,12 @@ def frame_schema(
 def _array(t: pa.DataType, values: Any) -> pa.Array:
     """An Arrow array of type ``t`` from numpy-friendly values (one entry per row)."""
     if pa.types.is_fixed_size_list(t):
+        mask = None
+        if isinstance(values, list) and any(v is None for v in values):
+            mask = pa.array([v is None for v in values])
+            values = [np.zeros(t.list_size) if v is None else v for v in values]
         flat = np.ascontiguousarray(values, dtype=t.value_type.to_pandas_dtype()).reshape(-1)
-        return pa.FixedSizeListArray.from_arrays(pa.array(flat, t.value_type), t.list_size)
+        return pa.FixedSizeListArray.from_arrays(pa.array(flat, t.value_type), t.list_size, mask=mask)
     if pa.types.is_list(t) and not pa.types.is_struct(t.value_type):
         parts = [np.asarray(v, dtype=t.value_type.to_pandas_dtype()).reshape(-1) for v in values]
         offsets = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int32)
@@ -269,12 +331,24 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
         "distortion": np.array([c.calibration.distortion for c in cams]).reshape(len(cams), 5),
         "ego_from_camera": np.array([c.calibration.ego_from_camera for c in cams]).reshape(len(cams), 16),
         "world_from_ego": np.array([c.world_from_ego for c in cams]).reshape(len(cams), 16),
+        "readout_direction": [c.calibration.readout_direction for c in cams],
+        "trigger_micros": [c.trigger_micros for c in cams],
+        "shutter_micros": [c.shutter_micros for c in cams],
+        "readout_micros": [c.readout_micros for c in cams],
+        "velocity_world_mps": [c.velocity_world_mps for c in cams],
+        "angular_velocity_world_radps": [c.angular_velocity_world_radps for c in cams],
         "image_format": [c.image_format if c.image_bytes is not None else None for c in cams],
         "image": [c.image_bytes for c in cams],
         "truth_depth_png": truth_png("truth_depth_png", codec.encode_depth, "depth_m"),
         "truth_semantic_png": truth_png("truth_semantic_png", codec.encode_semantic, "semantic"),
         "truth_instance_png": truth_png("truth_instance_png", codec.encode_instance, "instance"),
         "truth_flow_png": truth_png("truth_flow_png", codec.encode_flow, "flow_world_mps"),
+        "label_semantic_png": None
+        if "label_semantic_png" not in cam_names
+        else [None if c.labels is None else codec.encode_semantic(c.labels.semantic) for c in cams],
+        "label_instance_png": None
+        if "label_instance_png" not in cam_names
+        else [None if c.labels is None else codec.encode_instance(c.labels.instance) for c in cams],
     }
     b = frame.boxes
     boxes = {
@@ -285,6 +359,8 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
         "size_lwh": b.size_lwh,
         "yaw_world": b.yaw_world,
         "velocity_world": b.velocity_world,
+        "acceleration_world": b.acceleration_world,
+        "orientation_world": b.orientation_world,
         "status": b.status_names(),
         "instance_id": b.instance_id,
         "num_lidar_points": b.num_lidar_points,
@@ -294,6 +370,7 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
         "source": pa.array([source], pa.string()),
         "frame_index": pa.array([frame.frame_index], pa.int32()),
         "frame_timestamp_micros": pa.array([frame.timestamp_micros], pa.int64()),
+        "source_timestamp_micros": pa.array([frame.source_timestamp_micros], pa.int64()),
         "world_from_ego": _array(schema.field("world_from_ego").type, frame.world_from_ego.reshape(1, 16)),
         "cameras": _list_of_struct(cam_type, cameras, len(cams)),
         "boxes": _list_of_struct(schema.field("boxes").type, boxes, len(b)),
@@ -315,6 +392,8 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
                 "lidar_id": [s.lidar_id],
                 "truth_semantic": None if s.semantic is None else [s.semantic],
                 "truth_instance": None if s.instance is None else [s.instance],
+                "elongation": None if s.elongation is None else [s.elongation],
+                "return_index": None if s.return_index is None else [s.return_index],
             }
             arrays["lidar"] = _struct(lt, lidar, 1)
     return pa.RecordBatch.from_arrays([arrays[name] for name in schema.names], schema=schema)
@@ -342,7 +421,7 @@ def row_to_frame(batch: pa.RecordBatch, row: int = 0, decode_truth: bool = True)
     """Rebuilds the :class:`Frame` record of one row (truth maps decoded if ``decode_truth``)."""
     scalar = {
         name: batch.column(name)[row].as_py()
-        for name in ("scene_id", "frame_index", "frame_timestamp_micros")
+        for name in ("scene_id", "frame_index", "frame_timestamp_micros", "source_timestamp_micros")
     }
     world_from_ego = _mat(batch.column("world_from_ego").slice(row, 1), 1, (4, 4))[0]
     cf = cameras_of(batch, row)
@@ -356,11 +435,30 @@ def row_to_frame(batch: pa.RecordBatch, row: int = 0, decode_truth: bool = True)
     times = cf["timestamp_micros"].to_pylist()
     images = cf["image"].to_pylist()
     formats = cf["image_format"].to_pylist()
+    readout = cf["readout_direction"].to_pylist()
+    triggers = cf["trigger_micros"].to_pylist()
+    shutters, readouts = cf["shutter_micros"].to_pylist(), cf["readout_micros"].to_pylist()
+    velocities = cf["velocity_world_mps"].to_pylist()
+    angular = cf["angular_velocity_world_radps"].to_pylist()
     cameras = []
     for i in range(n_cam):
-        cal = CameraCalibration(names[i], widths[i], heights[i], intr[i], dist[i], e_from_c[i])
-        truth = _camera_truth(cf, i, heights[i], widths[i]) if decode_truth else None
-        cameras.append(CameraImage(cal, times[i], w_from_e[i], images[i], formats[i] or "jpeg", truth))
+        cal = CameraCalibration(names[i], widths[i], heights[i], intr[i], dist[i], e_from_c[i], readout[i])
+        cameras.append(
+            CameraImage(
+                cal,
+                times[i],
+                w_from_e[i],
+                images[i],
+                formats[i] or "jpeg",
+                truth=_camera_truth(cf, i, heights[i], widths[i]) if decode_truth else None,
+                labels=_camera_labels(cf, i) if decode_truth else None,
+                trigger_micros=triggers[i],
+                shutter_micros=shutters[i],
+                readout_micros=readouts[i],
+                velocity_world_mps=None if velocities[i] is None else np.array(velocities[i]),
+                angular_velocity_world_radps=None if angular[i] is None else np.array(angular[i]),
+            )
+        )
     lidar = None
     if "lidar" in batch.schema.names and batch.column("lidar")[row].is_valid:
         lidar = _lidar(_fields(batch.column("lidar").slice(row, 1)))
@@ -373,7 +471,19 @@ def row_to_frame(batch: pa.RecordBatch, row: int = 0, decode_truth: bool = True)
         cameras=cameras,
         lidar=lidar,
         boxes=boxes,
+        source_timestamp_micros=scalar["source_timestamp_micros"],
     )
+
+
+def _camera_labels(cf: dict[str, pa.Array], i: int) -> CameraLabels | None:
+    if "label_semantic_png" not in cf:
+        return None
+    sem, inst = cf["label_semantic_png"][i].as_py(), cf["label_instance_png"][i].as_py()
+    if sem is None:
+        return None
+    semantic = codec.decode_semantic(sem)
+    instance = codec.decode_instance(inst) if inst is not None else np.zeros(semantic.shape, np.uint16)
+    return CameraLabels(semantic, instance)
 
 
 def _camera_truth(cf: dict[str, pa.Array], i: int, h: int, w: int) -> CameraTruth | None:
@@ -398,6 +508,7 @@ def _flat(arr: pa.Array, dtype: type) -> np.ndarray:
 def _lidar(lf: dict[str, pa.Array]) -> LidarSweep:
     sem = lf.get("truth_semantic")
     inst = lf.get("truth_instance")
+    elong, ret = lf["elongation"], lf["return_index"]
     return LidarSweep(
         timestamp_micros=lf["timestamp_micros"][0].as_py(),
         world_from_ego=_mat(lf["world_from_ego"], 1, (4, 4))[0],
@@ -409,6 +520,8 @@ def _lidar(lf: dict[str, pa.Array]) -> LidarSweep:
         lidar_id=_flat(lf["lidar_id"], np.uint8),
         semantic=None if sem is None or sem.null_count else _flat(sem, np.uint8),
         instance=None if inst is None or inst.null_count else _flat(inst, np.uint16),
+        elongation=None if elong.null_count else _flat(elong, np.float32),
+        return_index=None if ret.null_count else _flat(ret, np.uint8),
     )
 
 
@@ -422,6 +535,8 @@ def _boxes(bf: dict[str, pa.Array]) -> Boxes:
         size_lwh=_mat(bf["size_lwh"], m, (3,)),
         yaw_world=bf["yaw_world"].to_numpy(zero_copy_only=False).astype(np.float64),
         velocity_world=_mat(bf["velocity_world"], m, (3,)),
+        acceleration_world=_mat(bf["acceleration_world"], m, (3,)),
+        orientation_world=_mat(bf["orientation_world"], m, (4,)),
         status=np.array([status_index[s] for s in bf["status"].to_pylist()], np.uint8),
         instance_id=bf["instance_id"].to_numpy(zero_copy_only=False).astype(np.uint16),
         num_lidar_points=bf["num_lidar_points"].to_numpy(zero_copy_only=False).astype(np.int32),

@@ -22,7 +22,7 @@ class Source(Protocol):
     def arguments(self) -> dict[str, Any]: ...
 
 
-SOURCE_NAMES = ("synthetic",)
+SOURCE_NAMES = ("synthetic", "waymo")
 
 
 def make_source(name: str, params: dict[str, Any]) -> Source:
@@ -31,4 +31,8 @@ def make_source(name: str, params: dict[str, Any]) -> Source:
         from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticSource
 
         return SyntheticSource(SyntheticConfig.from_dict(params))
+    if name == "waymo":
+        from phigenesis.data.sources.waymo import WaymoConfig, WaymoSource
+
+        return WaymoSource(WaymoConfig.from_dict(params))
     raise ValueError(f"unknown source {name!r}; available: {', '.join(SOURCE_NAMES)}")

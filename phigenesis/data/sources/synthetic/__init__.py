@@ -172,6 +172,11 @@ class SyntheticScene:
         """Exact (4, 4) ego pose at any time."""
         return self.world.world_from_ego(self.seconds(timestamp_micros))
 
+    def world_from_ego_many(self, timestamps_micros: np.ndarray) -> np.ndarray:
+        """Exact (N, 4, 4) ego poses at N times."""
+        t = (np.asarray(timestamps_micros, np.int64) - self.config.start_micros) * 1e-6
+        return self.world.world_from_ego(t)
+
     def boxes_at(self, timestamp_micros: int, range_m: float | None = None) -> Boxes:
         """Exact boxes at any time (all agents, or those within ``range_m`` of the ego)."""
         return self.world.boxes_at(self.seconds(timestamp_micros), range_m)
@@ -187,6 +192,12 @@ class SyntheticScene:
         return int(frame_micros + round((fraction - 0.5) * self.spin_period_s * 1e6))
 
     def render_frame(self, frame_index: int) -> Frame:
+        """Frame ``frame_index`` with its images, LiDAR sweep, boxes and exact truth."""
+        return self.render_frame_and_lidar(frame_index)[0]
+
+    def render_frame_and_lidar(self, frame_index: int) -> tuple[Frame, dict[str, np.ndarray]]:
+        """The frame, and its LiDAR sweep as the renderer returned it (with each point's beam,
+        column and measured range: what a range-image writer needs)."""
         cfg = self.config
         t_micros = self.frame_micros[frame_index]
         world_from_ego = self.world_from_ego(t_micros)
@@ -206,12 +217,13 @@ class SyntheticScene:
                     truth=truth,
                 )
             )
-        lidar = self._lidar(t_micros, world_from_ego, rng)
+        raw = self.renderer.render_lidar(cfg.lidar, t_micros, cfg.start_micros, self.spin_period_s, rng)
+        lidar = self._lidar(raw, t_micros, world_from_ego)
         boxes = self.boxes_at(t_micros, cfg.box_range_m)
         if lidar.instance is not None and len(boxes):
             counts = np.bincount(lidar.instance, minlength=int(boxes.instance_id.max()) + 1)
             boxes.num_lidar_points = counts[boxes.instance_id].astype(np.int32)
-        return Frame(
+        frame = Frame(
             scene_id=self.scene_id,
             frame_index=frame_index,
             timestamp_micros=t_micros,
@@ -220,11 +232,9 @@ class SyntheticScene:
             lidar=lidar,
             boxes=boxes,
         )
+        return frame, raw
 
-    def _lidar(self, t_micros: int, world_from_ego: np.ndarray, rng: np.random.Generator) -> LidarSweep:
-        raw = self.renderer.render_lidar(
-            self.config.lidar, t_micros, self.config.start_micros, self.spin_period_s, rng
-        )
+    def _lidar(self, raw: dict[str, np.ndarray], t_micros: int, world_from_ego: np.ndarray) -> LidarSweep:
         ego_from_world = geometry.invert_transform(world_from_ego)
         return LidarSweep(
             timestamp_micros=t_micros,

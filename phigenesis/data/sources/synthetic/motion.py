@@ -234,6 +234,14 @@ class Trajectory:
         yaw = geometry.wrap_angle(heading + self.yaw_offset_rad)
         return pos, yaw, vel, v * kappa
 
+    def acceleration(self, t_s: ArrayLike) -> F64:
+        """Acceleration ``(..., 3)`` of the centre, m/s^2: along the path plus centripetal."""
+        s, v, a = self.speed.state(t_s)
+        _, heading, kappa = self.path.pose(s)
+        c, sn = np.cos(heading), np.sin(heading)
+        normal = v * v * kappa
+        return np.stack([a * c - normal * sn, a * sn + normal * c, np.zeros_like(v)], axis=-1)
+
     def world_from_body(self, t_s: ArrayLike) -> F64:
         """(..., 4, 4) pose of the body frame (x forward, z up, origin at the box centre)."""
         pos, yaw, _, _ = self.state(t_s)

@@ -261,8 +261,10 @@ class Renderer:
         """One LiDAR revolution centred on the frame time, as arrays of the returned points.
 
         Returns a dict with ``points_world`` (N, 3) float64, ``origins_world`` (N, 3),
-        ``time_micros`` (N,) int64, ``beam`` (N,) uint16, ``intensity`` (N,) float32,
-        ``semantic`` (N,) uint8, ``instance`` (N,) uint16.
+        ``time_micros`` (N,) int64, ``beam`` (N,) uint16, ``column`` (N,) uint16 (azimuth step),
+        ``range_m`` (N,) float64 measured range, ``intensity`` (N,) float32, ``semantic`` (N,)
+        uint8, ``instance`` (N,) uint16; and ``sector_micros`` (sectors,) int64 with
+        ``sector_of_column`` (columns,) int64 (when each column was measured).
         """
         incl = spec.inclinations_rad()
         az = spec.column_azimuths_rad()
@@ -310,7 +312,12 @@ class Renderer:
         p_loss = 0.5 * np.exp(-25.0 * intensity / (1.0 + (np.where(keep, hits.t, 0.0) / 40.0) ** 2))
         keep &= rng.uniform(size=len(dirs)) >= p_loss
         beam = np.repeat(np.arange(beams, dtype=np.uint16), cols)
+        column = np.tile(np.arange(cols, dtype=np.uint16), beams)
         return {
+            "column": column[keep],
+            "range_m": rng_range[keep],
+            "sector_micros": sector_micros,
+            "sector_of_column": sector_of_col,
             "points_world": origins[keep] + dirs[keep] * rng_range[keep, None],
             "origins_world": origins[keep],
             "time_micros": sector_micros[ray_sector[keep]],

@@ -18,9 +18,7 @@ from phigenesis.data.records import CameraCalibration
 RigName = Literal["waymo5", "nuscenes6"]
 RIG_NAMES: tuple[RigName, ...] = ("waymo5", "nuscenes6")
 
-#: OpenCV camera axes expressed in a "looking along +x" body frame (x fwd, y left, z up):
-#: camera x (right) = -y, camera y (down) = -z, camera z (forward) = +x.
-BODY_FROM_OPENCV = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=np.float64)
+BODY_FROM_OPENCV = geometry.BODY_FROM_OPENCV
 
 
 @dataclass(frozen=True)

@@ -97,7 +97,7 @@ class World:
     def boxes_at(self, t_s: float, range_m: float | None = None) -> Boxes:
         """Exact boxes of all agents at ``t_s`` (within ``range_m`` of the ego, if given)."""
         ego_xy = self.ego.state(t_s)[0][:2]
-        keep, centers, yaws, vels = [], [], [], []
+        keep, centers, yaws, vels, accels = [], [], [], [], []
         for agent in self.agents:
             pos, yaw, vel, _ = agent.trajectory.state(t_s)
             if range_m is not None and np.hypot(*(pos[:2] - ego_xy)) > range_m:
@@ -106,6 +106,7 @@ class World:
             centers.append(pos)
             yaws.append(float(yaw))
             vels.append(vel)
+            accels.append(agent.trajectory.acceleration(t_s))
         m = len(keep)
         return Boxes(
             track_id=[a.track_id for a in keep],
@@ -117,6 +118,7 @@ class World:
             status=np.zeros(m, np.uint8),
             instance_id=np.array([a.instance_id for a in keep], np.uint16),
             num_lidar_points=np.full(m, -1, np.int32),
+            acceleration_world=np.array(accels).reshape(m, 3),
         )
 
 

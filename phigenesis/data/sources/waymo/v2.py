@@ -1,0 +1,947 @@
+"""Waymo Open Dataset v2 (Parquet) reader and writer, with pyarrow only.
+
+Layout: ``{root}/{component_tag}/{segment_context_name}.parquet``. Key columns are ``key.<field>``,
+data columns ``[ComponentClass].<path>`` (see ``shared/reference/waymo.md`` section 4). Frames read
+into and write from the records of :mod:`.raw`, which keep Waymo's own frames and units: 4x4 float64
+``target_from_source`` transforms, ``global`` = Waymo's world frame, ``vehicle`` = Waymo's ego frame,
+metres, radians, seconds since the epoch for camera times and microseconds for frame timestamps.
+
+Reading is frame by frame: :class:`V2Segment` indexes the timestamp column of each component once,
+then reads only the row groups that hold the requested frame (the most recent ones are kept), so a
+sequential pass reads each row group once. Real files differ from the declared schema; the reader
+accepts float32 or float64 transforms (fixed-size or plain lists) and camera / LiDAR names stored as
+integer codes or as strings such as ``"FRONT"``.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections import Counter, OrderedDict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+from numpy.typing import NDArray
+
+from phigenesis.data.sources.waymo.raw import (
+    CAMERA_CODES,
+    CAMERA_NAMES,
+    LASER_CODES,
+    LASER_NAMES,
+    RawCameraCalibration,
+    RawCameraImage,
+    RawFrame,
+    RawLabels,
+    RawLaser,
+    RawLaserCalibration,
+    RawProjectedBoxes,
+    WaymoFormatError,
+)
+
+#: Component tags (folder names) this module reads and writes.
+V2_COMPONENTS: tuple[str, ...] = (
+    "vehicle_pose",
+    "camera_calibration",
+    "lidar_calibration",
+    "camera_image",
+    "camera_segmentation",
+    "lidar",
+    "lidar_pose",
+    "lidar_box",
+    "projected_lidar_box",
+    "stats",
+)
+#: Number of frames per row group that :func:`write_v2` writes by default.
+FRAMES_PER_ROW_GROUP = 10
+
+_CLASS = {
+    "vehicle_pose": "VehiclePoseComponent",
+    "camera_calibration": "CameraCalibrationComponent",
+    "lidar_calibration": "LiDARCalibrationComponent",
+    "camera_image": "CameraImageComponent",
+    "camera_segmentation": "CameraSegmentationLabelComponent",
+    "lidar": "LiDARComponent",
+    "lidar_pose": "LiDARPoseComponent",
+    "lidar_box": "LiDARBoxComponent",
+    "projected_lidar_box": "ProjectedLiDARBoxComponent",
+    "stats": "StatsComponent",
+}
+_STATIC = ("camera_calibration", "lidar_calibration")
+_SEG = "key.segment_context_name"
+_TS = "key.frame_timestamp_micros"
+_CAM = "key.camera_name"
+_LASER = "key.laser_name"
+_OBJ = "key.laser_object_id"
+_INTRINSICS = ("f_u", "f_v", "c_u", "c_v", "k1", "k2", "p1", "p2", "k3")
+_XYZ = ("x", "y", "z")
+_MAPPING = "instance_id_to_global_id_mapping"
+_CACHED_ROW_GROUPS = 2
+
+
+def _c(tag: str, field: str) -> str:
+    """The data column ``[ComponentClass].field`` of component ``tag``."""
+    return f"[{_CLASS[tag]}].{field}"
+
+
+# ----------------------------------------------------------------------------------------------
+# Declared schema
+
+
+@dataclass(frozen=True)
+class _Style:
+    """How names and transforms are typed on write (declared schema or the real-file quirks)."""
+
+    names_as_strings: bool = False
+    transforms_float32: bool = False
+
+    @property
+    def name_type(self) -> pa.DataType:
+        return pa.string() if self.names_as_strings else pa.int8()
+
+    @property
+    def transform_type(self) -> pa.DataType:
+        return pa.list_(pa.float32() if self.transforms_float32 else pa.float64(), 16)
+
+
+def _range_image_fields(tag: str, returns: tuple[int, ...]) -> list[tuple[str, pa.DataType]]:
+    fields = []
+    for r in returns:
+        fields.append((_c(tag, f"range_image_return{r}.values"), pa.list_(pa.float32())))
+        fields.append((_c(tag, f"range_image_return{r}.shape"), pa.list_(pa.int32(), 3)))
+    return fields
+
+
+def _schema(tag: str, style: _Style) -> pa.Schema:
+    """The declared Arrow schema of component ``tag`` (names and transforms typed by ``style``)."""
+    f64, name, tf = pa.float64(), style.name_type, style.transform_type
+    frame_key = [(_SEG, pa.string()), (_TS, pa.int64())]
+    fields: list[tuple[str, pa.DataType]]
+    if tag == "vehicle_pose":
+        fields = [*frame_key, (_c(tag, "world_from_vehicle.transform"), tf)]
+    elif tag == "camera_calibration":
+        fields = [(_SEG, pa.string()), (_CAM, name)]
+        fields += [(_c(tag, f"intrinsic.{k}"), f64) for k in _INTRINSICS]
+        fields += [
+            (_c(tag, "extrinsic.transform"), tf),
+            (_c(tag, "width"), pa.int32()),
+            (_c(tag, "height"), pa.int32()),
+            (_c(tag, "rolling_shutter_direction"), pa.int8()),
+        ]
+    elif tag == "lidar_calibration":
+        fields = [
+            (_SEG, pa.string()),
+            (_LASER, name),
+            (_c(tag, "extrinsic.transform"), tf),
+            (_c(tag, "beam_inclination.min"), f64),
+            (_c(tag, "beam_inclination.max"), f64),
+            (_c(tag, "beam_inclination.values"), pa.list_(f64)),
+        ]
+    elif tag == "camera_image":
+        fields = [*frame_key, (_CAM, name), (_c(tag, "image"), pa.binary()), (_c(tag, "pose.transform"), tf)]
+        fields += [(_c(tag, f"velocity.linear_velocity.{a}"), pa.float32()) for a in _XYZ]
+        fields += [(_c(tag, f"velocity.angular_velocity.{a}"), f64) for a in _XYZ]
+        fields += [(_c(tag, "pose_timestamp"), f64)]
+        fields += [
+            (_c(tag, f"rolling_shutter_params.{k}"), f64)
+            for k in ("shutter", "camera_trigger_time", "camera_readout_done_time")
+        ]
+    elif tag == "camera_segmentation":
+        fields = [
+            *frame_key,
+            (_CAM, name),
+            (_c(tag, "panoptic_label_divisor"), pa.int32()),
+            (_c(tag, "panoptic_label"), pa.binary()),
+            (_c(tag, f"{_MAPPING}.local_instance_ids"), pa.list_(pa.int32())),
+            (_c(tag, f"{_MAPPING}.global_instance_ids"), pa.list_(pa.int32())),
+            (_c(tag, f"{_MAPPING}.is_tracked"), pa.list_(pa.bool_())),
+            (_c(tag, "sequence_id"), pa.string()),
+            (_c(tag, "num_cameras_covered"), pa.binary()),
+        ]
+    elif tag == "lidar":
+        fields = [*frame_key, (_LASER, name), *_range_image_fields(tag, (1, 2))]
+    elif tag == "lidar_pose":
+        fields = [*frame_key, (_LASER, name), *_range_image_fields(tag, (1,))]
+    elif tag == "lidar_box":
+        fields = [*frame_key, (_OBJ, pa.string())]
+        fields += [(_c(tag, f"box.center.{a}"), f64) for a in _XYZ]
+        fields += [(_c(tag, f"box.size.{a}"), f64) for a in _XYZ]
+        fields += [
+            (_c(tag, "box.heading"), f64),
+            (_c(tag, "type"), pa.int8()),
+            (_c(tag, "num_lidar_points_in_box"), pa.int64()),
+            (_c(tag, "num_top_lidar_points_in_box"), pa.int64()),
+        ]
+        fields += [(_c(tag, f"{v}.{a}"), f64) for v in ("speed", "acceleration") for a in _XYZ]
+        fields += [(_c(tag, f"difficulty_level.{k}"), pa.int8()) for k in ("detection", "tracking")]
+    elif tag == "projected_lidar_box":
+        fields = [*frame_key, (_CAM, name), (_OBJ, pa.string())]
+        fields += [(_c(tag, f"box.{p}.{a}"), f64) for p in ("center", "size") for a in ("x", "y")]
+        fields += [(_c(tag, "type"), pa.int8())]
+    elif tag == "stats":
+        fields = [*frame_key] + [(_c(tag, k), pa.string()) for k in ("time_of_day", "location", "weather")]
+        for counts in ("lidar_object_counts", "camera_object_counts"):
+            fields += [
+                (_c(tag, f"{counts}.types"), pa.list_(pa.int8())),
+                (_c(tag, f"{counts}.counts"), pa.list_(pa.int32())),
+            ]
+    else:
+        raise ValueError(f"unknown Waymo v2 component {tag!r}")
+    return pa.schema(fields)
+
+
+#: Columns the reader may do without (filled with None / defaults when absent).
+_OPTIONAL_COLUMNS = frozenset(
+    {
+        _c("lidar", "range_image_return2.values"),
+        _c("lidar", "range_image_return2.shape"),
+        _c("lidar_box", "num_top_lidar_points_in_box"),
+        _c("stats", "time_of_day"),
+        _c("stats", "location"),
+        _c("stats", "weather"),
+    }
+)
+#: Columns of the declared schema that the reader does not use.
+_UNUSED_COLUMNS = frozenset(
+    {
+        _SEG,
+        _c("lidar_box", "difficulty_level.detection"),
+        _c("lidar_box", "difficulty_level.tracking"),
+        _c("camera_segmentation", f"{_MAPPING}.is_tracked"),
+        _c("camera_segmentation", "sequence_id"),
+        _c("camera_segmentation", "num_cameras_covered"),
+        *(
+            _c("stats", f"{k}.{v}")
+            for k in ("lidar_object_counts", "camera_object_counts")
+            for v in ("types", "counts")
+        ),
+    }
+)
+
+
+def _read_columns(tag: str) -> tuple[list[str], list[str]]:
+    """(required, optional) columns the reader uses from component ``tag``."""
+    names = [n for n in _schema(tag, _Style()).names if n not in _UNUSED_COLUMNS]
+    return [n for n in names if n not in _OPTIONAL_COLUMNS], [n for n in names if n in _OPTIONAL_COLUMNS]
+
+
+# ----------------------------------------------------------------------------------------------
+# Root and segment discovery
+
+
+def is_v2_root(path: Path) -> bool:
+    """Whether ``path`` is a directory holding a ``vehicle_pose/`` component folder."""
+    path = Path(path)
+    return path.is_dir() and (path / "vehicle_pose").is_dir()
+
+
+def _check_root(root: Path) -> list[str]:
+    """The component tags present in ``root``; raises if the root or a required folder is missing."""
+    if not root.is_dir():
+        raise WaymoFormatError(f"{root}: Waymo v2 root does not exist or is not a directory")
+    present = [tag for tag in V2_COMPONENTS if (root / tag).is_dir()]
+    if not present:
+        raise WaymoFormatError(
+            f"{root}: no Waymo v2 component folders (expected some of {', '.join(V2_COMPONENTS)})"
+        )
+    required = ["vehicle_pose", "camera_calibration"]
+    if "lidar" in present:
+        required += ["lidar_calibration", "lidar_pose"]
+    for tag in required:
+        if tag not in present:
+            raise WaymoFormatError(f"{root}: required component folder {tag}/ is missing")
+    return present
+
+
+def list_segments(root: Path) -> list[str]:
+    """Sorted segment context names of a v2 root (the file stems in ``vehicle_pose/``)."""
+    root = Path(root)
+    _check_root(root)
+    return sorted(p.stem for p in (root / "vehicle_pose").glob("*.parquet"))
+
+
+# ----------------------------------------------------------------------------------------------
+# Column conversion (Arrow -> numpy)
+
+
+def _column(table: pa.Table, name: str) -> pa.Array:
+    col = table.column(name).combine_chunks()
+    return pc.dictionary_decode(col) if pa.types.is_dictionary(col.type) else col
+
+
+def _floats(table: pa.Table, name: str, fill: float = np.nan) -> NDArray[np.float64]:
+    """Column ``name`` as float64 (nulls -> ``fill``)."""
+    col = pc.fill_null(pc.cast(_column(table, name), pa.float64()), fill)
+    return col.to_numpy(zero_copy_only=False)
+
+
+def _ints(table: pa.Table, name: str, fill: int = -1) -> NDArray[np.int64]:
+    """Column ``name`` as int64 (nulls -> ``fill``); ``fill`` for every row when it is absent."""
+    if name not in table.column_names:
+        return np.full(table.num_rows, fill, np.int64)
+    return pc.fill_null(pc.cast(_column(table, name), pa.int64()), fill).to_numpy(zero_copy_only=False)
+
+
+def _name_codes(table: pa.Table, name: str, codes: dict[str, int], where: Path) -> NDArray[np.int32]:
+    """Camera / LiDAR name column as int32 codes, whether stored as integers or as names."""
+    col = _column(table, name)
+    if pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
+        values = col.to_pylist()
+        unknown = sorted({v for v in values if v not in codes}, key=str)
+        if unknown:
+            raise WaymoFormatError(f"{where}: column {name} has unknown names {unknown}")
+        return np.array([codes[v] for v in values], np.int32)
+    if col.null_count:
+        raise WaymoFormatError(f"{where}: column {name} has null entries")
+    return col.cast(pa.int32()).to_numpy(zero_copy_only=False)
+
+
+def _list_values(table: pa.Table, name: str) -> list[NDArray[Any] | None]:
+    """Each row of list column ``name`` as a 1-D array (None for null rows)."""
+    col = _column(table, name)
+    if not (pa.types.is_list(col.type) or pa.types.is_large_list(col.type)):
+        col = col.cast(pa.list_(col.type.value_type))
+    flat = pc.list_flatten(col).to_numpy(zero_copy_only=False)
+    lengths = pc.fill_null(pc.list_value_length(col), 0).to_numpy(zero_copy_only=False)
+    valid = col.is_valid().to_numpy(zero_copy_only=False)
+    parts = np.split(flat, np.cumsum(lengths)[:-1]) if len(col) else []
+    return [p if ok else None for p, ok in zip(parts, valid, strict=True)]
+
+
+def _transforms(table: pa.Table, name: str, where: Path) -> NDArray[np.float64]:
+    """(N, 4, 4) float64 from a column of 16 row-major values (fixed-size or plain list)."""
+    col = _column(table, name)
+    if col.null_count:
+        raise WaymoFormatError(f"{where}: column {name} has null transforms")
+    flat = pc.list_flatten(col).to_numpy(zero_copy_only=False).astype(np.float64)
+    if flat.size != 16 * len(col):
+        raise WaymoFormatError(f"{where}: column {name} must hold 16 values per row, got {flat.size}")
+    return flat.reshape(len(col), 4, 4)
+
+
+def _range_images(
+    table: pa.Table, tag: str, ret: int, channels: int, where: Path
+) -> list[NDArray[np.float32] | None]:
+    """Range images ``range_image_return{ret}`` as (H, W, channels) float32 (None if null/absent)."""
+    values_col, shape_col = (
+        _c(tag, f"range_image_return{ret}.values"),
+        _c(tag, f"range_image_return{ret}.shape"),
+    )
+    if values_col not in table.column_names:
+        return [None] * table.num_rows
+    values, shapes = _list_values(table, values_col), _list_values(table, shape_col)
+    out: list[NDArray[np.float32] | None] = []
+    for v, s in zip(values, shapes, strict=True):
+        if v is None or s is None or v.size == 0:
+            out.append(None)
+            continue
+        shape = tuple(int(x) for x in s)
+        if len(shape) != 3 or shape[2] != channels or int(np.prod(shape)) != v.size:
+            raise WaymoFormatError(f"{where}: {values_col} has {v.size} values for shape {list(shape)}")
+        out.append(v.astype(np.float32, copy=False).reshape(shape))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading
+
+
+class _ComponentFile:
+    """One component file of one segment: its timestamp index and a small row-group cache."""
+
+    def __init__(self, tag: str, path: Path, reads: Counter[tuple[str, int]]) -> None:
+        self.tag, self.path, self.reads = tag, path, reads
+        try:
+            self.file = pq.ParquetFile(path)
+        except (pa.ArrowException, OSError) as e:
+            raise WaymoFormatError(f"{path}: not a readable Parquet file ({e})") from e
+        names = set(self.file.schema_arrow.names)
+        required, optional = _read_columns(tag)
+        missing = [c for c in required if c not in names]
+        if missing:
+            raise WaymoFormatError(f"{path}: {tag} is missing column(s) {', '.join(missing)}")
+        self.columns = required + [c for c in optional if c in names]
+        self._cache: OrderedDict[int, pa.Table] = OrderedDict()
+        self.index: dict[int, list[int]] = {} if tag in _STATIC else self._index_frames()
+
+    @property
+    def num_row_groups(self) -> int:
+        return self.file.metadata.num_row_groups
+
+    def _index_frames(self) -> dict[int, list[int]]:
+        """Frame timestamp (us) -> the row groups holding its rows, from the key column alone."""
+        column = self._read(lambda: self.file.read(columns=[_TS])).column(_TS)
+        if column.null_count:
+            raise WaymoFormatError(f"{self.path}: column {_TS} has null entries")
+        ts = column.to_numpy()
+        sizes = [self.file.metadata.row_group(i).num_rows for i in range(self.num_row_groups)]
+        groups = np.repeat(np.arange(len(sizes)), sizes)
+        pairs = np.unique(np.stack([ts.astype(np.int64), groups]), axis=1)
+        index: dict[int, list[int]] = {}
+        for t, g in pairs.T.tolist():
+            index.setdefault(t, []).append(g)
+        return index
+
+    def _read(self, fn: Callable[[], pa.Table]) -> pa.Table:
+        try:
+            return fn()
+        except (pa.ArrowException, OSError) as e:
+            raise WaymoFormatError(f"{self.path}: cannot read {self.tag} ({e})") from e
+
+    def _row_group(self, group: int) -> pa.Table:
+        if group in self._cache:
+            self._cache.move_to_end(group)
+            return self._cache[group]
+        table = self._read(lambda: self.file.read_row_group(group, columns=self.columns))
+        self.reads[(self.tag, group)] += 1
+        self._cache[group] = table
+        while len(self._cache) > _CACHED_ROW_GROUPS:
+            self._cache.popitem(last=False)
+        return table
+
+    def rows(self, timestamp: int) -> pa.Table:
+        """The rows of frame ``timestamp`` (only the used columns), in file order."""
+        groups = self.index.get(timestamp, [])
+        if not groups:
+            return self.file.schema_arrow.empty_table().select(self.columns)
+        tables = [self._row_group(g) for g in groups]
+        table = pa.concat_tables(tables) if len(tables) > 1 else tables[0]
+        return table.filter(pc.equal(table.column(_TS), pa.scalar(timestamp, table.schema.field(_TS).type)))
+
+    def all_rows(self) -> pa.Table:
+        """Every row (for the per-segment calibration components)."""
+        tables = [self._row_group(g) for g in range(self.num_row_groups)]
+        if not tables:
+            return self.file.schema_arrow.empty_table().select(self.columns)
+        return pa.concat_tables(tables)
+
+
+class V2Segment:
+    """One segment of a Waymo v2 root, read frame by frame.
+
+    Construction checks the root and the segment's component files (existence, Parquet footer,
+    expected columns) and indexes the frame timestamps; :meth:`frame` then reads the row groups of
+    one frame. ``row_group_reads`` counts the row groups read, keyed by (component tag, group).
+    """
+
+    def __init__(self, root: Path, segment: str) -> None:
+        self.root, self.segment = Path(root), segment
+        self.row_group_reads: Counter[tuple[str, int]] = Counter()
+        self.files: dict[str, _ComponentFile] = {}
+        for tag in _check_root(self.root):
+            path = self.root / tag / f"{segment}.parquet"
+            if not path.is_file():
+                raise WaymoFormatError(f"segment {segment}: component {tag} has no file (expected {path})")
+            self.files[tag] = _ComponentFile(tag, path, self.row_group_reads)
+        self.timestamps: list[int] = sorted(self.files["vehicle_pose"].index)
+        self._camera_calibrations: list[RawCameraCalibration] | None = None
+        self._laser_calibrations: list[RawLaserCalibration] | None = None
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def frame(self, index: int) -> RawFrame:
+        """Frame ``index`` (in timestamp order) with every component of the root joined on its key."""
+        ts = self.timestamps[index]
+        pose = self.files["vehicle_pose"]
+        return RawFrame(
+            segment=self.segment,
+            timestamp_micros=ts,
+            global_from_vehicle=_transforms(
+                pose.rows(ts), _c("vehicle_pose", "world_from_vehicle.transform"), pose.path
+            )[0],
+            camera_calibrations=self.camera_calibrations(),
+            laser_calibrations=self.laser_calibrations(),
+            images=self._images(ts),
+            lasers=self._lasers(ts),
+            labels=self._labels(ts),
+            projected_boxes=self._projected_boxes(ts),
+            stats=self._stats(ts),
+            where=f"{self.root} segment {self.segment} frame {ts}",
+        )
+
+    def camera_calibrations(self) -> list[RawCameraCalibration]:
+        """The segment's camera calibrations, sorted by camera code (read once)."""
+        if self._camera_calibrations is None:
+            self._camera_calibrations = _read_camera_calibrations(self.files["camera_calibration"])
+        return self._camera_calibrations
+
+    def laser_calibrations(self) -> list[RawLaserCalibration]:
+        """The segment's LiDAR calibrations, sorted by laser code (read once; [] if absent)."""
+        if self._laser_calibrations is None:
+            cal = self.files.get("lidar_calibration")
+            self._laser_calibrations = [] if cal is None else _read_laser_calibrations(cal)
+        return self._laser_calibrations
+
+    def _images(self, ts: int) -> list[RawCameraImage]:
+        file = self.files.get("camera_image")
+        if file is None:
+            return []
+        images = _read_images(file, file.rows(ts))
+        calibrated = {c.name for c in self.camera_calibrations()}
+        for image in images:
+            if image.name not in calibrated:
+                raise WaymoFormatError(
+                    f"{file.path}: camera {CAMERA_NAMES.get(image.name, image.name)} of segment "
+                    f"{self.segment} has an image but no camera_calibration row"
+                )
+        seg = self.files.get("camera_segmentation")
+        if seg is not None:
+            _attach_panoptic(images, seg, seg.rows(ts))
+        return sorted(images, key=lambda im: im.name)
+
+    def _lasers(self, ts: int) -> list[RawLaser]:
+        file = self.files.get("lidar")
+        if file is None:
+            return []
+        lasers = _read_lasers(file, file.rows(ts))
+        pose_file = self.files["lidar_pose"]
+        poses = _read_pixel_poses(pose_file, pose_file.rows(ts))
+        for laser in lasers:
+            laser.pixel_pose = poses.get(laser.name)
+        return sorted(lasers, key=lambda la: la.name)
+
+    def _labels(self, ts: int) -> RawLabels:
+        file = self.files.get("lidar_box")
+        return RawLabels.empty() if file is None else _read_labels(file.rows(ts))
+
+    def _projected_boxes(self, ts: int) -> RawProjectedBoxes:
+        file = self.files.get("projected_lidar_box")
+        return RawProjectedBoxes.empty() if file is None else _read_projected(file, file.rows(ts))
+
+    def _stats(self, ts: int) -> dict[str, str]:
+        file = self.files.get("stats")
+        if file is None:
+            return {}
+        table = file.rows(ts)
+        if table.num_rows == 0:
+            return {}
+        stats = {}
+        for key in ("time_of_day", "location", "weather"):
+            name = _c("stats", key)
+            value = table.column(name)[0].as_py() if name in table.column_names else None
+            if value is not None:
+                stats[key] = value
+        return stats
+
+
+def _read_camera_calibrations(file: _ComponentFile) -> list[RawCameraCalibration]:
+    t, tag = file.all_rows(), "camera_calibration"
+    names = _name_codes(t, _CAM, CAMERA_CODES, file.path)
+    intrinsics = np.stack([_floats(t, _c(tag, f"intrinsic.{k}")) for k in _INTRINSICS], axis=1)
+    extrinsics = _transforms(t, _c(tag, "extrinsic.transform"), file.path)
+    width, height = _ints(t, _c(tag, "width")), _ints(t, _c(tag, "height"))
+    readout = _ints(t, _c(tag, "rolling_shutter_direction"), 0)
+    cals = [
+        RawCameraCalibration(
+            int(names[i]), intrinsics[i], extrinsics[i], int(width[i]), int(height[i]), int(readout[i])
+        )
+        for i in range(t.num_rows)
+    ]
+    return sorted(cals, key=lambda c: c.name)
+
+
+def _read_laser_calibrations(file: _ComponentFile) -> list[RawLaserCalibration]:
+    t, tag = file.all_rows(), "lidar_calibration"
+    names = _name_codes(t, _LASER, LASER_CODES, file.path)
+    extrinsics = _transforms(t, _c(tag, "extrinsic.transform"), file.path)
+    lo, hi = _floats(t, _c(tag, "beam_inclination.min")), _floats(t, _c(tag, "beam_inclination.max"))
+    values = _list_values(t, _c(tag, "beam_inclination.values"))
+    cals = [
+        RawLaserCalibration(
+            int(names[i]),
+            extrinsics[i],
+            None if v is None or v.size == 0 else v.astype(np.float64),
+            float(lo[i]),
+            float(hi[i]),
+        )
+        for i, v in enumerate(values)
+    ]
+    return sorted(cals, key=lambda c: c.name)
+
+
+def _read_images(file: _ComponentFile, t: pa.Table) -> list[RawCameraImage]:
+    tag = "camera_image"
+    names = _name_codes(t, _CAM, CAMERA_CODES, file.path)
+    jpegs = _column(t, _c(tag, "image")).to_pylist()
+    poses = _transforms(t, _c(tag, "pose.transform"), file.path)
+    lin = np.stack([_floats(t, _c(tag, f"velocity.linear_velocity.{a}")) for a in _XYZ], axis=1)
+    ang = np.stack([_floats(t, _c(tag, f"velocity.angular_velocity.{a}")) for a in _XYZ], axis=1)
+    pose_ts = _floats(t, _c(tag, "pose_timestamp"))
+    shutter, trigger, readout = (
+        _floats(t, _c(tag, f"rolling_shutter_params.{k}"))
+        for k in ("shutter", "camera_trigger_time", "camera_readout_done_time")
+    )
+    return [
+        RawCameraImage(
+            name=int(names[i]),
+            jpeg=jpegs[i],
+            global_from_vehicle=poses[i],
+            velocity_linear=lin[i],
+            velocity_angular=ang[i],
+            pose_timestamp=float(pose_ts[i]),
+            shutter=float(shutter[i]),
+            trigger_time=float(trigger[i]),
+            readout_done_time=float(readout[i]),
+        )
+        for i in range(t.num_rows)
+    ]
+
+
+def _attach_panoptic(images: list[RawCameraImage], file: _ComponentFile, t: pa.Table) -> None:
+    """Sets the panoptic label fields of ``images`` from the camera_segmentation rows ``t``."""
+    tag = "camera_segmentation"
+    names = _name_codes(t, _CAM, CAMERA_CODES, file.path)
+    labels = _column(t, _c(tag, "panoptic_label")).to_pylist()
+    divisors = _ints(t, _c(tag, "panoptic_label_divisor"), 0)
+    local = _list_values(t, _c(tag, f"{_MAPPING}.local_instance_ids"))
+    glob = _list_values(t, _c(tag, f"{_MAPPING}.global_instance_ids"))
+    by_camera = {int(n): i for i, n in enumerate(names)}
+    for image in images:
+        i = by_camera.get(image.name)
+        if i is None:
+            continue
+        image.panoptic_label = labels[i]
+        image.panoptic_label_divisor = int(divisors[i])
+        ids_local = [] if local[i] is None else local[i].tolist()
+        ids_global = [] if glob[i] is None else glob[i].tolist()
+        if len(ids_local) != len(ids_global):
+            raise WaymoFormatError(
+                f"{file.path}: {_MAPPING} has {len(ids_local)} local, {len(ids_global)} global ids"
+            )
+        image.instance_to_global = dict(zip(ids_local, ids_global, strict=True))
+
+
+def _read_lasers(file: _ComponentFile, t: pa.Table) -> list[RawLaser]:
+    names = _name_codes(t, _LASER, LASER_CODES, file.path)
+    r1 = _range_images(t, "lidar", 1, 4, file.path)
+    r2 = _range_images(t, "lidar", 2, 4, file.path)
+    return [RawLaser(int(n), a, b) for n, a, b in zip(names, r1, r2, strict=True)]
+
+
+def _read_pixel_poses(file: _ComponentFile, t: pa.Table) -> dict[int, NDArray[np.float32] | None]:
+    names = _name_codes(t, _LASER, LASER_CODES, file.path)
+    poses = _range_images(t, "lidar_pose", 1, 6, file.path)
+    return {int(n): p for n, p in zip(names, poses, strict=True)}
+
+
+def _read_labels(t: pa.Table) -> RawLabels:
+    tag = "lidar_box"
+    box = np.stack(
+        [_floats(t, _c(tag, f"box.center.{a}")) for a in _XYZ]
+        + [_floats(t, _c(tag, f"box.size.{a}")) for a in _XYZ]
+        + [_floats(t, _c(tag, "box.heading"))],
+        axis=1,
+    ).reshape(-1, 7)
+    speed = np.stack([_floats(t, _c(tag, f"speed.{a}"), 0.0) for a in _XYZ], axis=1).reshape(-1, 3)
+    accel = np.stack([_floats(t, _c(tag, f"acceleration.{a}"), 0.0) for a in _XYZ], axis=1).reshape(-1, 3)
+    return RawLabels(
+        ids=[str(x) for x in _column(t, _OBJ).to_pylist()],
+        types=_ints(t, _c(tag, "type"), 0).astype(np.int32),
+        box=box,
+        speed=speed,
+        accel=accel,
+        num_lidar_points=_ints(t, _c(tag, "num_lidar_points_in_box")).astype(np.int32),
+        num_top_lidar_points=_ints(t, _c(tag, "num_top_lidar_points_in_box")).astype(np.int32),
+    )
+
+
+def _read_projected(file: _ComponentFile, t: pa.Table) -> RawProjectedBoxes:
+    tag = "projected_lidar_box"
+    box = np.stack(
+        [_floats(t, _c(tag, f"box.{p}.{a}")) for p in ("center", "size") for a in ("x", "y")], axis=1
+    ).reshape(-1, 4)
+    return RawProjectedBoxes(
+        camera=_name_codes(t, _CAM, CAMERA_CODES, file.path),
+        ids=[str(x) for x in _column(t, _OBJ).to_pylist()],
+        box=box,
+        types=_ints(t, _c(tag, "type"), 0).astype(np.int32),
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Writing
+
+_Columns = dict[str, list[Any]]
+
+
+def _name(code: int, names: dict[int, str], style: _Style) -> int | str:
+    return names.get(code, str(code)) if style.names_as_strings else code
+
+
+def _vehicle_pose_rows(frames: Sequence[RawFrame], style: _Style) -> _Columns:
+    return {
+        _SEG: [f.segment for f in frames],
+        _TS: [f.timestamp_micros for f in frames],
+        _c("vehicle_pose", "world_from_vehicle.transform"): [f.global_from_vehicle for f in frames],
+    }
+
+
+def _camera_calibration_rows(frames: Sequence[RawFrame], style: _Style) -> _Columns:
+    tag, f = "camera_calibration", frames[0]
+    cals = f.camera_calibrations
+    cols: _Columns = {_SEG: [f.segment] * len(cals), _CAM: [_name(c.name, CAMERA_NAMES, style) for c in cals]}
+    for k, key in enumerate(_INTRINSICS):
+        cols[_c(tag, f"intrinsic.{key}")] = [float(c.intrinsic[k]) for c in cals]
+    cols[_c(tag, "extrinsic.transform")] = [c.vehicle_from_camera for c in cals]
+    cols[_c(tag, "width")] = [c.width for c in cals]
+    cols[_c(tag, "height")] = [c.height for c in cals]
+    cols[_c(tag, "rolling_shutter_direction")] = [c.rolling_shutter_direction for c in cals]
+    return cols
+
+
+def _lidar_calibration_rows(frames: Sequence[RawFrame], style: _Style) -> _Columns:
+    tag, f = "lidar_calibration", frames[0]
+    cals = f.laser_calibrations
+    return {
+        _SEG: [f.segment] * len(cals),
+        _LASER: [_name(c.name, LASER_NAMES, style) for c in cals],
+        _c(tag, "extrinsic.transform"): [c.vehicle_from_laser for c in cals],
+        _c(tag, "beam_inclination.min"): [c.beam_inclination_min for c in cals],
+        _c(tag, "beam_inclination.max"): [c.beam_inclination_max for c in cals],
+        _c(tag, "beam_inclination.values"): [c.beam_inclinations for c in cals],
+    }
+
+
+def _camera_image_rows(frames: Sequence[RawFrame], style: _Style) -> _Columns:
+    tag = "camera_image"
+    rows = [(f, im) for f in frames for im in f.images]
+    cols: _Columns = {
+        _SEG: [f.segment for f, _ in rows],
+        _TS: [f.timestamp_micros for f, _ in rows],
+        _CAM: [_name(im.name, CAMERA_NAMES, style) for _, im in rows],
+        _c(tag, "image"): [im.jpeg for _, im in rows],
+        _c(tag, "pose.transform"): [im.global_from_vehicle for _, im in rows],
+    }
+    for k, a in enumerate(_XYZ):
+        cols[_c(tag, f"velocity.linear_velocity.{a}")] = [float(im.velocity_linear[k]) for _, im in rows]
+    for k, a in enumerate(_XYZ):
+        cols[_c(tag, f"velocity.angular_velocity.{a}")] = [float(im.velocity_angular[k]) for _, im in rows]
+    cols[_c(tag, "pose_timestamp")] = [im.pose_timestamp for _, im in rows]
+    cols[_c(tag, "rolling_shutter_params.shutter")] = [im.shutter for _, im in rows]
+    cols[_c(tag, "rolling_shutter_params.camera_trigger_time")] = [im.trigger_time for _, im in rows]
+    cols[_c(tag, "rolling_shutter_params.camera_readout_done_time")] = [
+        im.readout_done_time for _, im in rows
+    ]
+    return cols
+
+
+def _camera_segmentation_rows(frames: Sequence[RawFrame], style: _Style) -> _Columns:
+    tag = "camera_segmentation"
+    rows = [(f, im) for f in frames for im in f.images if im.panoptic_label is not None]
+    maps = [im.instance_to_global for _, im in rows]
+    return {
+        _SEG: [f.segment for f, _ in rows],
+        _TS: [f.timestamp_micros for f, _ in rows],
+        _CAM: [_name(im.name, CAMERA_NAMES, style) for _, im in rows],
+        _c(tag, "panoptic_label_divisor"): [im.panoptic_label_divisor for _, im in rows],
+        _c(tag, "panoptic_label"): [im.panoptic_label for _, im in rows],
+        _c(tag, f"{_MAPPING}.local_instance_ids"): [np.array(list(m), np.int32) for m in maps],
+        _c(tag, f"{_MAPPING}.global_instance_ids"): [np.array(list(m.values()), np.int32) for m in maps],
+        _c(tag, f"{_MAPPING}.is_tracked"): [np.ones(len(m), bool) for m in maps],
+        _c(tag, "sequence_id"): [f.segment for f, _ in rows],
+        _c(tag, "num_cameras_covered"): [None for _ in rows],
+    }
+
+
+def _lidar_rows(frames: Sequence[RawFrame], style: _Style) -> _Columns:
+    tag = "lidar"
+    rows = [(f, la) for f in frames for la in f.lasers]
+    cols: _Columns = {
+        _SEG: [f.segment for f, _ in rows],
+        _TS: [f.timestamp_micros for f, _ in rows],
+        _LASER: [_name(la.name, LASER_NAMES, style) for _, la in rows],
+    }
+    for r in (1, 2):
+        images = [getattr(la, f"return{r}") for _, la in rows]
+        cols[_c(tag, f"range_image_return{r}.values")] = images
+        cols[_c(tag, f"range_image_return{r}.shape")] = [None if im is None else im.shape for im in images]
+    return cols
+
+
+def _lidar_pose_rows(frames: Sequence[RawFrame], style: _Style) -> _Columns:
+    tag = "lidar_pose"
+    rows = [(f, la) for f in frames for la in f.lasers if la.pixel_pose is not None]
+    return {
+        _SEG: [f.segment for f, _ in rows],
+        _TS: [f.timestamp_micros for f, _ in rows],
+        _LASER: [_name(la.name, LASER_NAMES, style) for _, la in rows],
+        _c(tag, "range_image_return1.values"): [la.pixel_pose for _, la in rows],
+        _c(tag, "range_image_return1.shape"): [la.pixel_pose.shape for _, la in rows],  # type: ignore[union-attr]
+    }
+
+
+def _lidar_box_rows(frames: Sequence[RawFrame], style: _Style) -> _Columns:
+    tag = "lidar_box"
+    box = np.concatenate([np.asarray(f.labels.box, np.float64).reshape(-1, 7) for f in frames])
+    speed = np.concatenate([np.asarray(f.labels.speed, np.float64).reshape(-1, 3) for f in frames])
+    accel = np.concatenate([np.asarray(f.labels.accel, np.float64).reshape(-1, 3) for f in frames])
+    cols: _Columns = {
+        _SEG: [f.segment for f in frames for _ in range(len(f.labels))],
+        _TS: [f.timestamp_micros for f in frames for _ in range(len(f.labels))],
+        _OBJ: [i for f in frames for i in f.labels.ids],
+    }
+    for k, a in enumerate(_XYZ):
+        cols[_c(tag, f"box.center.{a}")] = box[:, k]
+        cols[_c(tag, f"box.size.{a}")] = box[:, 3 + k]
+    cols[_c(tag, "box.heading")] = box[:, 6]
+    cols[_c(tag, "type")] = np.concatenate([f.labels.types for f in frames])
+    for key, attr in (
+        ("num_lidar_points_in_box", "num_lidar_points"),
+        ("num_top_lidar_points_in_box", "num_top_lidar_points"),
+    ):
+        counts = np.concatenate([getattr(f.labels, attr) for f in frames]).astype(np.int64)
+        cols[_c(tag, key)] = [None if n < 0 else int(n) for n in counts]
+    for k, a in enumerate(_XYZ):
+        cols[_c(tag, f"speed.{a}")] = speed[:, k]
+        cols[_c(tag, f"acceleration.{a}")] = accel[:, k]
+    cols[_c(tag, "difficulty_level.detection")] = [None] * len(box)
+    cols[_c(tag, "difficulty_level.tracking")] = [None] * len(box)
+    return cols
+
+
+def _projected_lidar_box_rows(frames: Sequence[RawFrame], style: _Style) -> _Columns:
+    tag = "projected_lidar_box"
+    box = np.concatenate([np.asarray(f.projected_boxes.box, np.float64).reshape(-1, 4) for f in frames])
+    n_rows = [len(f.projected_boxes.ids) for f in frames]
+    cols: _Columns = {
+        _SEG: [f.segment for f, n in zip(frames, n_rows, strict=True) for _ in range(n)],
+        _TS: [f.timestamp_micros for f, n in zip(frames, n_rows, strict=True) for _ in range(n)],
+        _CAM: [_name(int(c), CAMERA_NAMES, style) for f in frames for c in f.projected_boxes.camera],
+        _OBJ: [i for f in frames for i in f.projected_boxes.ids],
+    }
+    for k, key in enumerate(("center.x", "center.y", "size.x", "size.y")):
+        cols[_c(tag, f"box.{key}")] = box[:, k]
+    cols[_c(tag, "type")] = np.concatenate([f.projected_boxes.types for f in frames])
+    return cols
+
+
+def _stats_rows(frames: Sequence[RawFrame], style: _Style) -> _Columns:
+    tag = "stats"
+    cols: _Columns = {_SEG: [f.segment for f in frames], _TS: [f.timestamp_micros for f in frames]}
+    for key in ("time_of_day", "location", "weather"):
+        cols[_c(tag, key)] = [f.stats.get(key) for f in frames]
+    counted = [np.unique(np.asarray(f.labels.types, np.int32), return_counts=True) for f in frames]
+    cols[_c(tag, "lidar_object_counts.types")] = [t for t, _ in counted]
+    cols[_c(tag, "lidar_object_counts.counts")] = [c for _, c in counted]
+    cols[_c(tag, "camera_object_counts.types")] = [None] * len(frames)
+    cols[_c(tag, "camera_object_counts.counts")] = [None] * len(frames)
+    return cols
+
+
+_ROW_BUILDERS: dict[str, Callable[[Sequence[RawFrame], _Style], _Columns]] = {
+    "vehicle_pose": _vehicle_pose_rows,
+    "camera_calibration": _camera_calibration_rows,
+    "lidar_calibration": _lidar_calibration_rows,
+    "camera_image": _camera_image_rows,
+    "camera_segmentation": _camera_segmentation_rows,
+    "lidar": _lidar_rows,
+    "lidar_pose": _lidar_pose_rows,
+    "lidar_box": _lidar_box_rows,
+    "projected_lidar_box": _projected_lidar_box_rows,
+    "stats": _stats_rows,
+}
+
+
+def _list_array(rows: Sequence[Any], type_: pa.DataType) -> pa.Array:
+    """A list (or fixed-size list) array from per-row array-likes or None, without per-value loops."""
+    arrays = [None if r is None else np.ravel(np.asarray(r)) for r in rows]
+    mask = np.array([a is None for a in arrays], bool)
+    value_type = type_.value_type
+    if pa.types.is_fixed_size_list(type_):
+        size = type_.list_size
+        filled = [np.zeros(size) if a is None else a for a in arrays]
+        flat = np.concatenate(filled) if filled else np.zeros(0)
+        if flat.size != size * len(rows):
+            raise ValueError(f"every row of a {type_} column needs {size} values")
+        values = pa.array(flat.astype(value_type.to_pandas_dtype()), type=value_type)
+        return pa.FixedSizeListArray.from_arrays(values, size, mask=pa.array(mask))
+    lengths = np.array([0 if a is None else a.size for a in arrays], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int32)
+    present = [a for a in arrays if a is not None]
+    flat = np.concatenate(present) if present else np.zeros(0)
+    values = pa.array(flat.astype(value_type.to_pandas_dtype()), type=value_type)
+    return pa.ListArray.from_arrays(pa.array(offsets), values, type=type_, mask=pa.array(mask))
+
+
+def _table(columns: _Columns, schema: pa.Schema) -> pa.Table:
+    arrays = []
+    for field in schema:
+        values = columns[field.name]
+        if pa.types.is_list(field.type) or pa.types.is_fixed_size_list(field.type):
+            arrays.append(_list_array(values, field.type))
+        else:
+            arrays.append(pa.array(values, type=field.type))
+    return pa.Table.from_arrays(arrays, schema=schema)
+
+
+def _write_atomic(path: Path, schema: pa.Schema, tables: Sequence[pa.Table]) -> None:
+    """Writes the non-empty ``tables`` (one row group each) to a temporary file, then renames it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        with pq.ParquetWriter(tmp, schema) as writer:
+            for table in tables:
+                if table.num_rows:
+                    writer.write_table(table, row_group_size=table.num_rows)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _tags_to_write(frames: Sequence[RawFrame]) -> list[str]:
+    tags = ["vehicle_pose", "camera_calibration", "camera_image"]
+    if any(im.panoptic_label is not None for f in frames for im in f.images):
+        tags.append("camera_segmentation")
+    if any(f.lasers or f.laser_calibrations for f in frames):
+        tags += ["lidar_calibration", "lidar", "lidar_pose"]
+    tags.append("lidar_box")
+    if any(len(f.projected_boxes.ids) for f in frames):
+        tags.append("projected_lidar_box")
+    if any(f.stats for f in frames):
+        tags.append("stats")
+    return tags
+
+
+def write_v2(
+    root: Path,
+    frames: Sequence[RawFrame],
+    *,
+    camera_names_as_strings: bool = False,
+    transforms_float32: bool = False,
+    frames_per_row_group: int = FRAMES_PER_ROW_GROUP,
+) -> list[Path]:
+    """Writes ``frames`` as a Waymo v2 root: one file per component per segment, atomically.
+
+    Frames are written in the given order, ``frames_per_row_group`` frames per row group;
+    calibrations come from each segment's first frame. Optional components (camera_segmentation,
+    projected_lidar_box, stats, and the LiDAR ones) are written for every segment when any frame has
+    such data. The declared schema is used (int8 names, fixed_size_list<double>[16] transforms)
+    unless ``camera_names_as_strings`` (camera and LiDAR names as "FRONT", "TOP", ...) or
+    ``transforms_float32`` (float32 transforms) reproduce the quirks of real files.
+
+    Returns:
+        The paths written.
+    """
+    if frames_per_row_group < 1:
+        raise ValueError(f"frames_per_row_group must be >= 1, got {frames_per_row_group}")
+    root, style = Path(root), _Style(camera_names_as_strings, transforms_float32)
+    segments: dict[str, list[RawFrame]] = {}
+    for f in frames:
+        segments.setdefault(f.segment, []).append(f)
+    written = []
+    for tag in _tags_to_write(frames):
+        schema = _schema(tag, style)
+        for segment, seg_frames in segments.items():
+            step = len(seg_frames) if tag in _STATIC else frames_per_row_group
+            chunks = [seg_frames[i : i + step] for i in range(0, len(seg_frames), step)]
+            tables = [_table(_ROW_BUILDERS[tag](chunk, style), schema) for chunk in chunks]
+            path = root / tag / f"{segment}.parquet"
+            _write_atomic(path, schema, tables)
+            written.append(path)
+    return written
