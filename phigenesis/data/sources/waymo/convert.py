@@ -34,6 +34,7 @@ from phigenesis.data.records import (
 )
 from phigenesis.data.sources.waymo.raw import (
     CAMERA_NAMES,
+    LASER_NAMES,
     READOUT_DIRECTIONS,
     RawCameraCalibration,
     RawCameraImage,
@@ -178,7 +179,8 @@ def beam_inclinations(cal: RawLaserCalibration, rows: int) -> NDArray[np.float64
         incl = np.asarray(cal.beam_inclinations, np.float64)
         if len(incl) != rows:
             raise WaymoFormatError(
-                f"LiDAR {cal.name}: {len(incl)} beam inclinations for a range image of {rows} rows"
+                f"LiDAR {LASER_NAMES.get(cal.name, cal.name)}: {len(incl)} beam inclinations for a range "
+                f"image of {rows} rows"
             )
     else:
         lo, hi = cal.beam_inclination_min, cal.beam_inclination_max
@@ -248,7 +250,8 @@ def laser_points(
         if laser.pixel_pose is not None:
             if laser.pixel_pose.shape[:2] != (h, w):
                 raise WaymoFormatError(
-                    f"LiDAR {cal.name}: pixel pose is {laser.pixel_pose.shape[:2]}, range image ({h}, {w})"
+                    f"LiDAR {LASER_NAMES.get(cal.name, cal.name)}: pixel pose is "
+                    f"{laser.pixel_pose.shape[:2]}, range image ({h}, {w})"
                 )
             rot, t = _pixel_transforms(laser.pixel_pose, rows, cols, vehicle_from_global)
             points = np.einsum("nij,nj->ni", rot, points) + t
@@ -278,8 +281,9 @@ def lidar_sweep(
     vehicle_from_global = geometry.invert_transform(raw.global_from_vehicle)
     arrays, ids = [], []
     for laser in sorted(raw.lasers, key=lambda las: las.name):
+        calibration = raw.laser_calibration(laser.name)  # raises, naming the frame, if missing
         try:
-            pts = laser_points(laser, raw.laser_calibration(laser.name), vehicle_from_global)
+            pts = laser_points(laser, calibration, vehicle_from_global)
         except WaymoFormatError as e:
             raise WaymoFormatError(f"{raw.where}: {e}") from None
         if pts:

@@ -237,7 +237,7 @@ def decode_matrix(serialized: bytes, dtype: type, what: str) -> NDArray:
             raise ValueError(f"{what}: not a valid matrix message ({e})") from e
         data = np.asarray(msg.data, dtype=dtype)
         dims = list(msg.shape.dims)
-    if int(np.prod(dims)) != data.size or not dims:
+    if not dims or any(d < 0 or d > max(data.size, 1) for d in dims) or int(np.prod(dims)) != data.size:
         raise ValueError(f"{what}: matrix shape {dims} does not hold its {data.size} values")
     return data.astype(dtype, copy=False).reshape(dims)
 
