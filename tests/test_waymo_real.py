@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,21 @@ from phigenesis.data.sources.waymo import WaymoConfig, WaymoSource
 from phigenesis.data.sources.waymo.raw import CAMERA_NAMES
 from phigenesis.data.sources.waymo.v1 import V1File
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "waymo"
+
+def _sample_dir() -> Path:
+    """Where the real samples are: $PHIGENESIS_WAYMO_SAMPLES, the checkout's ../shared, or /work/shared."""
+    candidates = [
+        os.environ.get("PHIGENESIS_WAYMO_SAMPLES", ""),
+        Path(__file__).resolve().parents[2] / "shared" / "data" / "waymo",
+        "/work/shared/data/waymo",
+    ]
+    for c in candidates:
+        if c and (Path(c) / "one_frame_five_cameras_panoptic.tfrecord").exists():
+            return Path(c)
+    return Path(candidates[1])
+
+
+DATA = _sample_dir()
 PANOPTIC = DATA / "one_frame_five_cameras_panoptic.tfrecord"
 LABELS_ONLY = DATA / "one_frame_labels_only.tfrecord"
 pytestmark = pytest.mark.skipif(not PANOPTIC.exists(), reason=f"real Waymo samples not found in {DATA}")
