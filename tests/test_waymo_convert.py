@@ -275,8 +275,8 @@ def test_laser_points_non_top_uniform_inclinations() -> None:
     assert n == int((r1[..., 0] > 0).sum() + (r2[..., 0] > 0).sum())
     assert 0 < n < 2 * h * w
     assert got["points"].shape == (n, 3)
-    assert_allclose(got["points"], want["points"], atol=1e-6, rtol=0)
-    assert_allclose(got["origins"], np.tile(e[:3, 3], (n, 1)), atol=0)
+    assert_allclose(got["points"], want["points"], atol=2e-5, rtol=0)
+    assert_allclose(got["origins"], np.tile(e[:3, 3], (n, 1)), atol=1e-6)
     assert_array_equal(got["beam"], want["rows"])
     assert got["beam"].dtype == np.uint16
     assert_array_equal(got["return_index"], want["ret"])
@@ -289,12 +289,12 @@ def test_laser_points_non_top_uniform_inclinations() -> None:
     # whatever the mounting yaw (column 0 behind, the middle forward, decreasing clockwise).
     rel = got["points"] - e[:3, 3]
     vehicle_az = np.arctan2(rel[:, 1], rel[:, 0])
-    assert_allclose(
-        geometry.angle_difference(vehicle_az, np.pi * (1 - (2 * want["cols"] + 1) / w)), 0.0, atol=1e-9
+    assert_allclose(  # float32 points: about 1e-7 relative
+        geometry.angle_difference(vehicle_az, np.pi * (1 - (2 * want["cols"] + 1) / w)), 0.0, atol=2e-6
     )
     # Ranges are kept: distance from the sensor equals the stored range.
     rng_all = np.concatenate([r1[..., 0][r1[..., 0] > 0], r2[..., 0][r2[..., 0] > 0]])
-    assert_allclose(np.linalg.norm(rel, axis=1), rng_all, rtol=1e-12)
+    assert_allclose(np.linalg.norm(rel, axis=1), rng_all, rtol=5e-7)
 
 
 def test_column_helpers() -> None:
@@ -318,7 +318,7 @@ def test_explicit_beam_inclinations_are_reversed() -> None:
     ri[:, 2, 0] = 10.0
     pts = convert.laser_points(RawLaser(1, ri, None, None), cal, np.eye(4))
     assert_array_equal(pts["beam"], np.arange(5))
-    assert_allclose(pts["points"][:, 2], 10.0 * np.sin(values[::-1]), atol=1e-12)
+    assert_allclose(pts["points"][:, 2], 10.0 * np.sin(values[::-1]), atol=2e-6)
 
 
 def test_beam_inclination_count_mismatch() -> None:
@@ -379,8 +379,9 @@ def test_top_laser_with_pixel_poses(per_pixel: bool, monkeypatch: pytest.MonkeyP
     got = convert.laser_points(RawLaser(1, r1, r2, pose), cal, vehicle_from_global)
 
     n1, n2 = int((r1[..., 0] > 0).sum()), int((r2[..., 0] > 0).sum())
-    # The fast path converts one pose per column; the per-pixel path one per point.
-    assert calls == ([w, w] if not per_pixel else [n1, n2])
+    # The fast path converts one pose per column, once for both returns; the per-pixel path one
+    # per point of each return.
+    assert calls == ([w] if not per_pixel else [n1, n2])
 
     inv_frame = np.linalg.inv(frame_pose)
     incl, az = incl_stored[::-1], _azimuth(e, w)
@@ -426,8 +427,8 @@ def test_top_fast_and_slow_paths_agree() -> None:
     fast = convert.laser_points(RawLaser(1, r1, None, pose), cal, vehicle_from_global)
     slow = convert.laser_points(RawLaser(1, r1, None, bumped), cal, vehicle_from_global)
     assert len(fast["points"]) == int((r1[..., 0] > 0).sum())
-    assert_allclose(slow["points"], fast["points"], atol=1e-9)
-    assert_allclose(slow["origins"], fast["origins"], atol=1e-9)
+    assert_allclose(slow["points"], fast["points"], atol=2e-5)
+    assert_allclose(slow["origins"], fast["origins"], atol=2e-5)
 
 
 # --------------------------------------------------------------------------------------------

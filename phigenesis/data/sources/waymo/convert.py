@@ -18,6 +18,8 @@ Conventions applied here (see ../../records.py for the scene model's):
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -201,24 +203,74 @@ def column_time_offsets_micros(columns: int) -> NDArray[np.int32]:
     return np.round(fraction * SCAN_PERIOD_MICROS).astype(np.int32)
 
 
-def _pixel_transforms(
-    pose: NDArray[np.float32], rows: NDArray, cols: NDArray, vehicle_from_global: NDArray[np.float64]
+def _pose_matrices(
+    pose: NDArray[np.float32], vehicle_from_global: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Per point (rotation (N, 3, 3), translation (N, 3)) of frame-vehicle <- pixel-time vehicle.
-
-    Waymo's pixel poses normally change only from column to column; then they are turned into
-    matrices once per column instead of once per point.
-    """
-    per_column = pose.shape[0] == 1 or bool(np.all(pose == pose[:1]))
-    p = (pose[0] if per_column else pose[rows, cols]).astype(np.float64)
-    rot = geometry.euler_zyx_to_matrix(p[:, 0], p[:, 1], p[:, 2])
+    """(rotation (..., 3, 3), translation (..., 3)) of frame-vehicle <- pixel-time vehicle for
+    Waymo pixel poses (..., 6) = roll, pitch, yaw, x, y, z (global <- vehicle)."""
+    p = pose.astype(np.float64)
+    rot = geometry.euler_zyx_to_matrix(p[..., 0], p[..., 1], p[..., 2])
     r0, t0 = vehicle_from_global[:3, :3], vehicle_from_global[:3, 3]
     # Rotate first, then translate in float64: the global translations are kilometres.
-    rel_rot = np.einsum("ij,njk->nik", r0, rot)
-    rel_t = p[:, 3:] @ r0.T + t0
-    if per_column:
-        return rel_rot[cols], rel_t[cols]
-    return rel_rot, rel_t
+    return np.einsum("ij,...jk->...ik", r0, rot), p[..., 3:] @ r0.T + t0
+
+
+@dataclass
+class _RayGeometry:
+    """The rays of a range image in the frame's vehicle frame, factored per row and column: the
+    unit direction of pixel (h, w) is ``cos_incl[h] * along[w] + sin_incl[h] * up[w]`` and its
+    origin ``origin[w]``."""
+
+    cos_incl: NDArray[np.float64]
+    sin_incl: NDArray[np.float64]
+    along: NDArray[np.float64]
+    up: NDArray[np.float64]
+    origin: NDArray[np.float64]
+
+    def points(self, rows: NDArray, cols: NDArray, range_m: NDArray) -> tuple[NDArray, NDArray]:
+        c, s = self.cos_incl[rows, None], self.sin_incl[rows, None]
+        origins = self.origin[cols]
+        return (c * self.along[cols] + s * self.up[cols]) * range_m[:, None] + origins, origins
+
+
+def _laser_geometry(
+    laser: RawLaser,
+    cal: RawLaserCalibration,
+    shape: tuple[int, int],
+    vehicle_from_global: NDArray[np.float64],
+) -> _RayGeometry | None:
+    """The laser's rays, shared by both returns; None if the pixel poses vary within a column (then
+    :func:`laser_points` transforms point by point)."""
+    h, w = shape
+    e = cal.vehicle_from_laser
+    incl = beam_inclinations(cal, h)
+    az = column_azimuths(e, w)
+    pose = laser.pixel_pose
+    if pose is None:
+        rot, origin = np.broadcast_to(e[:3, :3], (w, 3, 3)), np.broadcast_to(e[:3, 3], (w, 3))
+    else:
+        if pose.shape[:2] != (h, w):
+            raise WaymoFormatError(
+                f"LiDAR {LASER_NAMES.get(cal.name, cal.name)}: pixel pose is {pose.shape[:2]}, "
+                f"range image ({h}, {w})"
+            )
+        if not np.array_equal(pose, np.broadcast_to(pose[:1], pose.shape)):
+            return None
+        # Waymo's pixel poses change only from column to column: one transform per column.
+        column_rot, t = _pose_matrices(pose[0], vehicle_from_global)
+        rot, origin = column_rot @ e[:3, :3], column_rot @ e[:3, 3] + t
+    # Laser-frame direction (cos i cos a, cos i sin a, sin i), rotated per column.
+    along = rot[:, :, 0] * np.cos(az)[:, None] + rot[:, :, 1] * np.sin(az)[:, None]
+    # float32 from here: the stored points are float32, and the rays are already relative to the
+    # frame (no kilometre-scale values left), so this loses nothing measurable (< 1e-5 m at 75 m).
+    f32 = np.float32
+    return _RayGeometry(
+        np.cos(incl).astype(f32),
+        np.sin(incl).astype(f32),
+        along.astype(f32),
+        rot[:, :, 2].astype(f32),
+        np.asarray(origin, f32),
+    )
 
 
 def laser_points(
@@ -227,39 +279,40 @@ def laser_points(
     """The returns of one laser as points in the frame's vehicle frame.
 
     Returns a dict of arrays over the valid returns (range > 0) of return 1 then return 2:
-    ``points`` (N, 3) float64, ``origins`` (N, 3) float64, ``intensity``, ``elongation`` (N,)
-    float32, ``beam`` (N,) uint16 row, ``time_offset`` (N,) int32, ``return_index`` (N,) uint8.
+    ``points`` (N, 3) and ``origins`` (N, 3) (float32; float64 where poses vary per pixel),
+    ``intensity``, ``elongation`` (N,) float32, ``beam`` (N,) uint16 row, ``time_offset`` (N,) int32,
+    ``return_index`` (N,) uint8.
     """
     e = cal.vehicle_from_laser
-    parts = []
-    for ret_index, ri in enumerate((laser.return1, laser.return2)):
-        if ri is None:
-            continue
-        h, w, _ = ri.shape
-        rows, cols = np.nonzero(ri[..., 0] > 0)
-        rng = ri[rows, cols, 0].astype(np.float64)
-        incl = beam_inclinations(cal, h)
-        az = column_azimuths(e, w)
-        ci = np.cos(incl)[rows]
-        xyz = (
-            np.stack([ci * np.cos(az)[cols], ci * np.sin(az)[cols], np.sin(incl)[rows]], axis=1)
-            * rng[:, None]
+    returns = [(i, ri) for i, ri in enumerate((laser.return1, laser.return2)) if ri is not None]
+    if not returns:
+        return {}
+    h, w, _ = returns[0][1].shape
+    if any(ri.shape[:2] != (h, w) for _, ri in returns):
+        raise WaymoFormatError(
+            f"LiDAR {LASER_NAMES.get(cal.name, cal.name)}: the two returns differ in shape"
         )
-        points = xyz @ e[:3, :3].T + e[:3, 3]
-        origins = np.broadcast_to(e[:3, 3], points.shape)
-        if laser.pixel_pose is not None:
-            if laser.pixel_pose.shape[:2] != (h, w):
-                raise WaymoFormatError(
-                    f"LiDAR {LASER_NAMES.get(cal.name, cal.name)}: pixel pose is "
-                    f"{laser.pixel_pose.shape[:2]}, range image ({h}, {w})"
-                )
-            rot, t = _pixel_transforms(laser.pixel_pose, rows, cols, vehicle_from_global)
-            points = np.einsum("nij,nj->ni", rot, points) + t
+    shared = _laser_geometry(laser, cal, (h, w), vehicle_from_global)
+    parts = []
+    for ret_index, ri in returns:
+        rows, cols = np.nonzero(ri[..., 0] > 0)
+        rng = ri[rows, cols, 0]
+        if shared is not None:
+            points, origins = shared.points(rows, cols, rng)
+        else:
+            incl, az = beam_inclinations(cal, h), column_azimuths(e, w)
+            ci = np.cos(incl)[rows]
+            xyz = np.stack([ci * np.cos(az)[cols], ci * np.sin(az)[cols], np.sin(incl)[rows]], axis=1)
+            rot, t = _pose_matrices(laser.pixel_pose[rows, cols], vehicle_from_global)  # type: ignore[index]
+            points = (
+                np.einsum("nij,nj->ni", rot, xyz * rng[:, None].astype(np.float64) @ e[:3, :3].T + e[:3, 3])
+                + t
+            )
             origins = np.einsum("nij,j->ni", rot, e[:3, 3]) + t
         parts.append(
             {
                 "points": points,
-                "origins": np.ascontiguousarray(origins),
+                "origins": origins,
                 "intensity": ri[rows, cols, 1],
                 "elongation": ri[rows, cols, 2],
                 "beam": rows.astype(np.uint16),
@@ -267,8 +320,6 @@ def laser_points(
                 "return_index": np.full(len(rows), ret_index, np.uint8),
             }
         )
-    if not parts:
-        return {}
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 

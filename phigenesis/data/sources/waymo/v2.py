@@ -411,7 +411,14 @@ class _ComponentFile:
             return self.file.schema_arrow.empty_table().select(self.columns)
         tables = [self._row_group(g) for g in groups]
         table = pa.concat_tables(tables) if len(tables) > 1 else tables[0]
-        return table.filter(pc.equal(table.column(_TS), pa.scalar(timestamp, table.schema.field(_TS).type)))
+        match = np.flatnonzero(
+            pc.equal(table.column(_TS), pa.scalar(timestamp, table.schema.field(_TS).type)).to_numpy(
+                zero_copy_only=False
+            )
+        )
+        if len(match) and match[-1] - match[0] + 1 == len(match):
+            return table.slice(int(match[0]), len(match))  # a frame's rows are contiguous: no copy
+        return table.take(pa.array(match))
 
     def all_rows(self) -> pa.Table:
         """Every row (for the per-segment calibration components)."""
