@@ -523,50 +523,49 @@ def _convert_and_write(
         writer.close()
 
 
-def v1_stages_variant(path: Path, segment: str, cache_dir: Path, spec: PipelineSpec) -> Variant:
+def _staged_variant(
+    raws: Callable[[Stopwatch], Iterator[RawFrame]], segment: str, cache_dir: Path, spec: PipelineSpec
+) -> Variant:
+    """A full-path variant timed per stage; ``raws(watch)`` yields the raw frames, timing its own
+    reading stages on ``watch``."""
+
     def run() -> tuple[float, dict[str, float]]:
         watch = Stopwatch()
-
-        def raws() -> Iterator[RawFrame]:
-            with watch("scene setup"):
-                file = v1.V1File(path)
-            with watch.patched(v1, "_matrix", "range images: zlib + decode"):
-                for i in range(len(file)):
-                    with watch("read + CRC"):
-                        data = file.record(i)
-                    with watch("parse"):
-                        raw = v1.parse_frame(data, file.where(i))
-                    yield raw
-
         t0 = time.perf_counter()
-        _convert_and_write(watch, raws(), segment, cache_dir, spec)
+        _convert_and_write(watch, raws(watch), segment, cache_dir, spec)
         elapsed = time.perf_counter() - t0
         _empty_cache(cache_dir)
         return elapsed, dict(watch.seconds)
 
     return run
+
+
+def v1_stages_variant(path: Path, segment: str, cache_dir: Path, spec: PipelineSpec) -> Variant:
+    def raws(watch: Stopwatch) -> Iterator[RawFrame]:
+        with watch("scene setup"):
+            file = v1.V1File(path)
+        with watch.patched(v1, "_matrix", "range images: zlib + decode"):
+            for i in range(len(file)):
+                with watch("read + CRC"):
+                    data = file.record(i)
+                with watch("parse"):
+                    raw = v1.parse_frame(data, file.where(i))
+                yield raw
+
+    return _staged_variant(raws, segment, cache_dir, spec)
 
 
 def v2_stages_variant(root: Path, segment: str, cache_dir: Path, spec: PipelineSpec) -> Variant:
-    def run() -> tuple[float, dict[str, float]]:
-        watch = Stopwatch()
+    def raws(watch: Stopwatch) -> Iterator[RawFrame]:
+        with watch("scene setup"):
+            seg = v2.V2Segment(root, segment)
+        with watch.patched(v2._ComponentFile, "_row_group", "Parquet row groups"):
+            for i in range(len(seg)):
+                with watch("read"):
+                    raw = seg.frame(i)
+                yield raw
 
-        def raws() -> Iterator[RawFrame]:
-            with watch("scene setup"):
-                seg = v2.V2Segment(root, segment)
-            with watch.patched(v2._ComponentFile, "_row_group", "Parquet row groups"):
-                for i in range(len(seg)):
-                    with watch("read"):
-                        raw = seg.frame(i)
-                    yield raw
-
-        t0 = time.perf_counter()
-        _convert_and_write(watch, raws(), segment, cache_dir, spec)
-        elapsed = time.perf_counter() - t0
-        _empty_cache(cache_dir)
-        return elapsed, dict(watch.seconds)
-
-    return run
+    return _staged_variant(raws, segment, cache_dir, spec)
 
 
 @dataclass

@@ -317,10 +317,11 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
     cam_type = schema.field("cameras").type
     cam_names = {f.name for f in cam_type.value_type}
 
-    def truth_png(name: str, encode: Any, attr: str) -> list[bytes | None] | None:
+    def png(name: str, encode: Any, maps: str, attr: str) -> list[bytes | None] | None:
+        """Column ``name`` (None if not in the schema): each camera's ``c.<maps>.<attr>`` as PNG."""
         if name not in cam_names:
             return None
-        return [None if c.truth is None else encode(getattr(c.truth, attr)) for c in cams]
+        return [None if getattr(c, maps) is None else encode(getattr(getattr(c, maps), attr)) for c in cams]
 
     cameras = {
         "camera_name": [c.name for c in cams],
@@ -339,16 +340,12 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
         "angular_velocity_world_radps": [c.angular_velocity_world_radps for c in cams],
         "image_format": [c.image_format if c.image_bytes is not None else None for c in cams],
         "image": [c.image_bytes for c in cams],
-        "truth_depth_png": truth_png("truth_depth_png", codec.encode_depth, "depth_m"),
-        "truth_semantic_png": truth_png("truth_semantic_png", codec.encode_semantic, "semantic"),
-        "truth_instance_png": truth_png("truth_instance_png", codec.encode_instance, "instance"),
-        "truth_flow_png": truth_png("truth_flow_png", codec.encode_flow, "flow_world_mps"),
-        "label_semantic_png": None
-        if "label_semantic_png" not in cam_names
-        else [None if c.labels is None else codec.encode_semantic(c.labels.semantic) for c in cams],
-        "label_instance_png": None
-        if "label_instance_png" not in cam_names
-        else [None if c.labels is None else codec.encode_instance(c.labels.instance) for c in cams],
+        "truth_depth_png": png("truth_depth_png", codec.encode_depth, "truth", "depth_m"),
+        "truth_semantic_png": png("truth_semantic_png", codec.encode_semantic, "truth", "semantic"),
+        "truth_instance_png": png("truth_instance_png", codec.encode_instance, "truth", "instance"),
+        "truth_flow_png": png("truth_flow_png", codec.encode_flow, "truth", "flow_world_mps"),
+        "label_semantic_png": png("label_semantic_png", codec.encode_semantic, "labels", "semantic"),
+        "label_instance_png": png("label_instance_png", codec.encode_instance, "labels", "instance"),
     }
     b = frame.boxes
     boxes = {

@@ -112,7 +112,7 @@ def _panoptic_png(cam: CameraImage) -> tuple[bytes, dict[int, int]]:
     return png.tobytes(), {i + 1: int(g) for i, g in enumerate(globals_)}
 
 
-def _camera(scene: SyntheticScene, cam: CameraImage, camera_index: int) -> RawCameraImage:
+def _camera(scene: SyntheticScene, cam: CameraImage) -> RawCameraImage:
     t_s = scene.seconds(cam.timestamp_micros)
     _, _, velocity, yaw_rate = scene.world.ego.state(t_s)
     png, mapping = _panoptic_png(cam) if cam.truth is not None else (None, {})
@@ -205,7 +205,7 @@ def raw_frame(scene: SyntheticScene, frame_index: int) -> RawFrame:
         global_from_vehicle=_to_global(frame.world_from_ego),
         camera_calibrations=[_camera_calibration(c) for c in frame.cameras],
         laser_calibrations=[laser_cal],
-        images=[_camera(scene, c, i) for i, c in enumerate(frame.cameras)],
+        images=[_camera(scene, c) for c in frame.cameras],
         lasers=[laser],
         labels=_labels(frame),
         stats={"time_of_day": "Day", "location": "synthetic", "weather": "sunny"},
