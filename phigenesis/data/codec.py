@@ -4,6 +4,7 @@
   255.996 m; 0 means unknown (sky, no data, or beyond the encodable range).
 - semantic: 8-bit grey PNG of unified class ids (255 = ignore).
 - instance: 16-bit grey PNG of instance ids (0 = none).
+- confidence: 8-bit grey PNG, ``confidence = value / 255`` (steps of 0.004 in [0, 1]).
 - flow (3D velocity): 16-bit RGB PNG holding x, y, z as ``value = round(v_mps * 256) + 32768``:
   3.9 mm/s steps within +-128 m/s.
 """
@@ -16,6 +17,7 @@ from numpy.typing import NDArray
 
 DEPTH_SCALE = 256.0
 DEPTH_MAX_M = 65535 / DEPTH_SCALE
+CONFIDENCE_SCALE = 255.0
 FLOW_SCALE = 256.0
 FLOW_OFFSET = 32768
 
@@ -51,6 +53,19 @@ def decode_depth(data: bytes, out: NDArray[np.float32] | None = None) -> NDArray
     q = _decode_png(data, np.uint16, 1, "depth")
     out = np.empty(q.shape, np.float32) if out is None else out
     return np.multiply(q, np.float32(1.0 / DEPTH_SCALE), out=out, dtype=np.float32)
+
+
+def encode_confidence(confidence: NDArray[np.floating]) -> bytes:
+    """(H, W) confidences in [0, 1] to an 8-bit PNG (``value / 255``); out-of-range values clip."""
+    c = np.nan_to_num(np.asarray(confidence, dtype=np.float64), nan=0.0)
+    return _encode_png(np.round(np.clip(c, 0.0, 1.0) * CONFIDENCE_SCALE).astype(np.uint8), "confidence map")
+
+
+def decode_confidence(data: bytes, out: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
+    """8-bit PNG to (H, W) float32 confidences in [0, 1], written into ``out`` if given."""
+    q = _decode_png(data, np.uint8, 1, "confidence map")
+    out = np.empty(q.shape, np.float32) if out is None else out
+    return np.multiply(q, np.float32(1.0 / CONFIDENCE_SCALE), out=out, dtype=np.float32)
 
 
 def encode_semantic(semantic: NDArray[np.uint8]) -> bytes:

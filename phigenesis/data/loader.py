@@ -20,6 +20,11 @@ truth_depth                float32 [C, H, W]             metres along camera z, 
 truth_semantic             uint8 [C, H, W]               unified classes, 255 = ignore
 truth_instance             int32 [C, H, W]               instance ids, 0 = none
 truth_flow                 float32 [C, 3, H, W]          surface velocity, world frame, m/s
+depth_sparse               float32 [C, H, W]             projected LiDAR, metres along z, 0 = none
+depth_sparse_confidence    float32 [C, H, W]             in [0, 1], 0 where depth_sparse is 0
+depth_sparse_origin        uint8 [C, H, W]               records.DEPTH_ORIGINS index (0 = none)
+depth_dense                float32 [C, H, W]             densified depth GT, 0 = none
+depth_dense_confidence     float32 [C, H, W]             in [0, 1], 0 where depth_dense is 0
 lidar_points_ego           float32 [N, 3]                LiDAR points, ego frame at frame time
 lidar_intensity            float32 [N]
 lidar_beam_index           int64 [N]
@@ -35,7 +40,7 @@ boxes_instance_id          int64 [M]
 boxes_track_id             list[str] (M)
 =========================  ===========================  ==========================================
 
-Choose groups with ``fields`` ("images", "cameras", "truth", "lidar", "boxes"); only what is
+Choose groups with ``fields`` ("images", "cameras", "truth", "depth", "lidar", "boxes"); only what is
 asked for is read, checked and decoded. Label maps stay compact (uint8 classes, int32 instances);
 cast them on the device (``.long()`` for a cross-entropy target). :func:`collate_frames` stacks
 fixed-size entries over the batch and keeps variable-size ones (LiDAR, boxes, per-camera lists)
@@ -59,7 +64,7 @@ from phigenesis.data import codec
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheError, CacheReader
 
-FIELD_GROUPS = ("images", "cameras", "truth", "lidar", "boxes")
+FIELD_GROUPS = ("images", "cameras", "truth", "depth", "lidar", "boxes")
 
 
 def _bytes_view(arr: pa.BinaryArray, i: int) -> np.ndarray | None:
@@ -109,6 +114,18 @@ _TRUTH_JOBS = (
     _MapJob("truth_semantic", "truth_semantic_png", codec.decode_semantic, np.uint8, None),
     _MapJob("truth_instance", "truth_instance_png", codec.decode_instance, np.int32, None),
     _MapJob("truth_flow", "truth_flow_png", _decode_flow_channels_first, np.float32, 3),
+)
+
+_DEPTH_JOBS = (
+    _MapJob("depth_sparse", "depth_sparse_png", codec.decode_depth, np.float32, None),
+    _MapJob(
+        "depth_sparse_confidence", "depth_sparse_confidence_png", codec.decode_confidence, np.float32, None
+    ),
+    _MapJob("depth_sparse_origin", "depth_sparse_origin_png", codec.decode_semantic, np.uint8, None),
+    _MapJob("depth_dense", "depth_dense_png", codec.decode_depth, np.float32, None),
+    _MapJob(
+        "depth_dense_confidence", "depth_dense_confidence_png", codec.decode_confidence, np.float32, None
+    ),
 )
 
 
@@ -206,8 +223,10 @@ class FrameDataset(Dataset):
         n_cam = len(cf["camera_name"])
         names = cf["camera_name"].to_pylist()
         out["camera_names"] = names
-        jobs = ([_IMAGE_JOB] if "images" in self.fields else []) + (
-            list(_TRUTH_JOBS) if "truth" in self.fields else []
+        jobs = (
+            ([_IMAGE_JOB] if "images" in self.fields else [])
+            + (list(_TRUTH_JOBS) if "truth" in self.fields else [])
+            + (list(_DEPTH_JOBS) if "depth" in self.fields else [])
         )
         out.update(_decode_maps(cf, names, jobs))
         if "cameras" in self.fields:

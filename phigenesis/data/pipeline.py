@@ -8,6 +8,7 @@ directory resumes (finished scenes are skipped), while a different command is re
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import importlib.resources
 import json
@@ -94,9 +95,8 @@ class PipelineSpec:
             "source": {"name": self.source, "params": self.source_params},
             "stages": [{"name": s.name, "params": s.params} for s in self.stages],
             "output": {
+                **dataclasses.asdict(self.contents),
                 "camera_truth": list(self.contents.camera_truth),
-                "lidar": self.contents.lidar,
-                "lidar_truth": self.contents.lidar_truth,
                 "shard_max_bytes": self.shard_max_bytes,
             },
         }

@@ -145,6 +145,50 @@ class CameraLabels:
         self.instance = _check_array("instance", self.instance, self.semantic.shape, np.uint16)
 
 
+#: What a sparse depth pixel came from (:attr:`CameraDepth.sparse_origin`).
+DEPTH_ORIGINS: tuple[str, ...] = ("none", "static_map", "rigid_object", "non_rigid_object", "single_sweep")
+
+
+@dataclass
+class CameraDepth:
+    """Depth ground truth built from LiDAR for one image, (H, W) at the image's size.
+
+    Depths are metres along the camera's +z (z-depth, as :attr:`CameraTruth.depth_m`), 0 where
+    unknown; confidences are in [0, 1] and 0 exactly where the depth is unknown.
+
+    Attributes:
+        sparse_m: float32 LiDAR points projected into the image at its own capture time and pose
+            (nearest point per pixel, after the visibility test).
+        sparse_confidence: float32 confidence of ``sparse_m``.
+        sparse_origin: uint8 index into :data:`DEPTH_ORIGINS` per pixel (what the point came from).
+        dense_m: float32 densified depth, or None before densification.
+        dense_confidence: float32 confidence of ``dense_m`` (None with it).
+    """
+
+    sparse_m: NDArray[np.float32]
+    sparse_confidence: NDArray[np.float32]
+    sparse_origin: NDArray[np.uint8]
+    dense_m: NDArray[np.float32] | None = None
+    dense_confidence: NDArray[np.float32] | None = None
+
+    def __post_init__(self) -> None:
+        self.sparse_m = _check_array("sparse_m", self.sparse_m, (None, None), np.float32)
+        shape = self.sparse_m.shape
+        self.sparse_confidence = _check_array("sparse_confidence", self.sparse_confidence, shape, np.float32)
+        self.sparse_origin = _check_array("sparse_origin", self.sparse_origin, shape, np.uint8)
+        if (self.dense_m is None) != (self.dense_confidence is None):
+            raise ValueError("dense_m and dense_confidence come together (both or neither)")
+        if self.dense_m is not None:
+            self.dense_m = _check_array("dense_m", self.dense_m, shape, np.float32)
+            self.dense_confidence = _check_array("dense_confidence", self.dense_confidence, shape, np.float32)
+
+    @classmethod
+    def empty(cls, height: int, width: int) -> CameraDepth:
+        """No depth anywhere (zero confidence): what an image without LiDAR gets."""
+        zeros = np.zeros((height, width), np.float32)
+        return cls(zeros, zeros.copy(), np.zeros((height, width), np.uint8))
+
+
 @dataclass
 class CameraImage:
     """One image of one camera.
@@ -158,6 +202,7 @@ class CameraImage:
         image_format: "jpeg" or "png".
         truth: exact per-pixel truth where the source has it.
         labels: human per-pixel labels where the dataset has them.
+        depth: depth ground truth built from LiDAR by the depth stages, where they ran.
         trigger_micros: when the sensor was triggered (None: taken as ``timestamp_micros``).
         shutter_micros: exposure time of each line, microseconds (0 for an instantaneous capture).
         readout_micros: time from the first to the last line's readout, microseconds (0 for a
@@ -173,6 +218,7 @@ class CameraImage:
     image_format: ImageFormat = "jpeg"
     truth: CameraTruth | None = None
     labels: CameraLabels | None = None
+    depth: CameraDepth | None = None
     trigger_micros: int | None = None
     shutter_micros: float = 0.0
     readout_micros: float = 0.0
@@ -183,8 +229,11 @@ class CameraImage:
         self.timestamp_micros = int(self.timestamp_micros)
         self.world_from_ego = _check_transform("world_from_ego", self.world_from_ego)
         size = (self.calibration.height, self.calibration.width)
-        for what, maps in (("truth", self.truth), ("labels", self.labels)):
-            shape = None if maps is None else maps.semantic.shape
+        for what, shape in (
+            ("truth", None if self.truth is None else self.truth.semantic.shape),
+            ("labels", None if self.labels is None else self.labels.semantic.shape),
+            ("depth", None if self.depth is None else self.depth.sparse_m.shape),
+        ):
             if shape is not None and shape != size:
                 raise ValueError(
                     f"camera {self.calibration.name}: {what} is {shape}, calibration says {size}"
@@ -491,12 +540,17 @@ class LazyFrames(Sequence[Frame]):
     """A sequence of frames produced on demand by ``load(index)`` (nothing is cached).
 
     Sources use it so a scene of hundreds of frames never sits in memory at once; stages can wrap
-    one lazily with :meth:`map`.
+    one lazily with :meth:`map`. A source that can produce a frame's geometry (poses, LiDAR,
+    boxes, calibrations, but no image bytes or per-pixel maps) much more cheaply than the whole
+    frame passes ``load_geometry``; scene-wide stages (LiDAR aggregation) read frames that way.
     """
 
-    def __init__(self, count: int, load: Callable[[int], Frame]):
+    def __init__(
+        self, count: int, load: Callable[[int], Frame], load_geometry: Callable[[int], Frame] | None = None
+    ):
         self._count = int(count)
         self._load = load
+        self._load_geometry = load_geometry or load
 
     def __len__(self) -> int:
         return self._count
@@ -510,19 +564,33 @@ class LazyFrames(Sequence[Frame]):
     def __getitem__(self, index: int | slice) -> Frame | list[Frame]:
         if isinstance(index, slice):
             return [self[i] for i in range(*index.indices(self._count))]
+        return self._load(self._check(index))
+
+    def _check(self, index: int) -> int:
         if index < 0:
             index += self._count
         if not 0 <= index < self._count:
             raise IndexError(f"frame index {index} out of range for {self._count} frames")
-        return self._load(index)
+        return index
 
     def __iter__(self) -> Iterator[Frame]:
         for i in range(self._count):
             yield self._load(i)
 
+    def geometry(self, index: int) -> Frame:
+        """Frame ``index`` without image bytes or per-pixel maps where the source can skip them
+        (the whole frame otherwise); stages applied with :meth:`map` apply here too."""
+        return self._load_geometry(self._check(index))
+
     def map(self, fn: Callable[[Frame], Frame]) -> LazyFrames:
-        """A lazy sequence that applies ``fn`` to each frame when it is loaded."""
-        return LazyFrames(self._count, lambda i: fn(self._load(i)))
+        """A lazy sequence that applies ``fn`` to each frame when it is loaded (``fn`` must
+        accept geometry-only frames as well)."""
+        return LazyFrames(self._count, lambda i: fn(self._load(i)), lambda i: fn(self._load_geometry(i)))
+
+
+def frame_geometry(frames: Sequence[Frame], index: int) -> Frame:
+    """Frame ``index`` of any frame sequence, geometry only where the sequence can skip the rest."""
+    return frames.geometry(index) if isinstance(frames, LazyFrames) else frames[index]
 
 
 @dataclass
@@ -534,7 +602,10 @@ class Scene:
         source: which source produced it ("synthetic", "waymo", "nuscenes").
         calibrations: the cameras of the rig, in the rig's order.
         frames: the frames in time order (often a :class:`LazyFrames`).
-        metadata: JSON-serialisable facts about the scene (rig name, seed, location, ...).
+        metadata: JSON-serialisable facts about the scene (rig name, seed, location, ...); stored
+            in the cache.
+        products: in-memory results of scene-wide stages for later stages (the aggregated LiDAR
+            map), keyed by name; never stored.
     """
 
     scene_id: str
@@ -542,6 +613,7 @@ class Scene:
     calibrations: list[CameraCalibration]
     frames: Sequence[Frame]
     metadata: dict[str, Any] = field(default_factory=dict)
+    products: dict[str, Any] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.frames)

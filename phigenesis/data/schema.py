@@ -24,6 +24,7 @@ from phigenesis.data.records import (
     BOX_STATUSES,
     Boxes,
     CameraCalibration,
+    CameraDepth,
     CameraImage,
     CameraLabels,
     CameraTruth,
@@ -31,7 +32,7 @@ from phigenesis.data.records import (
     LidarSweep,
 )
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 TRUTH_MAPS = ("depth", "semantic", "instance", "flow")
 
 
@@ -44,12 +45,14 @@ class CacheContents:
         lidar: store the LiDAR sweep.
         lidar_truth: store per-point truth class and instance (sources that have them).
         camera_labels: store the dataset's human per-pixel labels (Waymo panoptic), where present.
+        depth: store the depth stages' sparse and dense depth with their confidences.
     """
 
     camera_truth: tuple[str, ...] = TRUTH_MAPS
     lidar: bool = True
     lidar_truth: bool = True
     camera_labels: bool = True
+    depth: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "camera_truth", tuple(self.camera_truth))
@@ -66,6 +69,8 @@ class CacheContents:
             return self.lidar and self.lidar_truth
         if group == "camera_labels":
             return self.camera_labels
+        if group == "depth":
+            return self.depth
         raise ValueError(f"unknown column group {group!r}")
 
 
@@ -166,6 +171,48 @@ class CameraColumns:
         "",
         "",
         "camera_labels",
+        True,
+    )
+    depth_sparse_png: bytes = col(
+        pa.binary(),
+        "LiDAR projected at this image's time and pose (nearest visible point per pixel), z-depth, "
+        "16-bit PNG, metres = value / 256, 0 = unknown; null if not computed",
+        "m/256",
+        "camera",
+        "depth",
+        True,
+    )
+    depth_sparse_confidence_png: bytes = col(
+        pa.binary(),
+        "confidence of depth_sparse_png, 8-bit PNG, value / 255, 0 where unknown",
+        "1/255",
+        "",
+        "depth",
+        True,
+    )
+    depth_sparse_origin_png: bytes = col(
+        pa.binary(),
+        "what each sparse depth came from, 8-bit PNG: 0 none, 1 static map, 2 rigid object model, "
+        "3 non-rigid object (own sweep), 4 single sweep",
+        "",
+        "",
+        "depth",
+        True,
+    )
+    depth_dense_png: bytes = col(
+        pa.binary(),
+        "densified depth ground truth, z-depth, 16-bit PNG, metres = value / 256, 0 = unknown",
+        "m/256",
+        "camera",
+        "depth",
+        True,
+    )
+    depth_dense_confidence_png: bytes = col(
+        pa.binary(),
+        "confidence of depth_dense_png, 8-bit PNG, value / 255, 0 where unknown",
+        "1/255",
+        "",
+        "depth",
         True,
     )
     label_instance_png: bytes = col(
@@ -321,7 +368,8 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
         """Column ``name`` (None if not in the schema): each camera's ``c.<maps>.<attr>`` as PNG."""
         if name not in cam_names:
             return None
-        return [None if getattr(c, maps) is None else encode(getattr(getattr(c, maps), attr)) for c in cams]
+        values = [None if getattr(c, maps) is None else getattr(getattr(c, maps), attr) for c in cams]
+        return [None if v is None else encode(v) for v in values]
 
     cameras = {
         "camera_name": [c.name for c in cams],
@@ -346,6 +394,17 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
         "truth_flow_png": png("truth_flow_png", codec.encode_flow, "truth", "flow_world_mps"),
         "label_semantic_png": png("label_semantic_png", codec.encode_semantic, "labels", "semantic"),
         "label_instance_png": png("label_instance_png", codec.encode_instance, "labels", "instance"),
+        "depth_sparse_png": png("depth_sparse_png", codec.encode_depth, "depth", "sparse_m"),
+        "depth_sparse_confidence_png": png(
+            "depth_sparse_confidence_png", codec.encode_confidence, "depth", "sparse_confidence"
+        ),
+        "depth_sparse_origin_png": png(
+            "depth_sparse_origin_png", codec.encode_semantic, "depth", "sparse_origin"
+        ),
+        "depth_dense_png": png("depth_dense_png", codec.encode_depth, "depth", "dense_m"),
+        "depth_dense_confidence_png": png(
+            "depth_dense_confidence_png", codec.encode_confidence, "depth", "dense_confidence"
+        ),
     }
     b = frame.boxes
     boxes = {
@@ -449,6 +508,7 @@ def row_to_frame(batch: pa.RecordBatch, row: int = 0, decode_truth: bool = True)
                 formats[i] or "jpeg",
                 truth=_camera_truth(cf, i, heights[i], widths[i]) if decode_truth else None,
                 labels=_camera_labels(cf, i) if decode_truth else None,
+                depth=_camera_depth(cf, i) if decode_truth else None,
                 trigger_micros=triggers[i],
                 shutter_micros=shutters[i],
                 readout_micros=readouts[i],
@@ -481,6 +541,23 @@ def _camera_labels(cf: dict[str, pa.Array], i: int) -> CameraLabels | None:
     semantic = codec.decode_semantic(sem)
     instance = codec.decode_instance(inst) if inst is not None else np.zeros(semantic.shape, np.uint16)
     return CameraLabels(semantic, instance)
+
+
+def _camera_depth(cf: dict[str, pa.Array], i: int) -> CameraDepth | None:
+    if "depth_sparse_png" not in cf or cf["depth_sparse_png"][i].as_py() is None:
+        return None
+
+    def get(name: str, decode: Any) -> np.ndarray | None:
+        data = cf[name][i].as_py()
+        return None if data is None else decode(data)
+
+    return CameraDepth(
+        sparse_m=get("depth_sparse_png", codec.decode_depth),
+        sparse_confidence=get("depth_sparse_confidence_png", codec.decode_confidence),
+        sparse_origin=get("depth_sparse_origin_png", codec.decode_semantic),
+        dense_m=get("depth_dense_png", codec.decode_depth),
+        dense_confidence=get("depth_dense_confidence_png", codec.decode_confidence),
+    )
 
 
 def _camera_truth(cf: dict[str, pa.Array], i: int, h: int, w: int) -> CameraTruth | None:

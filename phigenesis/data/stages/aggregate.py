@@ -1,0 +1,453 @@
+"""Static LiDAR aggregation: every sweep of a scene in the world frame, split into a static map and
+per-object models, for the depth stages.
+
+Entry point: :func:`aggregate_scene` (the stage ``aggregate_lidar`` calls it and leaves the result
+in ``scene.products["lidar_map"]``).
+
+- **Moving or not** is decided from each track's motion over the scene (its box centres spread
+  more than ``moving_threshold_m`` around their median), never from its class: a parked car is
+  static scenery, a walking person is not.
+- **Static map**: the points outside the boxes of moving objects and outside the ego car's body,
+  voxel down-sampled (``voxel_m``, the speed/accuracy knob; Open3D averages each voxel) and
+  cleaned by Open3D's statistical outlier removal. Boxes are tested at each point's own
+  measurement time (centre + velocity x time offset), so a fast car's points do not smear into the
+  map across the ~100 ms of a revolution; the removal boxes are enlarged (``box_scale`` and
+  ``box_margin_m``).
+- **Rigid moving objects** accumulate their points over the scene in box coordinates (strictly
+  inside the box, above a ground clearance so the road under them is not carried along), voxel
+  down-sampled at ``object_voxel_m``; the projection puts them back at each image's box pose.
+- **Non-rigid classes** (people, riders) keep no model: the projection uses only the points of
+  the frame's own sweep.
+
+Frames are read with :func:`frame_geometry` (no images), one sweep at a time; static points are
+down-sampled in chunks of ``chunk_sweeps`` sweeps so memory stays bounded by the map, not the scene.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from phigenesis import geometry
+from phigenesis._open3d import open3d
+from phigenesis.data import taxonomy as tx
+from phigenesis.data.records import Boxes, LidarSweep, Scene, frame_geometry
+from phigenesis.data.stages import params_from_dict, register_stage
+
+log = logging.getLogger("phigenesis.prep")
+
+#: The ego body where a source gives none: a mid-size car around the rear axle, ego frame.
+DEFAULT_EGO_BOXES: list[dict[str, list[float]]] = [
+    {"center_ego": [1.4, 0.0, 0.9], "size_lwh": [5.0, 2.1, 1.8]}
+]
+#: Tile size of the static map's spatial index, metres.
+TILE_M = 16.0
+
+
+@dataclass(frozen=True)
+class AggregateParams:
+    """Parameters of :func:`aggregate_scene` (all lengths in metres, times in seconds).
+
+    Attributes:
+        voxel_m: static map voxel size; 0 keeps every point.
+        object_voxel_m: voxel size of the rigid object models.
+        object_min_sweeps: an object model keeps the voxels hit by at least this many sweeps.
+        moving_threshold_m: a track whose box centres spread more than this around their median
+            position is moving.
+        box_scale: moving boxes are scaled by this for removing points from the static map ...
+        box_margin_m: ... and grown by this on every side.
+        ground_clearance_m: object models keep points this far above their box's bottom face.
+        outlier_neighbors, outlier_std_ratio: Open3D statistical outlier removal (0 neighbours
+            turns it off).
+        ego_margin_m: points within this of the ego body boxes are dropped.
+        chunk_sweeps: sweeps gathered before each intermediate voxel down-sampling.
+    """
+
+    voxel_m: float = 0.02
+    object_voxel_m: float = 0.05
+    object_min_sweeps: int = 2
+    moving_threshold_m: float = 0.5
+    box_scale: float = 1.1
+    box_margin_m: float = 0.15
+    ground_clearance_m: float = 0.1
+    outlier_neighbors: int = 8
+    outlier_std_ratio: float = 3.0
+    ego_margin_m: float = 0.1
+    chunk_sweeps: int = 10
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> AggregateParams:
+        return params_from_dict(cls, values, "aggregate_lidar")
+
+
+@dataclass
+class ObjectModel:
+    """A rigid moving object's points accumulated over the scene, in its box frame.
+
+    Attributes:
+        track_id: the track.
+        class_id: unified taxonomy class.
+        points_box: (N, 3) float32 metres, box frame (x forward, y left, z up, origin at the
+            box centre).
+        sweeps: how many sweeps contributed points.
+    """
+
+    track_id: str
+    class_id: int
+    points_box: NDArray[np.float32]
+    sweeps: int
+
+
+@dataclass
+class LidarMap:
+    """What :func:`aggregate_scene` found in a scene.
+
+    Attributes:
+        points_world: (N, 3) float32 static points, world frame, sorted by :data:`TILE_M` tile.
+        tile_keys: (T,) int64 sorted keys of the occupied tiles; ``tile_start`` (T + 1,) int64
+            offsets into ``points_world``.
+        voxel_m: the static map's voxel size (a point's footprint).
+        moving_tracks: the tracks judged moving.
+        non_rigid_tracks: the moving tracks whose class deforms (no model; own sweep only).
+        objects: the rigid moving objects' models by track id.
+        ego_boxes: the ego body boxes used (centre and size in the ego frame).
+        max_elevation_rad: the highest elevation (above the ego's x-y plane, seen from the
+            sensor) at which the LiDAR returned points (99.9th percentile over the scene): map
+            points above it seen from the current sensor position are not projected, as their
+            occluders could never have been measured.
+        angular_step_rad: the LiDAR's angular spacing (the coarser of beam and azimuth steps):
+            the footprint of a point that a single sweep measured.
+        stats: counts and timings (JSON-serialisable).
+    """
+
+    points_world: NDArray[np.float32]
+    tile_keys: NDArray[np.int64]
+    tile_start: NDArray[np.int64]
+    voxel_m: float
+    moving_tracks: frozenset[str]
+    non_rigid_tracks: frozenset[str]
+    objects: dict[str, ObjectModel]
+    ego_boxes: list[dict[str, list[float]]]
+    max_elevation_rad: float = float(np.pi / 2)
+    angular_step_rad: float = float(np.radians(0.5))
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    def points_near(self, xy_world: NDArray[np.float64], radius_m: float) -> NDArray[np.float32]:
+        """(K, 3) static points in the tiles within ``radius_m`` (x-y) of a world position."""
+        if len(self.tile_keys) == 0:
+            return self.points_world[:0]
+        lo = np.floor((np.asarray(xy_world[:2]) - radius_m) / TILE_M).astype(np.int64)
+        hi = np.floor((np.asarray(xy_world[:2]) + radius_m) / TILE_M).astype(np.int64)
+        tx_, ty_ = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), indexing="ij")
+        keys = np.sort(_tile_key(tx_.ravel(), ty_.ravel()))
+        pos = np.searchsorted(self.tile_keys, keys)
+        hit = pos < len(self.tile_keys)
+        hit[hit] = self.tile_keys[pos[hit]] == keys[hit]
+        parts = [self.points_world[self.tile_start[i] : self.tile_start[i + 1]] for i in pos[hit]]
+        return np.concatenate(parts) if parts else self.points_world[:0]
+
+
+def _tile_key(tx_: NDArray[np.int64], ty_: NDArray[np.int64]) -> NDArray[np.int64]:
+    return (tx_.astype(np.int64) << 32) + (ty_.astype(np.int64) + (1 << 31))
+
+
+def ego_boxes_of(scene: Scene, override: list[dict[str, list[float]]] | None = None) -> list[dict]:
+    """The ego body boxes: ``override``, else the scene's metadata ``ego_boxes``, else a default car."""
+    boxes = override if override is not None else scene.metadata.get("ego_boxes", DEFAULT_EGO_BOXES)
+    for b in boxes:
+        if len(b.get("center_ego", ())) != 3 or len(b.get("size_lwh", ())) != 3:
+            raise ValueError(
+                f"scene {scene.scene_id}: an ego box needs center_ego and size_lwh (3 values): {b}"
+            )
+    return list(boxes)
+
+
+def in_ego_body(
+    points_ego: NDArray[np.floating], ego_boxes: list[dict], margin_m: float
+) -> NDArray[np.bool_]:
+    """(N,) True for ego-frame points inside any ego body box grown by ``margin_m``."""
+    p = np.asarray(points_ego, np.float64)
+    inside = np.zeros(len(p), bool)
+    for b in ego_boxes:
+        half = 0.5 * np.asarray(b["size_lwh"], np.float64) + margin_m
+        inside |= np.all(np.abs(p - np.asarray(b["center_ego"], np.float64)) <= half, axis=1)
+    return inside
+
+
+def box_points_at_times(
+    points_world: NDArray[np.float64],
+    dt_s: NDArray[np.float64],
+    boxes: Boxes,
+    scale: float = 1.0,
+    margin_m: float = 0.0,
+    bottom_clearance_m: float | None = None,
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Which box (if any) holds each point at its own measurement time.
+
+    Box ``i`` at a point's time is the frame's box moved by ``velocity_world * dt_s``; its half
+    size is ``0.5 * size * scale + margin_m``. With ``bottom_clearance_m``, points lower than the
+    (unscaled) bottom face plus the clearance do not count.
+
+    Args:
+        points_world: (N, 3) float64 world points.
+        dt_s: (N,) point time minus the boxes' time, seconds.
+        boxes: M boxes (orientation from ``orientation_world``).
+
+    Returns:
+        ``(index, local)``: (N,) index of the first box holding the point or -1, and (N, 3) the
+        point in that box's frame (undefined where the index is -1).
+    """
+    n = len(points_world)
+    index = np.full(n, -1, np.int64)
+    local = np.zeros((n, 3))
+    if n == 0 or len(boxes) == 0:
+        return index, local
+    rotations = geometry.quaternion_to_matrix(boxes.orientation_world)
+    speed = np.linalg.norm(boxes.velocity_world, axis=1)
+    max_dt = float(np.max(np.abs(dt_s))) if n else 0.0
+    half = 0.5 * boxes.size_lwh * scale + margin_m
+    reach = np.linalg.norm(half, axis=1) + speed * max_dt + 1e-6
+    for i in range(len(boxes)):
+        near = np.flatnonzero(np.sum((points_world - boxes.center_world[i]) ** 2, axis=1) <= reach[i] ** 2)
+        near = near[index[near] < 0]
+        if near.size == 0:
+            continue
+        centre = boxes.center_world[i] + boxes.velocity_world[i] * dt_s[near, None]
+        q = (points_world[near] - centre) @ rotations[i]  # world -> box: R^T p
+        inside = np.all(np.abs(q) <= half[i], axis=1)
+        if bottom_clearance_m is not None:
+            inside &= q[:, 2] >= -0.5 * boxes.size_lwh[i, 2] + bottom_clearance_m
+        index[near[inside]] = i
+        local[near[inside]] = q[inside]
+    return index, local
+
+
+def moving_tracks(centres_by_track: dict[str, list[NDArray[np.float64]]], threshold_m: float) -> set[str]:
+    """Tracks whose centres spread more than ``threshold_m`` (3D) around their median position."""
+    moving = set()
+    for track, centres in centres_by_track.items():
+        c = np.asarray(centres, np.float64).reshape(-1, 3)
+        if np.max(np.linalg.norm(c - np.median(c, axis=0), axis=1)) > threshold_m:
+            moving.add(track)
+    return moving
+
+
+def repeated_points(
+    sweeps: list[NDArray[np.float32]], voxel_m: float, min_sweeps: int
+) -> NDArray[np.float32]:
+    """The points (of all ``sweeps``, box frame) whose voxel was hit by at least ``min_sweeps``
+    sweeps (fewer if the object was seen by fewer). The object's own surface is hit again and
+    again at the same place in its box frame; anything else that passed through its box (a pole
+    it drove by, another road user) is not."""
+    need = min(min_sweeps, len(sweeps))
+    if need <= 1 or voxel_m <= 0:
+        return np.concatenate(sweeps)
+    keys = [np.unique(_voxel_keys(q, voxel_m)) for q in sweeps]
+    unique, hits = np.unique(np.concatenate(keys), return_counts=True)
+    good = unique[hits >= need]
+    points = np.concatenate(sweeps)
+    return points[np.isin(_voxel_keys(points, voxel_m), good)]
+
+
+def _voxel_keys(points: NDArray[np.floating], voxel_m: float) -> NDArray[np.int64]:
+    """One int64 key per point for its voxel (21 bits per axis: +-1e6 voxels)."""
+    v = np.floor(np.asarray(points, np.float64) / voxel_m).astype(np.int64) + (1 << 20)
+    return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
+
+
+def voxel_downsample(points: NDArray[np.floating], voxel_m: float) -> NDArray[np.float32]:
+    """(K, 3) float32 centroids of the points in each occupied voxel (Open3D); all points if 0."""
+    if voxel_m <= 0 or len(points) == 0:
+        return np.asarray(points, np.float32)
+    o3d = open3d()
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    return np.asarray(cloud.voxel_down_sample(voxel_m).points, np.float32)
+
+
+def remove_outliers(points: NDArray[np.float32], neighbors: int, std_ratio: float) -> NDArray[np.float32]:
+    """Open3D statistical outlier removal: drops points whose mean distance to their
+    ``neighbors`` nearest neighbours is more than ``std_ratio`` deviations above the average."""
+    if neighbors <= 0 or len(points) <= neighbors:
+        return points
+    o3d = open3d()
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    _, keep = cloud.remove_statistical_outlier(nb_neighbors=neighbors, std_ratio=std_ratio)
+    return points[np.asarray(keep, np.int64)]
+
+
+@dataclass
+class _Accumulator:
+    """Gathers sweep points while the pass over the scene runs."""
+
+    params: AggregateParams
+    static_chunks: list[NDArray[np.float32]] = field(default_factory=list)
+    pending: list[NDArray[np.float32]] = field(default_factory=list)
+    pending_sweeps: int = 0
+    # Per track: points inside the enlarged box (world) and strictly inside (box frame).
+    boxed_world: dict[str, list[NDArray[np.float32]]] = field(default_factory=dict)
+    strict_box: dict[str, list[NDArray[np.float32]]] = field(default_factory=dict)
+    centres: dict[str, list[NDArray[np.float64]]] = field(default_factory=dict)
+    classes: dict[str, int] = field(default_factory=dict)
+    elevations: list[NDArray[np.float64]] = field(default_factory=list)
+    angular_steps: list[float] = field(default_factory=list)
+
+    def add_static(self, points_world: NDArray[np.float32]) -> None:
+        self.pending.append(points_world)
+        self.pending_sweeps += 1
+        if self.pending_sweeps >= self.params.chunk_sweeps:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.pending:
+            self.static_chunks.append(voxel_downsample(np.concatenate(self.pending), self.params.voxel_m))
+        self.pending, self.pending_sweeps = [], 0
+
+
+def return_elevations(sweep: LidarSweep) -> NDArray[np.float64]:
+    """(N,) elevation of each return seen from its ray origin, radians, ego axes."""
+    d = sweep.points_ego.astype(np.float64) - sweep.origins_ego
+    return np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
+
+
+def lidar_angular_step(sweep: LidarSweep) -> float:
+    """A sweep's angular sampling step, radians: the larger of the median step between adjacent
+    beams (by their median elevation) and the median azimuth step along a beam."""
+    if len(sweep) < 2:
+        return float(np.radians(0.5))
+    d = sweep.points_ego.astype(np.float64) - sweep.origins_ego
+    elevation = np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
+    azimuth = np.arctan2(d[:, 1], d[:, 0])
+    key = sweep.lidar_id.astype(np.int64) * 65536 + sweep.beam_index
+    order = np.lexsort((azimuth, key))
+    same = key[order][1:] == key[order][:-1]
+    az_steps = np.diff(azimuth[order])[same]
+    az_steps = az_steps[az_steps > 1e-6]
+    beams, inverse = np.unique(key, return_inverse=True)
+    beam_elev = np.array([np.median(elevation[inverse == b]) for b in range(len(beams))])
+    el_steps = np.abs(np.diff(np.sort(beam_elev)))
+    el_steps = el_steps[el_steps > 1e-6]
+    steps = [np.median(x) for x in (az_steps, el_steps) if len(x)]
+    return float(max(steps)) if steps else float(np.radians(0.5))
+
+
+def _sweep_dt_s(sweep: LidarSweep, boxes_micros: int) -> NDArray[np.float64]:
+    return (sweep.time_offset_micros.astype(np.float64) + (sweep.timestamp_micros - boxes_micros)) * 1e-6
+
+
+def aggregate_scene(scene: Scene, params: AggregateParams | None = None) -> LidarMap:
+    """Aggregates all LiDAR sweeps of ``scene`` into a static world map and rigid object models.
+
+    Reads each frame's geometry once (images are not loaded). A scene without any LiDAR gives an
+    empty map (and a warning), not an error.
+    """
+    p = params or AggregateParams()
+    t0 = time.perf_counter()
+    ego_boxes = ego_boxes_of(scene)
+    acc = _Accumulator(p)
+    counts = {"sweeps": 0, "points": 0, "ego_body_points": 0, "boxed_points": 0}
+    for i in range(len(scene.frames)):
+        frame = frame_geometry(scene.frames, i)
+        boxes = frame.boxes
+        for k, track in enumerate(boxes.track_id):
+            acc.centres.setdefault(track, []).append(boxes.center_world[k])
+            acc.classes[track] = int(boxes.class_id[k])
+        sweep = frame.lidar
+        if sweep is None or len(sweep) == 0:
+            continue
+        counts["sweeps"] += 1
+        counts["points"] += len(sweep)
+        if counts["sweeps"] % 10 == 1:  # the sensor's geometry needs a sample, not every sweep
+            acc.elevations.append(return_elevations(sweep))
+            acc.angular_steps.append(lidar_angular_step(sweep))
+        body = in_ego_body(sweep.points_ego, ego_boxes, p.ego_margin_m)
+        counts["ego_body_points"] += int(body.sum())
+        pts = sweep.points_world()[~body]
+        dt = _sweep_dt_s(sweep, frame.timestamp_micros)[~body]
+        enlarged, _ = box_points_at_times(pts, dt, boxes, p.box_scale, p.box_margin_m)
+        strict, local = box_points_at_times(pts, dt, boxes, 1.0, 0.0, p.ground_clearance_m)
+        acc.add_static(pts[enlarged < 0].astype(np.float32))
+        counts["boxed_points"] += int(np.sum(enlarged >= 0))
+        for k in np.unique(enlarged[enlarged >= 0]):
+            track = boxes.track_id[k]
+            acc.boxed_world.setdefault(track, []).append(pts[enlarged == k].astype(np.float32))
+            acc.strict_box.setdefault(track, []).append(local[strict == k].astype(np.float32))
+    acc.flush()
+    moving = moving_tracks(acc.centres, p.moving_threshold_m)
+    non_rigid = {t for t in moving if acc.classes[t] in tx.NON_RIGID_IDS}
+    # Static tracks' points are scenery after all (parked cars, standing people).
+    for track, parts in acc.boxed_world.items():
+        if track not in moving:
+            acc.static_chunks.append(voxel_downsample(np.concatenate(parts), p.voxel_m))
+    static = np.concatenate(acc.static_chunks) if acc.static_chunks else np.zeros((0, 3), np.float32)
+    static = voxel_downsample(static, p.voxel_m)
+    before_outliers = len(static)
+    static = remove_outliers(static, p.outlier_neighbors, p.outlier_std_ratio)
+    objects = {}
+    for track in sorted(moving - non_rigid):
+        parts = [q for q in acc.strict_box.get(track, []) if len(q)]
+        if parts:
+            points = repeated_points(parts, p.object_voxel_m, p.object_min_sweeps)
+            objects[track] = ObjectModel(
+                track, acc.classes[track], voxel_downsample(points, p.object_voxel_m), len(parts)
+            )
+    if counts["sweeps"] == 0:
+        log.warning("scene %s: no LiDAR in any frame; the depth maps will be empty", scene.scene_id)
+    points, keys, start = _tile_sort(static)
+    stats = {
+        **counts,
+        "static_points": len(points),
+        "outliers_removed": before_outliers - len(points),
+        "moving_tracks": len(moving),
+        "non_rigid_tracks": len(non_rigid),
+        "object_models": len(objects),
+        "object_points": int(sum(len(o.points_box) for o in objects.values())),
+        "seconds": round(time.perf_counter() - t0, 3),
+    }
+    elevations = np.concatenate(acc.elevations) if acc.elevations else np.zeros(0)
+    max_elevation = float(np.percentile(elevations, 99.9)) if len(elevations) else float(np.pi / 2)
+    step = float(np.median(acc.angular_steps)) if acc.angular_steps else float(np.radians(0.5))
+    stats["max_elevation_deg"] = round(float(np.degrees(max_elevation)), 3)
+    stats["angular_step_deg"] = round(float(np.degrees(step)), 4)
+    return LidarMap(
+        points,
+        keys,
+        start,
+        p.voxel_m,
+        frozenset(moving),
+        frozenset(non_rigid),
+        objects,
+        ego_boxes,
+        max_elevation,
+        step,
+        stats,
+    )
+
+
+def _tile_sort(
+    points: NDArray[np.float32],
+) -> tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.int64]]:
+    """Points sorted by tile, the sorted occupied tile keys and their start offsets."""
+    tiles = np.floor(points[:, :2] / TILE_M).astype(np.int64)
+    keys = _tile_key(tiles[:, 0], tiles[:, 1])
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    unique, first = np.unique(keys, return_index=True)
+    return points[order], unique, np.append(first, len(keys)).astype(np.int64)
+
+
+@register_stage("aggregate_lidar")
+def aggregate_lidar(scene: Scene, params: dict[str, Any]) -> Scene:
+    """Stage: aggregates the scene's LiDAR (:func:`aggregate_scene`) into
+    ``scene.products["lidar_map"]`` and records its statistics in the scene metadata."""
+    lidar_map = aggregate_scene(scene, AggregateParams.from_dict(params))
+    scene.products["lidar_map"] = lidar_map
+    # Timings stay out of the metadata: the rows of a cache must not depend on the machine.
+    stats = {k: v for k, v in lidar_map.stats.items() if k != "seconds"}
+    scene.metadata["lidar_map"] = {"voxel_m": lidar_map.voxel_m, **stats}
+    log.info("scene %s: LiDAR map %s", scene.scene_id, lidar_map.stats)
+    return scene
