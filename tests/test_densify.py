@@ -27,6 +27,8 @@ from phigenesis.data.stages.densify import (
     DENSIFIERS,
     camera_focal_px,
     densify,
+    depth_confidence,
+    nearest_trusted,
     needs_rgb,
     plane_fit,
     sweep_sparse_depth,
@@ -55,8 +57,9 @@ def sample(depth: np.ndarray, fraction: float, seed: int = 0) -> tuple[np.ndarra
     return (depth * mask).astype(np.float32), mask.astype(np.float32)
 
 
-def run(method: str, sparse, conf, rgb, focal_px: float):
-    return densify(sparse, conf, rgb if needs_rgb(method) else None, focal_px=focal_px, method=method)
+def run(method: str, sparse, conf, rgb, focal_px: float, **params):
+    rgb = rgb if needs_rgb(method) else None
+    return densify(sparse, conf, rgb, focal_px=focal_px, method=method, **params)
 
 
 # --------------------------------------------------------------------------------------------
@@ -131,8 +134,11 @@ def box_scene() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return truth, box, rgb
 
 
-@pytest.mark.parametrize("method", METHODS)
-def test_no_depth_bleeds_across_a_foreground_edge_beyond_a_two_pixel_band(method):
+@pytest.mark.parametrize(
+    ("method", "params"),
+    [(m, {}) for m in METHODS] + [(m, {"edge_filter": "fgs"}) for m in ("guided", "planar_guided")],
+)
+def test_no_depth_bleeds_across_a_foreground_edge_beyond_a_two_pixel_band(method, params):
     truth, box, rgb = box_scene()
     sparse, conf = sample(truth, 0.4, seed=3)
     band = np.ones((5, 5), np.uint8)
@@ -142,7 +148,7 @@ def test_no_depth_bleeds_across_a_foreground_edge_beyond_a_two_pixel_band(method
     leaks = inside & (np.random.default_rng(4).random(box.shape) < 0.05)
     sparse[leaks] = 40.0
     conf[leaks] = 1.0
-    out = run(method, sparse, conf, rgb, 300.0)
+    out = run(method, sparse, conf, rgb, 300.0, **params)
     depth = out.depth_m
     for region, z in ((inside, 10.0), (outside, 40.0)):
         d = depth[region]
@@ -168,6 +174,24 @@ def test_sky_and_large_holes_stay_empty_with_zero_confidence(method):
     assert (out.depth_m[16:30] > 0).mean() > 0.99
     assert (out.depth_m[29, 30:50] > 0).mean() > 0.9
     assert not out.depth_m[32:48, 32:48].any()
+
+
+@pytest.mark.parametrize("method", ["guided", "planar_guided"])
+def test_image_guided_methods_leave_a_gap_the_lidar_did_not_reach_empty(method):
+    # Two walls (30 m left, 36 m right, grey) with a 4-pixel sky-blue gap between them and
+    # no return in it: depth-only methods bridge the gap, the image says it is neither wall.
+    h, w = 40, 64
+    truth = np.full((h, w), 30.0, np.float32)
+    truth[:, 32:] = 36.0
+    sparse, conf = sample(truth, 0.5)
+    sparse[:, 28:32] = conf[:, 28:32] = 0
+    rgb = flat_rgb(h, w)
+    rgb[:, 28:32] = (120, 170, 230)
+    out = run(method, sparse, conf, rgb, 300.0)
+    assert not out.depth_m[:, 29:31].any()
+    assert (out.depth_m[:, :27] > 0).mean() > 0.99 and (out.depth_m[:, 33:] > 0).mean() > 0.99
+    bridged = densify(sparse, conf, focal_px=300.0, method="ipbasic").depth_m
+    assert (bridged[:, 29:31] > 0).mean() > 0.95
 
 
 def test_ipbasic_fills_the_same_holes_at_eight_times_the_focal_length():
@@ -226,8 +250,31 @@ def test_measured_pixels_and_confidence(method):
         np.testing.assert_allclose(out.confidence[m], conf[m], rtol=0.02)
 
 
+def test_confidence_follows_the_documented_formula():
+    sparse = np.zeros((1, 6), np.float32)
+    conf = np.zeros((1, 6), np.float32)
+    sparse[0, [0, 5]], conf[0, [0, 5]] = (10.0, 20.0), (0.8, 0.5)
+    dense = np.array([[10.0, 10.0, 11.0, 0.0, 20.0, 25.0]], np.float32)
+    index, dist = nearest_trusted(np.array([[True, False, False, False, False, False]]))
+    c = depth_confidence(dense, sparse, conf, index, dist, 2.0, 0.05)
+    d = dist[0]
+    rel2 = ((11.0 - 10.0) / (11.0 * 0.05)) ** 2
+    far_off = ((20.0 - 10.0) / (20.0 * 0.05)) ** 2  # pixel 4 disagrees with its nearest trusted one
+    expected = [
+        0.8,
+        0.8 * np.exp(-d[1] / 2),
+        0.8 * np.exp(-d[2] / 2 - rel2),
+        0.0,
+        0.8 * np.exp(-d[4] / 2 - far_off),
+    ]
+    # The last pixel is measured (20 m, confidence 0.5) but not trusted: the output disagrees.
+    expected.append(0.5 * np.exp(-(((25.0 - 20.0) / (25.0 * 0.05)) ** 2)))
+    np.testing.assert_allclose(c[0], expected, rtol=1e-5, atol=1e-9)
+    assert d[1] == pytest.approx(1.0, abs=0.05) and d[4] == pytest.approx(4.0, abs=0.2)
+
+
 @pytest.mark.parametrize("method", METHODS)
-def test_confidence_falls_with_distance_and_with_disagreement(method):
+def test_confidence_is_one_at_measurements_and_falls_with_distance(method):
     h, w = 40, 60
     truth = np.full((h, w), 20.0, np.float32)
     sparse = np.zeros((h, w), np.float32)
@@ -359,11 +406,17 @@ def test_stage_falls_back_to_ipbasic_without_an_image_warning_once(caplog):
 
 
 def test_stage_rejects_unknown_methods_and_parameters_before_any_frame_loads():
+    def no_frames(i: int) -> Frame:
+        raise AssertionError("a frame was loaded")
+
     scene, *_ = _scene(lazy=True)
+    scene.frames = LazyFrames(2, no_frames)
     with pytest.raises(KeyError, match="unknown densifier 'magic'"):
         get_stage("densify_depth")(scene, {"method": "magic"})
     with pytest.raises(ValueError, match="unknown parameters"):
         get_stage("densify_depth")(scene, {"method": "ipbasic", "window_ref_px": 3})
+    with pytest.raises(ValueError, match="edge_filter must be one of"):
+        get_stage("densify_depth")(scene, {"method": "guided", "edge_filter": "median"})
 
 
 # --------------------------------------------------------------------------------------------
