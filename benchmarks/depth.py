@@ -144,11 +144,16 @@ def densify_variant(
             per_frame = 0.0
 
 
+def flat(arrays: Sequence[np.ndarray]) -> np.ndarray:
+    """Per-camera maps (or masks) of all samples as one flat array."""
+    return np.concatenate([a.ravel() for a in arrays])
+
+
 def errors_row(variant: Variant, samples: list[Sample], extra_ms: float = 0.0) -> list[object]:
-    pred = np.concatenate([m.ravel() for m in variant.maps])
-    truth = np.concatenate([s.truth_m.ravel() for s in samples])
-    valid = np.concatenate([s.valid.ravel() for s in samples])
-    dynamic = np.concatenate([s.dynamic.ravel() for s in samples])
+    pred = flat(variant.maps)
+    truth = flat([s.truth_m for s in samples])
+    valid = flat([s.valid for s in samples])
+    dynamic = flat([s.dynamic for s in samples])
     near = truth < NEAR_M
     e = depth_errors(pred, truth, valid)
     parts = [depth_errors(pred, truth, valid & m) for m in (~dynamic, dynamic, near, ~near)]
@@ -182,10 +187,10 @@ ERROR_HEADERS = (
 
 def common_mae(a: Variant, b: Variant, samples: list[Sample]) -> tuple[float, float, int]:
     """MAE of two variants on the pixels both cover."""
-    pa = np.concatenate([m.ravel() for m in a.maps])
-    pb = np.concatenate([m.ravel() for m in b.maps])
-    truth = np.concatenate([s.truth_m.ravel() for s in samples])
-    valid = np.concatenate([s.valid.ravel() for s in samples]) & (pa > 0) & (pb > 0)
+    pa = flat(a.maps)
+    pb = flat(b.maps)
+    truth = flat([s.truth_m for s in samples])
+    valid = flat([s.valid for s in samples]) & (pa > 0) & (pb > 0)
     return depth_errors(pa, truth, valid).mae_m, depth_errors(pb, truth, valid).mae_m, int(valid.sum())
 
 
@@ -342,9 +347,9 @@ def goals(report: Report, variants: dict[str, Variant]) -> None:
     ip = variants["aggregated + ipbasic"]
 
     def err(v: Variant) -> object:
-        pred = np.concatenate([m.ravel() for m in v.maps])
-        truth = np.concatenate([s.truth_m.ravel() for s in samples])
-        valid = np.concatenate([s.valid.ravel() for s in samples])
+        pred = flat(v.maps)
+        truth = flat([s.truth_m for s in samples])
+        valid = flat([s.valid for s in samples])
         return depth_errors(pred, truth, valid)
 
     a_common, s_common, n_common = common_mae(agg, single, samples)
@@ -447,8 +452,8 @@ def figure(variants: dict[str, Variant], path: Path) -> None:
 
     samples = variants["_samples"]
     examples = variants["_examples"]
-    truth = np.concatenate([s.truth_m.ravel() for s in samples])
-    valid = np.concatenate([s.valid.ravel() for s in samples])
+    truth = flat([s.truth_m for s in samples])
+    valid = flat([s.valid for s in samples])
     fig = plt.figure(figsize=(15, 8.5))
     grid = fig.add_gridspec(3, 4)
     ax = fig.add_subplot(grid[:, :2])
@@ -456,7 +461,7 @@ def figure(variants: dict[str, Variant], path: Path) -> None:
     for v in variants.values():
         if not isinstance(v, Variant):
             continue
-        e = depth_errors(np.concatenate([m.ravel() for m in v.maps]), truth, valid)
+        e = depth_errors(flat(v.maps), truth, valid)
         ms = 1e3 * (float(np.median(v.seconds_per_frame)) + v.agg_seconds_per_frame)
         points.append((ms, e.mae_m, e.coverage, v.name, v.kind))
     for ms, mae, cov, name, kind in points:

@@ -122,6 +122,8 @@ class LidarMap:
             occluders could never have been measured.
         angular_step_rad: the LiDAR's angular spacing (the coarser of beam and azimuth steps):
             the footprint of a point that a single sweep measured.
+        ground_clearance_m: object points lie at least this far above their box's bottom (for
+            the projection's own-sweep points of non-rigid objects too).
         stats: counts and timings (JSON-serialisable).
     """
 
@@ -135,6 +137,7 @@ class LidarMap:
     ego_boxes: list[dict[str, list[float]]]
     max_elevation_rad: float = float(np.pi / 2)
     angular_step_rad: float = float(np.radians(0.5))
+    ground_clearance_m: float = 0.1
     stats: dict[str, Any] = field(default_factory=dict)
 
     def points_near(self, xy_world: NDArray[np.float64], radius_m: float) -> NDArray[np.float32]:
@@ -171,11 +174,9 @@ def in_ego_body(
     points_ego: NDArray[np.floating], ego_boxes: list[dict], margin_m: float
 ) -> NDArray[np.bool_]:
     """(N,) True for ego-frame points inside any ego body box grown by ``margin_m``."""
-    p = np.asarray(points_ego, np.float64)
-    inside = np.zeros(len(p), bool)
+    inside = np.zeros(len(points_ego), bool)
     for b in ego_boxes:
-        half = 0.5 * np.asarray(b["size_lwh"], np.float64) + margin_m
-        inside |= np.all(np.abs(p - np.asarray(b["center_ego"], np.float64)) <= half, axis=1)
+        inside |= geometry.points_in_box(points_ego, b["center_ego"], b["size_lwh"], 0.0, margin_m)
     return inside
 
 
@@ -335,7 +336,8 @@ def lidar_angular_step(sweep: LidarSweep) -> float:
     return float(max(steps)) if steps else float(np.radians(0.5))
 
 
-def _sweep_dt_s(sweep: LidarSweep, boxes_micros: int) -> NDArray[np.float64]:
+def sweep_dt_s(sweep: LidarSweep, boxes_micros: int) -> NDArray[np.float64]:
+    """(N,) each point's measurement time minus ``boxes_micros``, seconds."""
     return (sweep.time_offset_micros.astype(np.float64) + (sweep.timestamp_micros - boxes_micros)) * 1e-6
 
 
@@ -367,7 +369,7 @@ def aggregate_scene(scene: Scene, params: AggregateParams | None = None) -> Lida
         body = in_ego_body(sweep.points_ego, ego_boxes, p.ego_margin_m)
         counts["ego_body_points"] += int(body.sum())
         pts = sweep.points_world()[~body]
-        dt = _sweep_dt_s(sweep, frame.timestamp_micros)[~body]
+        dt = sweep_dt_s(sweep, frame.timestamp_micros)[~body]
         enlarged, _ = box_points_at_times(pts, dt, boxes, p.box_scale, p.box_margin_m)
         strict, local = box_points_at_times(pts, dt, boxes, 1.0, 0.0, p.ground_clearance_m)
         acc.add_static(pts[enlarged < 0].astype(np.float32))
@@ -422,9 +424,10 @@ def aggregate_scene(scene: Scene, params: AggregateParams | None = None) -> Lida
         frozenset(non_rigid),
         objects,
         ego_boxes,
-        max_elevation,
-        step,
-        stats,
+        max_elevation_rad=max_elevation,
+        angular_step_rad=step,
+        ground_clearance_m=p.ground_clearance_m,
+        stats=stats,
     )
 
 

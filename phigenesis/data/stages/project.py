@@ -45,11 +45,11 @@ from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import DEPTH_ORIGINS, CameraDepth, CameraImage, Frame, LazyFrames, Scene
 from phigenesis.data.stages import params_from_dict, register_stage
 from phigenesis.data.stages.aggregate import (
-    AggregateParams,
     LidarMap,
     box_points_at_times,
     ego_boxes_of,
     lidar_angular_step,
+    sweep_dt_s,
 )
 
 log = logging.getLogger("phigenesis.prep")
@@ -57,6 +57,8 @@ log = logging.getLogger("phigenesis.prep")
 VISIBILITY_TESTS = ("splat", "local_min", "none")
 ORIGIN_WEIGHT = {"static_map": 1.0, "single_sweep": 1.0, "non_rigid_object": 0.9, "rigid_object": 0.8}
 ORIGIN_CODE = {name: i for i, name in enumerate(DEPTH_ORIGINS)}
+#: ORIGIN_WEIGHT indexed by origin code (0 for "none").
+ORIGIN_WEIGHTS = np.array([ORIGIN_WEIGHT.get(name, 0.0) for name in DEPTH_ORIGINS], np.float32)
 #: Classes whose boxes are solid enough to hide what lies behind them.
 VEHICLE_IDS = frozenset({tx.CAR, tx.TRUCK, tx.BUS, tx.TRAIN})
 #: People are far from box-shaped: only their core (this share of length and width) occludes.
@@ -239,10 +241,8 @@ def scene_points(
             sub = boxes.select(np.array(people, np.int64))
             sweep = frame.lidar
             pts = sweep.points_world()
-            point_dt = (
-                sweep.time_offset_micros.astype(np.float64) + sweep.timestamp_micros - frame.timestamp_micros
-            ) * 1e-6
-            index, _ = box_points_at_times(pts, point_dt, sub, 1.0, 0.0, AggregateParams().ground_clearance_m)
+            point_dt = sweep_dt_s(sweep, frame.timestamp_micros)
+            index, _ = box_points_at_times(pts, point_dt, sub, 1.0, 0.0, lidar_map.ground_clearance_m)
             inside = index >= 0
             # Move each point with its object from its measurement time to the image's time.
             shift = sub.velocity_world[index[inside]] * (dt_s - point_dt[inside])[:, None]
@@ -475,10 +475,9 @@ def project_camera(
     # Support: points in the pixel agreeing with its depth within tau.
     agree = np.abs(z - sparse[pixel]) <= sparse[pixel] * params.tau
     support = np.bincount(pixel[agree], minlength=h * w)
-    weight = np.zeros(len(DEPTH_ORIGINS), np.float32)
-    for name, value in ORIGIN_WEIGHT.items():
-        weight[ORIGIN_CODE[name]] = value
-    confidence = np.where(hit, weight[origin_map] * np.where(support >= 2, 1.0, 0.75), 0.0).astype(np.float32)
+    confidence = np.where(hit, ORIGIN_WEIGHTS[origin_map] * np.where(support >= 2, 1.0, 0.75), 0.0).astype(
+        np.float32
+    )
     depth = np.where(hit, sparse, 0.0).astype(np.float32)
     if ego_depth is not None:
         body = np.isfinite(ego_depth.reshape(-1))
