@@ -209,6 +209,8 @@ class CameraImage:
             global shutter).
         velocity_world_mps: (3,) ego velocity at ``timestamp_micros`` in the world frame, or None.
         angular_velocity_world_radps: (3,) ego angular velocity (world axes), or None.
+        boxes: the boxes at this camera's own ``timestamp_micros`` where a stage made them
+            (``interpolate_boxes`` for nuScenes' staggered cameras); None: use the frame's boxes.
     """
 
     calibration: CameraCalibration
@@ -224,6 +226,7 @@ class CameraImage:
     readout_micros: float = 0.0
     velocity_world_mps: NDArray[np.float64] | None = None
     angular_velocity_world_radps: NDArray[np.float64] | None = None
+    boxes: Boxes | None = None
 
     def __post_init__(self) -> None:
         self.timestamp_micros = int(self.timestamp_micros)
@@ -594,6 +597,25 @@ def frame_geometry(frames: Sequence[Frame], index: int) -> Frame:
 
 
 @dataclass
+class KeyframeBoxes:
+    """The annotated boxes of one keyframe (nuScenes' 2 Hz samples), in the world frame.
+
+    Sources whose annotations are sparser than their frames (nuScenes) put every keyframe's
+    boxes in :attr:`Scene.keyframes`; the ``interpolate_boxes`` stage turns them into boxes at
+    every frame's and every camera's own timestamp.
+
+    Attributes:
+        timestamp_micros: the keyframe's time (nuScenes: the LIDAR_TOP keyframe time).
+        boxes: the annotations, status "annotated"; ``track_id`` is the instance token.
+        token: the source's id of the keyframe (nuScenes sample token), "" if none.
+    """
+
+    timestamp_micros: int
+    boxes: Boxes
+    token: str = ""
+
+
+@dataclass
 class Scene:
     """A driving sequence: its frames and what is fixed across them.
 
@@ -606,6 +628,8 @@ class Scene:
             in the cache.
         products: in-memory results of scene-wide stages for later stages (the aggregated LiDAR
             map), keyed by name; never stored.
+        keyframes: annotated keyframes where annotations are sparser than frames (nuScenes), in
+            time order; empty where every frame carries its own boxes (Waymo, synthetic).
     """
 
     scene_id: str
@@ -614,6 +638,7 @@ class Scene:
     frames: Sequence[Frame]
     metadata: dict[str, Any] = field(default_factory=dict)
     products: dict[str, Any] = field(default_factory=dict)
+    keyframes: list[KeyframeBoxes] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.frames)
