@@ -4,6 +4,7 @@ Each function here is what the command of the same name runs::
 
     phigenesis-prep synthetic --out cache/ --scenes 2     ->  synthetic("cache/", scenes=2)
     phigenesis-prep waymo --input seg.tfrecord --out c/  ->  waymo("c/", input="seg.tfrecord")
+    phigenesis-prep nuscenes --dataroot D --out c/    ->  nuscenes("c/", dataroot="D")
     phigenesis-prep verify cache/                         ->  verify("cache/")
     phigenesis-prep preview cache/ --frame 3 --out a.png  ->  preview("cache/", frame=3, out="a.png")
 """
@@ -104,6 +105,48 @@ def waymo(
     return prepare(
         out,
         "waymo",
+        overrides,
+        pipeline=pipeline,
+        executor=executor,
+        workers=workers,
+        ray_address=ray_address,
+        overwrite=overwrite,
+        on_error=on_error,
+        progress=progress,
+    )
+
+
+def nuscenes(
+    out: str | os.PathLike[str],
+    *,
+    dataroot: str | os.PathLike[str],
+    version: str = "v1.0-mini",
+    scenes: list[str] | tuple[str, ...] = (),
+    pipeline: str | os.PathLike[str] | PipelineSpec = "nuscenes",
+    executor: ExecutorName = "local",
+    workers: int = 1,
+    ray_address: str | None = None,
+    overwrite: bool = False,
+    on_error: OnError = "raise",
+    progress: bool = True,
+) -> PrepSummary:
+    """Converts nuScenes scenes (the JSON tables of ``version`` under ``dataroot``) into a cache.
+
+    ``scenes`` keeps scenes by name or shell pattern (see
+    :class:`~phigenesis.data.sources.nuscenes.NuScenesConfig`). A bad record (a dangling token, a
+    missing file, an unknown category) fails its scene with an error naming the table, token or
+    file; with ``on_error="skip"`` the record is left out and listed in the scene's metadata
+    (``skipped``), and a scene that cannot be read at all is listed in the manifest.
+    """
+    overrides = {
+        "dataroot": str(Path(dataroot).expanduser().resolve()),
+        "version": version,
+        "scenes": list(scenes),
+        "on_error": on_error,
+    }
+    return prepare(
+        out,
+        "nuscenes",
         overrides,
         pipeline=pipeline,
         executor=executor,

@@ -46,3 +46,20 @@ def tiny_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("tiny_cache")
     prep.synthetic(out, progress=False, **TINY_PREP_ARGS)  # type: ignore[arg-type]
     return out
+
+
+#: The synthetic nuScenes export shared by the nuScenes tests: one scene of 3 keyframes (13 camera
+#: steps at 12 Hz, 21 LiDAR sweeps at 20 Hz), 96 x 160 images, with CAM_BACK's step-3 sweep dropped.
+NUSCENES_CONFIG = tiny_config(scenes=1, height=96, width=160)
+NUSCENES_KEYFRAMES = 3
+NUSCENES_DROPPED = ("CAM_BACK", 3)
+
+
+@pytest.fixture(scope="session")
+def nuscenes_dataroot(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The dataroot of the shared nuScenes export (read-only for tests)."""
+    from phigenesis.data.sources.synthetic.nuscenes_export import export_nuscenes
+
+    root = tmp_path_factory.mktemp("nuscenes")
+    export_nuscenes(NUSCENES_CONFIG, root, keyframes=NUSCENES_KEYFRAMES, dropped=[NUSCENES_DROPPED])
+    return root

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from typing import Any
 
 from phigenesis import prep
 from phigenesis.data.executors import EXECUTORS
@@ -33,6 +34,19 @@ def _run_options(p: argparse.ArgumentParser) -> None:
         "--on-error", choices=("raise", "skip"), default="raise", help="stop at a failed scene, or skip it"
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def _run_arguments(args: argparse.Namespace, pipeline: str) -> dict[str, Any]:
+    """The run options of a conversion command (see :func:`_run_options`) as keyword arguments."""
+    return {
+        "pipeline": args.pipeline or pipeline,
+        "executor": args.executor,
+        "workers": args.workers,
+        "ray_address": args.ray_address,
+        "overwrite": args.overwrite,
+        "on_error": args.on_error,
+        "progress": not args.no_progress,
+    }
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,6 +83,17 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--no-crc", action="store_true", help="do not check the TFRecord CRCs (faster, unsafe)")
     _run_options(w)
 
+    n = sub.add_parser("nuscenes", help="convert nuScenes scenes (JSON tables, images, LIDAR_TOP)")
+    n.add_argument("--dataroot", required=True, help="folder holding <version>/, samples/, sweeps/, maps/")
+    n.add_argument("--version", default="v1.0-mini", help="table folder: v1.0-mini (default), v1.0-trainval")
+    n.add_argument(
+        "--scenes",
+        nargs="+",
+        default=[],
+        help="keep these scenes (names or shell patterns, e.g. scene-0061 'scene-01*'; default: all)",
+    )
+    _run_options(n)
+
     v = sub.add_parser("verify", help="re-check every shard of a cache against its manifest")
     v.add_argument("cache", help="cache directory")
 
@@ -95,13 +120,7 @@ def main(argv: list[str] | None = None) -> int:
                 rig=args.rig,
                 height=args.height,
                 width=args.width,
-                pipeline=args.pipeline or "synthetic",
-                executor=args.executor,
-                workers=args.workers,
-                ray_address=args.ray_address,
-                overwrite=args.overwrite,
-                on_error=args.on_error,
-                progress=not args.no_progress,
+                **_run_arguments(args, "synthetic"),
             )
             print(summary.describe())
             return 0
@@ -113,13 +132,17 @@ def main(argv: list[str] | None = None) -> int:
                 segments=args.segments,
                 format=args.format,
                 check_crc=not args.no_crc,
-                pipeline=args.pipeline or "waymo",
-                executor=args.executor,
-                workers=args.workers,
-                ray_address=args.ray_address,
-                overwrite=args.overwrite,
-                on_error=args.on_error,
-                progress=not args.no_progress,
+                **_run_arguments(args, "waymo"),
+            )
+            print(summary.describe())
+            return 0
+        if args.command == "nuscenes":
+            summary = prep.nuscenes(
+                args.out,
+                dataroot=args.dataroot,
+                version=args.version,
+                scenes=args.scenes,
+                **_run_arguments(args, "nuscenes"),
             )
             print(summary.describe())
             return 0

@@ -18,7 +18,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="base random seed (default 0)")
     p.add_argument("--height", type=_positive, default=160, help="image height in pixels (default 160)")
     p.add_argument("--width", type=_positive, default=240, help="image width in pixels (default 240)")
+    p.add_argument(
+        "--keyframes", type=_positive, default=3, help="nuscenes: 2 Hz keyframes per scene (default 3)"
+    )
+    p.add_argument("--version", default="v1.0-mini", help="nuscenes: the tables' folder (default v1.0-mini)")
+    p.add_argument(
+        "--drop",
+        action="append",
+        default=[],
+        type=_camera_step,
+        metavar="CAMERA:STEP",
+        help="nuscenes: leave out this camera's sweep at this 12 Hz step (a non-keyframe); repeatable",
+    )
     return p
+
+
+def _camera_step(value: str) -> tuple[str, int]:
+    camera, _, step = value.rpartition(":")
+    if not camera or not step.isdigit():
+        raise argparse.ArgumentTypeError(f"expected CAMERA:STEP (e.g. CAM_BACK:3), got {value!r}")
+    return camera, int(step)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -32,11 +51,16 @@ def main(argv: list[str] | None = None) -> int:
             seed=args.seed,
             height=args.height,
             width=args.width,
+            **(
+                {"keyframes": args.keyframes, "version": args.version, "dropped": args.drop}
+                if args.format == "nuscenes"
+                else {}
+            ),
         )
     except (ValueError, OSError) as e:
         print(f"phigenesis-synth: error: {e}", file=sys.stderr)
         return 2
-    files = sorted({p.parent if args.format == "waymo-v2" else p for p in paths})
+    files = sorted({p.parent if args.format in ("waymo-v2", "nuscenes") else p for p in paths})
     print(
         f"wrote {len(paths)} files ({args.format}) under {args.out}: " + ", ".join(str(f) for f in files[:6])
     )

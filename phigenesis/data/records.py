@@ -15,7 +15,7 @@ Records validate their shapes and dtypes on construction and say which field is 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Literal, overload
 
 import cv2
@@ -467,6 +467,17 @@ class Boxes:
             status=np.zeros(0, np.uint8),
             instance_id=np.zeros(0, np.uint16),
             num_lidar_points=np.zeros(0, np.int32),
+        )
+
+    @classmethod
+    def concatenate(cls, parts: Sequence[Boxes]) -> Boxes:
+        """All boxes of ``parts`` in order as one :class:`Boxes` (empty if there are none)."""
+        if not parts:
+            return cls.empty()
+        arrays = [f.name for f in fields(cls) if f.name != "track_id"]
+        return cls(
+            track_id=[t for b in parts for t in b.track_id],
+            **{name: np.concatenate([getattr(b, name) for b in parts]) for name in arrays},
         )
 
     def select(self, index: NDArray[np.bool_] | NDArray[np.integer]) -> Boxes:

@@ -32,7 +32,7 @@ from phigenesis.data.records import (
     LidarSweep,
 )
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 TRUTH_MAPS = ("depth", "semantic", "instance", "flow")
 
 
@@ -100,6 +100,29 @@ def col(
 
 def _f64(n: int) -> pa.DataType:
     return pa.list_(pa.float64(), n)
+
+
+@dataclass
+class BoxColumns:
+    track_id: str = col(pa.string(), "object id, stable within the scene")
+    class_id: int = col(pa.uint8(), "unified taxonomy class id")
+    class_name: str = col(pa.string(), "unified taxonomy class name")
+    center_world: list = col(_f64(3), "box centre", "m", "world")
+    size_lwh: list = col(_f64(3), "length (along heading), width, height", "m")
+    yaw_world: float = col(pa.float64(), "heading about +z in [-pi, pi)", "rad", "world")
+    orientation_world: list = col(
+        _f64(4),
+        "w, x, y, z quaternion world<-box (yaw only unless the dataset tilts boxes)",
+        "",
+        "world<-box",
+    )
+    velocity_world: list = col(_f64(3), "velocity of the box centre", "m/s", "world")
+    acceleration_world: list = col(
+        _f64(3), "acceleration of the box centre, NaN if unknown", "m/s^2", "world"
+    )
+    status: str = col(pa.string(), "annotated, interpolated or extrapolated")
+    instance_id: int = col(pa.uint16(), "id in instance maps, 0 if none")
+    num_lidar_points: int = col(pa.int32(), "LiDAR points on the object in this frame's sweep, -1 if unknown")
 
 
 @dataclass
@@ -223,6 +246,13 @@ class CameraColumns:
         "camera_labels",
         True,
     )
+    boxes: list = col(
+        BoxColumns,
+        "3D boxes at this image's timestamp_micros (the interpolate_boxes stage: nuScenes' staggered "
+        "cameras); null where no stage made them (use the frame's boxes)",
+        nullable=True,
+        repeated=True,
+    )
 
 
 @dataclass
@@ -253,29 +283,6 @@ class LidarColumns:
     truth_instance: list = col(
         pa.list_(pa.uint16()), "exact instance id per point, 0 = none", "", "", "lidar_truth", True
     )
-
-
-@dataclass
-class BoxColumns:
-    track_id: str = col(pa.string(), "object id, stable within the scene")
-    class_id: int = col(pa.uint8(), "unified taxonomy class id")
-    class_name: str = col(pa.string(), "unified taxonomy class name")
-    center_world: list = col(_f64(3), "box centre", "m", "world")
-    size_lwh: list = col(_f64(3), "length (along heading), width, height", "m")
-    yaw_world: float = col(pa.float64(), "heading about +z in [-pi, pi)", "rad", "world")
-    orientation_world: list = col(
-        _f64(4),
-        "w, x, y, z quaternion world<-box (yaw only unless the dataset tilts boxes)",
-        "",
-        "world<-box",
-    )
-    velocity_world: list = col(_f64(3), "velocity of the box centre", "m/s", "world")
-    acceleration_world: list = col(
-        _f64(3), "acceleration of the box centre, NaN if unknown", "m/s^2", "world"
-    )
-    status: str = col(pa.string(), "annotated, interpolated or extrapolated")
-    instance_id: int = col(pa.uint16(), "id in instance maps, 0 if none")
-    num_lidar_points: int = col(pa.int32(), "LiDAR points on the object in this frame's sweep, -1 if unknown")
 
 
 @dataclass
@@ -327,7 +334,10 @@ def frame_schema(
 
 
 def _array(t: pa.DataType, values: Any) -> pa.Array:
-    """An Arrow array of type ``t`` from numpy-friendly values (one entry per row)."""
+    """An Arrow array of type ``t`` from numpy-friendly values (one entry per row), or ``values``
+    itself if it is already an Arrow array."""
+    if isinstance(values, pa.Array):
+        return values
     if pa.types.is_fixed_size_list(t):
         mask = None
         if isinstance(values, list) and any(v is None for v in values):
@@ -356,6 +366,35 @@ def _struct(
 def _list_of_struct(t: pa.ListType, columns: dict[str, Any], length: int) -> pa.ListArray:
     child = _struct(t.value_type, columns, length)
     return pa.ListArray.from_arrays(pa.array([0, length], pa.int32()), child)
+
+
+def _box_columns(b: Boxes) -> dict[str, Any]:
+    """The :class:`BoxColumns` values of ``b`` (one entry per box)."""
+    return {
+        "track_id": b.track_id,
+        "class_id": b.class_id,
+        "class_name": [tx.class_name(int(c)) for c in b.class_id],
+        "center_world": b.center_world,
+        "size_lwh": b.size_lwh,
+        "yaw_world": b.yaw_world,
+        "velocity_world": b.velocity_world,
+        "acceleration_world": b.acceleration_world,
+        "orientation_world": b.orientation_world,
+        "status": b.status_names(),
+        "instance_id": b.instance_id,
+        "num_lidar_points": b.num_lidar_points,
+    }
+
+
+def _boxes_array(t: pa.ListType, boxes: list[Boxes | None]) -> pa.ListArray:
+    """A ``list<struct>`` array of boxes with one entry per element of ``boxes`` (None: null)."""
+    present = [b for b in boxes if b is not None]
+    every = present[0] if len(present) == 1 else Boxes.concatenate(present)
+    child = _struct(t.value_type, _box_columns(every), len(every))
+    sizes = [0 if b is None else len(b) for b in boxes]
+    offsets = pa.array(np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32))
+    mask = pa.array([b is None for b in boxes]) if any(b is None for b in boxes) else None
+    return pa.ListArray.from_arrays(offsets, child, type=t, mask=mask)
 
 
 def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBatch:
@@ -405,21 +444,7 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
         "depth_dense_confidence_png": png(
             "depth_dense_confidence_png", codec.encode_confidence, "depth", "dense_confidence"
         ),
-    }
-    b = frame.boxes
-    boxes = {
-        "track_id": b.track_id,
-        "class_id": b.class_id,
-        "class_name": [tx.class_name(int(c)) for c in b.class_id],
-        "center_world": b.center_world,
-        "size_lwh": b.size_lwh,
-        "yaw_world": b.yaw_world,
-        "velocity_world": b.velocity_world,
-        "acceleration_world": b.acceleration_world,
-        "orientation_world": b.orientation_world,
-        "status": b.status_names(),
-        "instance_id": b.instance_id,
-        "num_lidar_points": b.num_lidar_points,
+        "boxes": _boxes_array(cam_type.value_type.field("boxes").type, [c.boxes for c in cams]),
     }
     arrays: dict[str, pa.Array] = {
         "scene_id": pa.array([frame.scene_id], pa.string()),
@@ -429,7 +454,7 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
         "source_timestamp_micros": pa.array([frame.source_timestamp_micros], pa.int64()),
         "world_from_ego": _array(schema.field("world_from_ego").type, frame.world_from_ego.reshape(1, 16)),
         "cameras": _list_of_struct(cam_type, cameras, len(cams)),
-        "boxes": _list_of_struct(schema.field("boxes").type, boxes, len(b)),
+        "boxes": _boxes_array(schema.field("boxes").type, [frame.boxes]),
     }
     if "lidar" in schema.names:
         lt = schema.field("lidar").type
@@ -514,6 +539,7 @@ def row_to_frame(batch: pa.RecordBatch, row: int = 0, decode_truth: bool = True)
                 readout_micros=readouts[i],
                 velocity_world_mps=None if velocities[i] is None else np.array(velocities[i]),
                 angular_velocity_world_radps=None if angular[i] is None else np.array(angular[i]),
+                boxes=_camera_boxes(cf, i),
             )
         )
     lidar = None
@@ -530,6 +556,12 @@ def row_to_frame(batch: pa.RecordBatch, row: int = 0, decode_truth: bool = True)
         boxes=boxes,
         source_timestamp_micros=scalar["source_timestamp_micros"],
     )
+
+
+def _camera_boxes(cf: dict[str, pa.Array], i: int) -> Boxes | None:
+    if "boxes" not in cf or not cf["boxes"][i].is_valid:
+        return None
+    return _boxes(_fields(cf["boxes"][i].values))
 
 
 def _camera_labels(cf: dict[str, pa.Array], i: int) -> CameraLabels | None:

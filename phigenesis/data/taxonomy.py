@@ -95,3 +95,44 @@ def class_name(class_id: int) -> str:
     if not 0 <= class_id < NUM_CLASSES:
         raise ValueError(f"class id {class_id} is not in the unified taxonomy (0..{NUM_CLASSES - 1}, 255)")
     return CLASS_NAMES[class_id]
+
+
+#: nuScenes category names (detection and lidarseg, v1.0) -> unified class id. Classes Cityscapes
+#: has no place for (animals, cones, debris, trailers, racks, strollers, noise, the ego car) are
+#: ignored, as Waymo's are; a barrier is a fence; ambulances and construction vehicles are trucks;
+#: a person on a scooter or skateboard is a rider.
+NUSCENES_CATEGORY_IDS: dict[str, int] = {
+    "animal": IGNORE_ID,
+    "human.pedestrian.adult": PERSON,
+    "human.pedestrian.child": PERSON,
+    "human.pedestrian.construction_worker": PERSON,
+    "human.pedestrian.personal_mobility": RIDER,
+    "human.pedestrian.police_officer": PERSON,
+    "human.pedestrian.stroller": IGNORE_ID,
+    "human.pedestrian.wheelchair": PERSON,
+    "movable_object.barrier": FENCE,
+    "movable_object.debris": IGNORE_ID,
+    "movable_object.pushable_pullable": IGNORE_ID,
+    "movable_object.trafficcone": IGNORE_ID,
+    "static_object.bicycle_rack": IGNORE_ID,
+    "vehicle.bicycle": BICYCLE,
+    "vehicle.bus.bendy": BUS,
+    "vehicle.bus.rigid": BUS,
+    "vehicle.car": CAR,
+    "vehicle.construction": TRUCK,
+    "vehicle.emergency.ambulance": TRUCK,
+    "vehicle.emergency.police": CAR,
+    "vehicle.motorcycle": MOTORCYCLE,
+    "vehicle.trailer": IGNORE_ID,
+    "vehicle.truck": TRUCK,
+    # lidarseg-only categories
+    "noise": IGNORE_ID,
+    "flat.driveable_surface": ROAD,
+    "flat.other": IGNORE_ID,
+    "flat.sidewalk": SIDEWALK,
+    "flat.terrain": TERRAIN,
+    "static.manmade": BUILDING,
+    "static.other": IGNORE_ID,
+    "static.vegetation": VEGETATION,
+    "vehicle.ego": IGNORE_ID,
+}

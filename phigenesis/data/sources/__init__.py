@@ -22,7 +22,7 @@ class Source(Protocol):
     def arguments(self) -> dict[str, Any]: ...
 
 
-SOURCE_NAMES = ("synthetic", "waymo")
+SOURCE_NAMES = ("synthetic", "waymo", "nuscenes")
 
 
 def make_source(name: str, params: dict[str, Any]) -> Source:
@@ -35,4 +35,8 @@ def make_source(name: str, params: dict[str, Any]) -> Source:
         from phigenesis.data.sources.waymo import WaymoConfig, WaymoSource
 
         return WaymoSource(WaymoConfig.from_dict(params))
+    if name == "nuscenes":
+        from phigenesis.data.sources.nuscenes import NuScenesConfig, NuScenesSource
+
+        return NuScenesSource(NuScenesConfig.from_dict(params))
     raise ValueError(f"unknown source {name!r}; available: {', '.join(SOURCE_NAMES)}")
