@@ -318,6 +318,8 @@ def distort_normalized(xy: ArrayLike, distortion: ArrayLike | None) -> F64:
     """Applies OpenCV distortion to normalised image coordinates ``(..., 2)`` (x/z, y/z)."""
     d = _as_distortion(distortion)
     xy = np.asarray(xy, dtype=np.float64)
+    if not d.any():
+        return xy.copy()
     x, y = xy[..., 0], xy[..., 1]
     r2 = x * x + y * y
     radial = _radial(r2, d)

@@ -147,6 +147,9 @@ class CameraLabels:
 
 #: What a sparse depth pixel came from (:attr:`CameraDepth.sparse_origin`).
 DEPTH_ORIGINS: tuple[str, ...] = ("none", "static_map", "rigid_object", "non_rigid_object", "single_sweep")
+#: Sparse depths with at least this confidence are the ones to train on: densification seeds only
+#: from them and the depth benchmark scores them (pixels at depth edges fall below it).
+TRUSTED_DEPTH_CONFIDENCE = 0.5
 
 
 @dataclass

@@ -8,14 +8,16 @@ in ``scene.products["lidar_map"]``).
   more than ``moving_threshold_m`` around their median), never from its class: a parked car is
   static scenery, a walking person is not.
 - **Static map**: the points outside the boxes of moving objects and outside the ego car's body,
-  voxel down-sampled (``voxel_m``, the speed/accuracy knob; Open3D averages each voxel) and
-  cleaned by Open3D's statistical outlier removal. Boxes are tested at each point's own
+  voxel down-sampled (``voxel_m``, the speed/accuracy knob; each voxel's centroid, by sorted
+  voxel keys or Open3D: ``voxel_backend``) and, where real LiDAR needs it, cleaned by Open3D's
+  statistical outlier removal. Boxes are tested at each point's own
   measurement time (centre + velocity x time offset), so a fast car's points do not smear into the
   map across the ~100 ms of a revolution; the removal boxes are enlarged (``box_scale`` and
   ``box_margin_m``).
 - **Rigid moving objects** accumulate their points over the scene in box coordinates (strictly
-  inside the box, above a ground clearance so the road under them is not carried along), voxel
-  down-sampled at ``object_voxel_m``; the projection puts them back at each image's box pose.
+  inside the box, above a ground clearance so the road under them is not carried along), kept
+  where ``object_min_sweeps`` sweeps hit the same ``object_voxel_m`` voxel and down-sampled at
+  ``object_point_m``; the projection puts them back at each image's box pose.
 - **Non-rigid classes** (people, riders) keep no model: the projection uses only the points of
   the frame's own sweep.
 
@@ -45,8 +47,10 @@ log = logging.getLogger("phigenesis.prep")
 DEFAULT_EGO_BOXES: list[dict[str, list[float]]] = [
     {"center_ego": [1.4, 0.0, 0.9], "size_lwh": [5.0, 2.1, 1.8]}
 ]
+#: How the static map is voxel down-sampled (:func:`voxel_downsample`).
+VOXEL_BACKENDS = ("numpy", "open3d")
 #: Tile size of the static map's spatial index, metres.
-TILE_M = 16.0
+TILE_M = 8.0
 
 
 @dataclass(frozen=True)
@@ -55,21 +59,30 @@ class AggregateParams:
 
     Attributes:
         voxel_m: static map voxel size; 0 keeps every point.
-        object_voxel_m: voxel size of the rigid object models.
+        object_voxel_m: voxel size of the rigid object models' repeat test (``object_min_sweeps``).
+        object_point_m: voxel size the kept model points are then down-sampled to (finer: a
+            car beside the camera needs dense points; Open3D's grid, anchored elsewhere than
+            the repeat test's, used to split voxels and hid how sparse 5 cm models are).
         object_min_sweeps: an object model keeps the voxels hit by at least this many sweeps.
         moving_threshold_m: a track whose box centres spread more than this around their median
             position is moving.
         box_scale: moving boxes are scaled by this for removing points from the static map ...
         box_margin_m: ... and grown by this on every side.
         ground_clearance_m: object models keep points this far above their box's bottom face.
+        voxel_backend: "numpy" (sorted voxel keys, 12x faster) or "open3d" (its
+            ``voxel_down_sample``).
         outlier_neighbors, outlier_std_ratio: Open3D statistical outlier removal (0 neighbours
-            turns it off).
+            turns it off). It is for real LiDAR's spurious returns (dust, rain, multipath); on
+            synthetic scenes, which have none, it only removes sparse far surfaces (pipelines/
+            synthetic.yaml turns it off: -10 % MAE, 2.2x faster aggregation).
         ego_margin_m: points within this of the ego body boxes are dropped.
         chunk_sweeps: sweeps gathered before each intermediate voxel down-sampling.
     """
 
     voxel_m: float = 0.02
+    voxel_backend: str = "numpy"
     object_voxel_m: float = 0.05
+    object_point_m: float = 0.02
     object_min_sweeps: int = 2
     moving_threshold_m: float = 0.5
     box_scale: float = 1.1
@@ -79,6 +92,12 @@ class AggregateParams:
     outlier_std_ratio: float = 3.0
     ego_margin_m: float = 0.1
     chunk_sweeps: int = 10
+
+    def __post_init__(self) -> None:
+        if self.voxel_backend not in VOXEL_BACKENDS:
+            raise ValueError(
+                f"aggregate_lidar: voxel_backend must be one of {VOXEL_BACKENDS}, got {self.voxel_backend!r}"
+            )
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> AggregateParams:
@@ -140,10 +159,11 @@ class LidarMap:
     ground_clearance_m: float = 0.1
     stats: dict[str, Any] = field(default_factory=dict)
 
-    def points_near(self, xy_world: NDArray[np.float64], radius_m: float) -> NDArray[np.float32]:
-        """(K, 3) static points in the tiles within ``radius_m`` (x-y) of a world position."""
+    def tiles_near(self, xy_world: NDArray[np.float64], radius_m: float) -> NDArray[np.int64]:
+        """Indices (into ``tile_keys``) of the occupied tiles within the square of half-side
+        ``radius_m`` (x-y) around a world position."""
         if len(self.tile_keys) == 0:
-            return self.points_world[:0]
+            return np.zeros(0, np.int64)
         lo = np.floor((np.asarray(xy_world[:2]) - radius_m) / TILE_M).astype(np.int64)
         hi = np.floor((np.asarray(xy_world[:2]) + radius_m) / TILE_M).astype(np.int64)
         tx_, ty_ = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), indexing="ij")
@@ -151,8 +171,34 @@ class LidarMap:
         pos = np.searchsorted(self.tile_keys, keys)
         hit = pos < len(self.tile_keys)
         hit[hit] = self.tile_keys[pos[hit]] == keys[hit]
-        parts = [self.points_world[self.tile_start[i] : self.tile_start[i + 1]] for i in pos[hit]]
-        return np.concatenate(parts) if parts else self.points_world[:0]
+        return pos[hit].astype(np.int64)
+
+    def tile_centres(self, tiles: NDArray[np.int64]) -> NDArray[np.float64]:
+        """(K, 2) world x-y centres of the given tiles."""
+        keys = self.tile_keys[tiles]
+        tx_ = keys >> 32
+        ty_ = (keys & 0xFFFFFFFF) - (1 << 31)
+        return (np.stack([tx_, ty_], axis=1).astype(np.float64) + 0.5) * TILE_M
+
+    def points_of_tiles(
+        self, tiles: NDArray[np.int64], stride: NDArray[np.int64] | None = None
+    ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+        """The static points of the given tiles (every ``stride[k]``-th point of tile k, all
+        if None) and, per point, the position of its tile in ``tiles``."""
+        if stride is None:
+            stride = np.ones(len(tiles), np.int64)
+        parts = [
+            self.points_world[self.tile_start[i] : self.tile_start[i + 1] : int(k)]
+            for i, k in zip(tiles, stride, strict=True)
+        ]
+        counts = np.array([len(p) for p in parts], np.int64)
+        if counts.sum() == 0:
+            return self.points_world[:0], np.zeros(0, np.int64)
+        return np.concatenate(parts), np.repeat(np.arange(len(tiles)), counts)
+
+    def points_near(self, xy_world: NDArray[np.float64], radius_m: float) -> NDArray[np.float32]:
+        """(K, 3) static points in the tiles within ``radius_m`` (x-y) of a world position."""
+        return self.points_of_tiles(self.tiles_near(xy_world, radius_m))[0]
 
 
 def _tile_key(tx_: NDArray[np.int64], ty_: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -261,13 +307,29 @@ def _voxel_keys(points: NDArray[np.floating], voxel_m: float) -> NDArray[np.int6
     return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
 
 
-def voxel_downsample(points: NDArray[np.floating], voxel_m: float) -> NDArray[np.float32]:
-    """(K, 3) float32 centroids of the points in each occupied voxel (Open3D); all points if 0."""
+def voxel_downsample(
+    points: NDArray[np.floating], voxel_m: float, backend: str = "numpy"
+) -> NDArray[np.float32]:
+    """(K, 3) float32 centroids of the points in each occupied voxel (a grid anchored at the
+    origin for ``numpy``, at the points' minimum for ``open3d``); all points if ``voxel_m`` is 0.
+
+    ``numpy`` sorts voxel keys and sums each run: 1.8 s for 10 million points against Open3D's
+    22 s on the 2-core machine, with the same centroids up to the grid's anchor."""
     if voxel_m <= 0 or len(points) == 0:
         return np.asarray(points, np.float32)
-    o3d = open3d()
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
-    return np.asarray(cloud.voxel_down_sample(voxel_m).points, np.float32)
+    if backend == "open3d":
+        o3d = open3d()
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+        return np.asarray(cloud.voxel_down_sample(voxel_m).points, np.float32)
+    if backend != "numpy":
+        raise ValueError(f"voxel backend must be one of {VOXEL_BACKENDS}, got {backend!r}")
+    keys = _voxel_keys(points, voxel_m)
+    order = np.argsort(keys)
+    keys = keys[order]
+    start = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    sums = np.add.reduceat(np.asarray(points, np.float64)[order], start, axis=0)
+    counts = np.diff(np.r_[start, len(keys)])
+    return (sums / counts[:, None]).astype(np.float32)
 
 
 def remove_outliers(points: NDArray[np.float32], neighbors: int, std_ratio: float) -> NDArray[np.float32]:
@@ -305,7 +367,9 @@ class _Accumulator:
 
     def flush(self) -> None:
         if self.pending:
-            self.static_chunks.append(voxel_downsample(np.concatenate(self.pending), self.params.voxel_m))
+            self.static_chunks.append(
+                voxel_downsample(np.concatenate(self.pending), self.params.voxel_m, self.params.voxel_backend)
+            )
         self.pending, self.pending_sweeps = [], 0
 
 
@@ -384,9 +448,9 @@ def aggregate_scene(scene: Scene, params: AggregateParams | None = None) -> Lida
     # Static tracks' points are scenery after all (parked cars, standing people).
     for track, parts in acc.boxed_world.items():
         if track not in moving:
-            acc.static_chunks.append(voxel_downsample(np.concatenate(parts), p.voxel_m))
+            acc.static_chunks.append(voxel_downsample(np.concatenate(parts), p.voxel_m, p.voxel_backend))
     static = np.concatenate(acc.static_chunks) if acc.static_chunks else np.zeros((0, 3), np.float32)
-    static = voxel_downsample(static, p.voxel_m)
+    static = voxel_downsample(static, p.voxel_m, p.voxel_backend)
     before_outliers = len(static)
     static = remove_outliers(static, p.outlier_neighbors, p.outlier_std_ratio)
     objects = {}
@@ -395,7 +459,10 @@ def aggregate_scene(scene: Scene, params: AggregateParams | None = None) -> Lida
         if parts:
             points = repeated_points(parts, p.object_voxel_m, p.object_min_sweeps)
             objects[track] = ObjectModel(
-                track, acc.classes[track], voxel_downsample(points, p.object_voxel_m), len(parts)
+                track,
+                acc.classes[track],
+                voxel_downsample(points, p.object_point_m, p.voxel_backend),
+                len(parts),
             )
     if counts["sweeps"] == 0:
         log.warning("scene %s: no LiDAR in any frame; the depth maps will be empty", scene.scene_id)

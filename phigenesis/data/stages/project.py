@@ -45,6 +45,7 @@ from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import DEPTH_ORIGINS, CameraDepth, CameraImage, Frame, LazyFrames, Scene
 from phigenesis.data.stages import params_from_dict, register_stage
 from phigenesis.data.stages.aggregate import (
+    TILE_M,
     LidarMap,
     box_points_at_times,
     ego_boxes_of,
@@ -55,6 +56,7 @@ from phigenesis.data.stages.aggregate import (
 log = logging.getLogger("phigenesis.prep")
 
 VISIBILITY_TESTS = ("splat", "local_min", "none")
+ESTIMATORS = ("plane", "nearest_centre")
 ORIGIN_WEIGHT = {"static_map": 1.0, "single_sweep": 1.0, "non_rigid_object": 0.9, "rigid_object": 0.8}
 ORIGIN_CODE = {name: i for i, name in enumerate(DEPTH_ORIGINS)}
 #: ORIGIN_WEIGHT indexed by origin code (0 for "none").
@@ -95,6 +97,33 @@ class ProjectParams:
             wide, where a pixel holds several map points, else 1.
         max_offset_px: a pixel takes the depth of a visible point at most this far from its
             centre (in pixels, on the fine grid; 0.71 reaches the corners).
+        estimator: how a pixel's depth comes from the visible points that fall in it:
+            "plane" fits inverse depth as an affine function of the sub-pixel position (exact for
+            a planar surface under a pinhole) to pixels holding at least ``plane_min_points``
+            spread-out points and evaluates it at the pixel centre, averaging the LiDAR's range
+            noise; other pixels, and every pixel with "nearest_centre", take the visible point
+            nearest the centre (``max_offset_px``).
+        fit_window_px: the plane is fitted to the points of the pixel's ``(2 r + 1)^2`` window
+            where they lie on one plane (more points average more noise; 0: the pixel's own).
+        fit_tolerance_m, fit_tolerance_rel: a pixel is mixed (it straddles a depth edge: a pole's
+            side, a roof line) if one of its points lies farther than ``fit_tolerance_m +
+            fit_tolerance_rel * z`` from the fitted plane, or, with too few points for a fit,
+            from the nearest one.
+        mixed_pixels: "drop" leaves mixed pixels unknown (the densifier fills them from the
+            image's edges); "keep" gives them the point nearest the centre at half confidence.
+        edge_band_px, edge_confidence: pixels this close (Chebyshev distance) to a depth edge of
+            the sparse map (a neighbour nearer or farther by more than ``edge_tolerance_rel * z +
+            edge_tolerance_m``) keep their depth at ``edge_confidence`` times their confidence,
+            below ``records.TRUSTED_DEPTH_CONFIDENCE``: a silhouette's pixel centres fall on
+            either surface, and whether a point landing near one belongs to it is a guess (most
+            are right, but they hold most of the large errors; a thin pole is all edge). 0: no
+            band. The near side of an edge counts only where at least ``edge_min_share`` of the
+            known pixels around are on its far side (:func:`depth_edge_band`), so a lone
+            background leak does not mark the surface around it; ``edge_near_band_px`` (default
+            ``edge_band_px``) is the near side's band.
+        thin, thin_points_per_cell: far map tiles contribute a uniform subset of their points,
+            about this many per cell of the visibility grid (:func:`thinning_strides`; the plane
+            fits need several per pixel).
         use_map: project the aggregated map when the scene has one (False: own sweep only).
     """
 
@@ -107,16 +136,32 @@ class ProjectParams:
     max_range_m: float = 120.0
     min_depth_m: float = 0.5
     sweep_spacing_rad: float | None = None
-    object_spacing_m: float = 0.05
+    object_spacing_m: float = 0.02
     elevation_margin_deg: float = 0.5
     top_band_deg: float = 1.5
     top_bin_deg: float = 0.5
     vehicle_occluders: bool = True
     occluder_shrink: float = 0.9
     occluder_clearance_m: float = 0.35
-    person_core: float = 0.5
+    person_core: float = 0.8
     supersample: int | None = None
     max_offset_px: float = 1.0
+    estimator: str = "plane"
+    plane_min_points: int = 4
+    fit_window_px: int = 2
+    window_tolerance_m: float = 0.05
+    window_tolerance_rel: float = 0.005
+    fit_tolerance_m: float = 0.1
+    fit_tolerance_rel: float = 0.01
+    mixed_pixels: str = "drop"
+    edge_band_px: int = 4
+    edge_tolerance_rel: float = 0.1
+    edge_tolerance_m: float = 0.3
+    edge_min_share: float = 0.05
+    edge_near_band_px: int | None = None
+    edge_confidence: float = 0.25
+    thin: bool = True
+    thin_points_per_cell: float = 9.0
     use_map: bool = True
 
     def __post_init__(self) -> None:
@@ -127,6 +172,12 @@ class ProjectParams:
         if self.supersample is not None and (self.supersample < 1 or self.supersample % 2 == 0):
             raise ValueError(
                 f"project_depth: supersample must be a positive odd number, got {self.supersample}"
+            )
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"project_depth: estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
+        if self.mixed_pixels not in ("drop", "keep"):
+            raise ValueError(
+                f"project_depth: mixed_pixels must be 'drop' or 'keep', got {self.mixed_pixels!r}"
             )
         if self.window < 1 or self.window % 2 == 0:
             raise ValueError(f"project_depth: window must be a positive odd number, got {self.window}")
@@ -141,7 +192,7 @@ class CameraPoints:
     """Points to project into one image, world frame, with what each represents.
 
     Attributes:
-        points_world: (N, 3) float64.
+        points_world: (N, 3) float32 (float64 accepted).
         origin: (N,) uint8 index into :data:`DEPTH_ORIGINS`.
         spacing_m: (N,) float32 footprint size in metres at the point (NaN: use the sweep's
             angular step).
@@ -154,7 +205,7 @@ class CameraPoints:
     @classmethod
     def concatenate(cls, parts: list[CameraPoints]) -> CameraPoints:
         if not parts:
-            return cls(np.zeros((0, 3)), np.zeros(0, np.uint8), np.zeros(0, np.float32))
+            return cls(np.zeros((0, 3), np.float32), np.zeros(0, np.uint8), np.zeros(0, np.float32))
         return cls(
             np.concatenate([p.points_world for p in parts]),
             np.concatenate([p.origin for p in parts]),
@@ -165,7 +216,7 @@ class CameraPoints:
 def _points(points_world: NDArray, origin: str, spacing_m: float) -> CameraPoints:
     n = len(points_world)
     return CameraPoints(
-        np.asarray(points_world, np.float64),
+        np.asarray(points_world, np.float32),
         np.full(n, ORIGIN_CODE[origin], np.uint8),
         np.full(n, spacing_m, np.float32),
     )
@@ -195,27 +246,140 @@ def seen_past_lidar_top(
     farther away than it, or absent: a nearer wall seen by the top beams probably goes on upwards
     and hides it.
     """
-    d = (np.asarray(points_world, np.float64) - sensor_world) @ world_from_ego[:3, :3]
-    r = np.hypot(d[:, 0], d[:, 1])
-    elevation = np.arctan2(d[:, 2], r)
-    inside = elevation <= max_elevation_rad
+    points = np.asarray(points_world, np.float32)
+    keep = np.ones(len(points), bool)
+    if max_elevation_rad >= np.pi / 2 or len(points) == 0:
+        return keep
+    d = points - np.asarray(sensor_world, np.float32)
+    dz = d @ np.asarray(world_from_ego[:3, 2], np.float32)
+    # Only points above the sensor can lie above the field or in the band below its top (when
+    # both are above the horizontal, as for any roof LiDAR); elevation tests are slopes
+    # (dz <= tan(e) r): no arctan over millions of points.
+    lowest = max_elevation_rad - band_rad
+    candidates = np.flatnonzero(dz > 0) if lowest > 0 else np.arange(len(points))
+    dc, zc = d[candidates], dz[candidates]
+    r = np.sqrt(np.maximum(np.einsum("ij,ij->i", dc, dc) - zc * zc, 0.0))
+    inside = zc <= np.tan(max_elevation_rad) * r
     if np.all(inside):
-        return inside
+        return keep
+    band = inside & (zc >= np.tan(lowest) * r)
     bins = int(np.ceil(2 * np.pi / bin_rad))
-    az_bin = np.floor((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / bin_rad).astype(np.int64) % bins
-    band = inside & (elevation >= max_elevation_rad - band_rad)
+    # Azimuth in the ego's axes (only its x and y rows matter).
+    axes = np.asarray(world_from_ego[:3, :2], np.float32)
+
+    def azimuth_bin(index: NDArray[np.int64]) -> NDArray[np.int64]:
+        xy = dc[index] @ axes
+        return np.floor((np.arctan2(xy[:, 1], xy[:, 0]) + np.pi) / bin_rad).astype(np.int64) % bins
+
     profile = np.full(bins, np.inf)
-    np.minimum.at(profile, az_bin[band], r[band])
+    band_index = np.flatnonzero(band)
+    np.minimum.at(profile, azimuth_bin(band_index), r[band_index])
     profile = np.minimum(profile, np.minimum(np.roll(profile, 1), np.roll(profile, -1)))
-    return inside | (r < profile[az_bin])
+    outside = np.flatnonzero(~inside)
+    keep[candidates[outside]] = r[outside] < profile[azimuth_bin(outside)]
+    return keep
 
 
-def scene_points(
-    frame: Frame, camera: CameraImage, lidar_map: LidarMap, params: ProjectParams
-) -> CameraPoints:
-    """Static map, rigid object models and non-rigid own points, placed at the image's time."""
-    position = camera.world_from_camera[:3, 3]
-    static = lidar_map.points_near(position, params.max_range_m)
+def normalized_bounds(camera: CameraImage, margin: float = 0.05) -> tuple[tuple[float, float], ...]:
+    """((x_min, x_max), (y_min, y_max)) of x/z and y/z over rays through the image border (distortion
+    undone), widened by ``margin`` of the span: points outside cannot land in the image."""
+    cal = camera.calibration
+    w, h = cal.width, cal.height
+    t = np.linspace(0.0, 1.0, 32)
+    border = np.concatenate(
+        [
+            np.stack([t * w - 0.5, np.full_like(t, -0.5)], 1),
+            np.stack([t * w - 0.5, np.full_like(t, h - 0.5)], 1),
+            np.stack([np.full_like(t, -0.5), t * h - 0.5], 1),
+            np.stack([np.full_like(t, w - 0.5), t * h - 0.5], 1),
+        ]
+    )
+    rays = geometry.unproject_pixels(border, cal.intrinsics, cal.distortion)
+    out = []
+    for axis in (0, 1):
+        lo, hi = float(rays[:, axis].min()), float(rays[:, axis].max())
+        pad = margin * (hi - lo)
+        out.append((lo - pad, hi + pad))
+    return tuple(out)
+
+
+def camera_wedge(camera: CameraImage) -> tuple[float, float] | None:
+    """The azimuth range (world frame, about +z) that an image sees: (centre, half-width) in
+    radians, from rays along the image border; None if it spans more than 160 degrees (a
+    fisheye, or a camera looking straight up or down), where culling by azimuth is unsafe."""
+    cal = camera.calibration
+    w, h = cal.width, cal.height
+    t = np.linspace(0.0, 1.0, 17)
+    border = np.concatenate(
+        [
+            np.stack([t * (w - 1), np.zeros_like(t)], 1),
+            np.stack([t * (w - 1), np.full_like(t, h - 1)], 1),
+            np.stack([np.zeros_like(t), t * (h - 1)], 1),
+            np.stack([np.full_like(t, w - 1), t * (h - 1)], 1),
+        ]
+    )
+    rays = geometry.unproject_pixels(border, cal.intrinsics, cal.distortion)
+    d = rays @ camera.world_from_camera[:3, :3].T
+    optical = camera.world_from_camera[:3, 2]
+    if np.hypot(optical[0], optical[1]) < 1e-3:
+        return None
+    centre = float(np.arctan2(optical[1], optical[0]))
+    half = float(np.max(np.abs(geometry.wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - centre))))
+    return None if half > np.radians(80.0) else (centre, half)
+
+
+def tiles_in_view(
+    centres_xy: NDArray[np.float64], camera: CameraImage, wedge: tuple[float, float] | None
+) -> NDArray[np.bool_]:
+    """(K,) True for map tiles (x-y centres, world) that may hold points inside the image's
+    azimuth wedge: a tile is a disc of radius ``TILE_M / sqrt(2)`` for this test."""
+    if wedge is None:
+        return np.ones(len(centres_xy), bool)
+    centre, half = wedge
+    d = centres_xy - camera.world_from_camera[:2, 3]
+    dist = np.hypot(d[:, 0], d[:, 1])
+    radius = TILE_M / np.sqrt(2.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        spread = np.arcsin(np.clip(radius / dist, 0.0, 1.0))
+    off = np.abs(geometry.wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - centre))
+    return (dist <= radius + 1.0) | (off <= half + spread)
+
+
+def thinning_strides(
+    centres_xy: NDArray[np.float64], position_xy: NDArray[np.float64], full_density_m: float
+) -> NDArray[np.int64]:
+    """(K,) the stride at which to take each tile's points: 1 within ``full_density_m`` of the
+    position, ``floor((d / full_density_m)^2)`` at distance d (the tile's nearest corner) beyond,
+    where a voxel's footprint in the image shrinks as 1/d: a uniform subset keeps the number of
+    points per image cell about what it is at ``full_density_m``."""
+    d = np.hypot(*(centres_xy - position_xy[:2]).T) - TILE_M / np.sqrt(2.0)
+    ratio = np.maximum(d, 0.0) / max(full_density_m, 1e-6)
+    return np.maximum(np.floor(ratio**2), 1).astype(np.int64)
+
+
+def static_points_per_camera(
+    frame: Frame, lidar_map: LidarMap, params: ProjectParams
+) -> list[NDArray[np.float32]]:
+    """For each image of the frame, the static map points that may appear in it: the tiles in
+    range of the ego and in the image's azimuth wedge, thinned with distance
+    (:func:`thinning_strides`, when ``params.thin``), minus points above the LiDAR's field that
+    something unmeasured may hide (:func:`seen_past_lidar_top`, evaluated once per frame)."""
+    position = frame.world_from_ego[:3, 3]
+    tiles = lidar_map.tiles_near(position, params.max_range_m + TILE_M)
+    centres = lidar_map.tile_centres(tiles)
+    in_view = np.stack([tiles_in_view(centres, cam, camera_wedge(cam)) for cam in frame.cameras]).reshape(
+        len(frame.cameras), len(tiles)
+    )
+    used = np.flatnonzero(in_view.any(axis=0))
+    stride = None
+    if params.thin and frame.cameras:
+        grid_focal = max(
+            float(c.calibration.intrinsics[0, 0]) * supersample_of(params, c.calibration.width)
+            for c in frame.cameras
+        )
+        full_density_m = lidar_map.voxel_m * grid_focal * np.sqrt(params.thin_points_per_cell)
+        stride = thinning_strides(centres[used], position, full_density_m)
+    points, label = lidar_map.points_of_tiles(tiles[used], stride)
     if frame.lidar is not None and len(frame.lidar):
         sensor = geometry.transform_points(
             frame.world_from_ego, np.median(frame.lidar.origins_ego, axis=0)[None]
@@ -224,7 +388,29 @@ def scene_points(
         sensor = position
     limit = lidar_map.max_elevation_rad + np.radians(params.elevation_margin_deg)
     band, bin_width = np.radians(params.top_band_deg), np.radians(params.top_bin_deg)
-    static = static[seen_past_lidar_top(static, sensor, frame.world_from_ego, limit, band, bin_width)]
+    seen = seen_past_lidar_top(points, sensor, frame.world_from_ego, limit, band, bin_width)
+    return [points[seen & view[used][label]] for view in in_view]
+
+
+def supersample_of(params: ProjectParams, width: int) -> int:
+    """The visibility grid's refinement for an image ``width`` pixels wide."""
+    return params.supersample or (3 if width <= 640 else 1)
+
+
+def scene_points(
+    frame: Frame,
+    camera: CameraImage,
+    lidar_map: LidarMap,
+    params: ProjectParams,
+    static: NDArray[np.float32] | None = None,
+) -> CameraPoints:
+    """Static map, rigid object models and non-rigid own points, placed at the image's time.
+
+    ``static``: the image's static map points from :func:`static_points_per_camera` (computed
+    here when not given)."""
+    if static is None:
+        index = next(i for i, c in enumerate(frame.cameras) if c is camera)
+        static = static_points_per_camera(frame, lidar_map, params)[index]
     parts = [_points(static, "static_map", lidar_map.voxel_m)]
     boxes = frame.boxes
     dt_s = (camera.timestamp_micros - frame.timestamp_micros) * 1e-6
@@ -269,8 +455,10 @@ def ray_box_depths(
     o = box_from_camera[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         t1, t2 = (-half_size - o) / d, (half_size - o) / d
-        t_near = np.nanmax(np.minimum(t1, t2), axis=1)
-        t_far = np.nanmin(np.maximum(t1, t2), axis=1)
+        lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
+        # fmax/fmin skip the NaN of a ray parallel to a slab with its origin on the slab's plane.
+        t_near = np.fmax(np.fmax(lo[:, 0], lo[:, 1]), lo[:, 2])
+        t_far = np.fmin(np.fmin(hi[:, 0], hi[:, 1]), hi[:, 2])
     hit = np.isfinite(t_near) & np.isfinite(t_far) & (t_far >= np.maximum(t_near, 0.0))
     return np.where(hit, np.maximum(t_near, 0.0), np.inf), np.where(hit, t_far, np.inf)
 
@@ -392,6 +580,195 @@ def _centre_first(fine_depth: NDArray[np.float32], max_offset_px: float = 1.0) -
     return chosen
 
 
+@dataclass
+class PixelFit:
+    """Per-pixel result of :func:`fit_pixels` (flat arrays over the image's pixels).
+
+    Attributes:
+        depth_m: (P,) float64 depth at the pixel centre from a plane fit, NaN where none fits.
+        count: (P,) int64 visible points in the pixel itself.
+        mixed: (P,) bool: the pixel's own points do not lie on one surface.
+    """
+
+    depth_m: NDArray[np.float64]
+    count: NDArray[np.int64]
+    mixed: NDArray[np.bool_]
+
+
+#: Moments of a pixel's points: n, sums of du, dv, du², dv², du dv, y, du y, dv y, y².
+MOMENT_NAMES = ("n", "u", "v", "uu", "vv", "uv", "y", "uy", "vy", "yy")
+
+
+def moments(
+    pixel: NDArray[np.int64],
+    du: NDArray[np.float64],
+    dv: NDArray[np.float64],
+    y: NDArray[np.float64],
+    size: int,
+) -> dict[str, NDArray[np.float64]]:
+    """Per-pixel sums (:data:`MOMENT_NAMES`) over points in pixel ``pixel`` (flat index, ``size``
+    pixels) at offsets ``du``, ``dv`` from its centre (pixels) with inverse depth ``y`` (1/m)."""
+    values = {
+        "n": None,
+        "u": du,
+        "v": dv,
+        "uu": du * du,
+        "vv": dv * dv,
+        "uv": du * dv,
+        "y": y,
+        "uy": du * y,
+        "vy": dv * y,
+        "yy": y * y,
+    }
+    return {k: np.bincount(pixel, weights=v, minlength=size).astype(np.float64) for k, v in values.items()}
+
+
+def window_moments(m: dict[str, NDArray[np.float64]], shape: tuple[int, int], radius: int) -> dict:
+    """Moments of the points in each pixel's (2r+1)^2 window, offsets taken from that pixel's
+    centre. A neighbour at offset (dx, dy) contributes its moments shifted by it (du -> du + dx,
+    ...), so each window moment is a sum of separable correlations of the per-pixel moments."""
+    h, w = shape
+    ones = np.ones(2 * radius + 1)
+    ramp = np.arange(-radius, radius + 1, dtype=np.float64)
+
+    def corr(name: str, kx: NDArray[np.float64], ky: NDArray[np.float64]) -> NDArray[np.float64]:
+        src = m[name].reshape(h, w)
+        return cv2.sepFilter2D(src, cv2.CV_64F, kx, ky, borderType=cv2.BORDER_CONSTANT).reshape(-1)
+
+    box = {k: corr(k, ones, ones) for k in MOMENT_NAMES}
+    return {
+        "n": box["n"],
+        "u": box["u"] + corr("n", ramp, ones),
+        "v": box["v"] + corr("n", ones, ramp),
+        "uu": box["uu"] + 2 * corr("u", ramp, ones) + corr("n", ramp**2, ones),
+        "vv": box["vv"] + 2 * corr("v", ones, ramp) + corr("n", ones, ramp**2),
+        "uv": box["uv"] + corr("v", ramp, ones) + corr("u", ones, ramp) + corr("n", ramp, ramp),
+        "y": box["y"],
+        "uy": box["uy"] + corr("y", ramp, ones),
+        "vy": box["vy"] + corr("y", ones, ramp),
+        "yy": box["yy"],
+    }
+
+
+def _plane_at_centre(m: dict, min_points: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Least-squares ``y = a + b du + c dv`` from moments: (a, b, c, rms residual of y); a is NaN
+    where there are too few points or they are not spread in both directions."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        n = m["n"]
+        mu, mv, my = m["u"] / n, m["v"] / n, m["y"] / n
+        cuu = m["uu"] / n - mu * mu
+        cvv = m["vv"] / n - mv * mv
+        cuv = m["uv"] / n - mu * mv
+        cuy = m["uy"] / n - mu * my
+        cvy = m["vy"] / n - mv * my
+        cyy = m["yy"] / n - my * my
+        det = cuu * cvv - cuv * cuv
+        # Points spread over at least ~a fifth of a pixel in both directions.
+        ok = (n >= min_points) & (det > 1.6e-5)
+        b = np.where(ok, (cvv * cuy - cuv * cvy) / det, 0.0)
+        c = np.where(ok, (cuu * cvy - cuv * cuy) / det, 0.0)
+        a = np.where(ok, my - b * mu - c * mv, np.nan)
+        rms = np.sqrt(np.maximum(cyy - b * cuy - c * cvy, 0.0))
+    return a, b, c, rms
+
+
+def fit_pixels(
+    pixel: NDArray[np.int64],
+    uv: NDArray[np.float64],
+    z: NDArray[np.floating],
+    shape: tuple[int, int],
+    reference_m: NDArray[np.floating],
+    params: ProjectParams,
+) -> PixelFit:
+    """Depth at each pixel centre from the visible points (image pixel ``pixel``, position
+    ``uv``, depth ``z``): ``1/z = a + b du + c dv`` (du, dv: offset from the centre, pixels)
+    fitted to the points of the pixel's ``(2 fit_window_px + 1)^2`` window where they lie on
+    one plane (RMS residual within ``fit_tolerance``/2), else to the pixel's own points. The
+    pixel is mixed if one of its own points lies farther than the tolerance from its own
+    fit or, with too few points for one, from ``reference_m`` (the point nearest its centre)."""
+    h, w = shape
+    size = h * w
+    z = np.asarray(z, np.float64)
+    du = uv[:, 0] - pixel % w
+    dv = uv[:, 1] - pixel // w
+    y = 1.0 / z
+    own = moments(pixel, du, dv, y, size)
+    count = own["n"].astype(np.int64)
+    a, b, c, _ = _plane_at_centre(own, params.plane_min_points)
+    zmin = np.full(size, np.inf)
+    zmax = np.zeros(size)
+    np.minimum.at(zmin, pixel, z)
+    np.maximum.at(zmax, pixel, z)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # The extrapolation to the centre stays within the pixel's own depth range widened by its
+        # span on either side (points in one corner of a planar pixel need up to that).
+        span = zmax - zmin
+        depth = np.clip(1.0 / a, zmin - span, zmax + span)
+        fitted = np.isfinite(a)[pixel]
+        plane_z = 1.0 / (a[pixel] + b[pixel] * du + c[pixel] * dv)
+        expected = np.where(fitted, plane_z, reference_m[pixel])
+        deviation = np.nan_to_num(np.abs(z - expected), nan=np.inf)
+    worst = np.zeros(size)
+    np.maximum.at(worst, pixel, deviation)
+    base = np.where(np.isfinite(depth), depth, reference_m)
+    tolerance = params.fit_tolerance_m + params.fit_tolerance_rel * base
+    mixed = (worst > tolerance) & (count > 0)
+    if params.fit_window_px > 0:
+        wa, _, _, rms = _plane_at_centre(
+            window_moments(own, shape, params.fit_window_px), params.plane_min_points
+        )
+        with np.errstate(divide="ignore", invalid="ignore"):
+            window_z = 1.0 / wa
+            window_tolerance = params.window_tolerance_m + params.window_tolerance_rel * window_z
+            good = np.isfinite(window_z) & (rms * window_z**2 <= window_tolerance) & (count > 0)
+            good &= np.abs(window_z - np.where(np.isfinite(depth), depth, reference_m)) <= tolerance
+        depth = np.where(good, window_z, depth)
+    return PixelFit(depth, count, mixed)
+
+
+def depth_edge_band(
+    depth_m: NDArray[np.floating],
+    band_px: int,
+    rel: float,
+    abs_m: float,
+    min_share: float = 0.05,
+    near_band_px: int | None = None,
+) -> NDArray[np.bool_]:
+    """(H, W) True for known pixels (depth > 0) near a depth edge: within ``band_px`` (Chebyshev)
+    of a known pixel nearer by more than ``rel * z + abs_m`` (the far side of an edge, or a
+    background point seen through a gap), or within ``near_band_px`` (default ``band_px``) of a
+    farther one when at least ``min_share`` of the known pixels around are such far-side pixels
+    (the near side of a silhouette; a lone leak of background among foreground pixels does not
+    make them edge pixels)."""
+    known = depth_m > 0
+    if band_px <= 0 or not known.any():
+        return np.zeros(depth_m.shape, bool)
+    near_band_px = band_px if near_band_px is None else near_band_px
+    z = depth_m.astype(np.float32)
+    far_size = 2 * band_px + 1
+    nearest = cv2.erode(
+        np.where(known, z, np.inf).astype(np.float32),
+        np.ones((far_size, far_size), np.uint8),
+        borderValue=np.inf,
+    )
+    far_side = known & (nearest * (1 + rel) + abs_m < z)
+    if near_band_px <= 0:
+        return far_side
+    size = 2 * near_band_px + 1
+    farthest = cv2.dilate(
+        np.where(known, z, 0).astype(np.float32), np.ones((size, size), np.uint8), borderValue=0
+    )
+    counts = [
+        cv2.boxFilter(
+            m.astype(np.float32), -1, (far_size, far_size), normalize=False, borderType=cv2.BORDER_CONSTANT
+        )
+        for m in (far_side, known)
+    ]
+    share = counts[0] / np.maximum(counts[1], 1.0)
+    near_side = known & (farthest > z * (1 + rel) + abs_m) & (share >= min_share)
+    return far_side | near_side
+
+
 def project_camera(
     camera: CameraImage,
     points: CameraPoints,
@@ -415,10 +792,18 @@ def project_camera(
     """
     cal = camera.calibration
     h, w = cal.height, cal.width
-    camera_from_world = geometry.invert_transform(camera.world_from_camera)
-    p_cam = geometry.transform_points(camera_from_world, points.points_world)
+    # float32 relative to the camera centre: millions of map points, and world coordinates of a
+    # scene (up to a few km) keep ~0.1 mm precision once the centre is subtracted.
+    centre = camera.world_from_camera[:3, 3]
+    rotation = camera.world_from_camera[:3, :3].astype(np.float32)
+    p_cam = (np.asarray(points.points_world, np.float32) - centre.astype(np.float32)) @ rotation
     z_all = p_cam[:, 2]
-    near = (z_all > params.min_depth_m) & (np.linalg.norm(p_cam, axis=1) <= params.max_range_m)
+    near = (z_all > params.min_depth_m) & (np.einsum("ij,ij->i", p_cam, p_cam) <= params.max_range_m**2)
+    # A cheap test on the undistorted view directions before the exact projection.
+    (x0, x1), (y0, y1) = normalized_bounds(camera)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x, y = p_cam[:, 0] / z_all, p_cam[:, 1] / z_all
+    near &= (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
     p_cam = p_cam[near]
     uv, valid = geometry.project_points(p_cam, cal.intrinsics, cal.distortion, params.min_depth_m)
     valid &= geometry.in_image(uv, w, h)
@@ -431,6 +816,8 @@ def project_camera(
         "removed_by_visibility": 0,
         "behind_ego_body": 0,
         "behind_vehicles": 0,
+        "mixed_pixels": 0,
+        "edge_pixels": 0,
     }
     for name, limit, slack in (
         ("behind_ego_body", ego_depth, 0.0),
@@ -445,7 +832,7 @@ def project_camera(
     # occludes (and fills) only the part of a pixel it covers; each pixel then takes the visible
     # point nearest its centre, not the nearest in depth, so edge pixels keep the surface at
     # their centre.
-    ss = params.supersample or (3 if w <= 640 else 1)
+    ss = supersample_of(params, w)
     hf, wf = h * ss, w * ss
     fine = _pixel_index(uv, ss, wf, hf)
     keep = np.ones(len(z), bool)
@@ -472,13 +859,35 @@ def project_camera(
     hit = chosen >= 0
     sparse = np.where(hit, fine_depth[np.maximum(chosen, 0)], np.inf)
     origin_map = np.where(hit, fine_origin[np.maximum(chosen, 0)], 0).astype(np.uint8)
-    # Support: points in the pixel agreeing with its depth within tau.
-    agree = np.abs(z - sparse[pixel]) <= sparse[pixel] * params.tau
-    support = np.bincount(pixel[agree], minlength=h * w)
-    confidence = np.where(hit, ORIGIN_WEIGHTS[origin_map] * np.where(support >= 2, 1.0, 0.75), 0.0).astype(
-        np.float32
-    )
+    if params.estimator == "plane":
+        fit = fit_pixels(pixel, uv[keep], z, (h, w), sparse, params)
+        plane = np.isfinite(fit.depth_m) & hit & ~fit.mixed
+        sparse = np.where(plane, fit.depth_m, sparse)
+        support = np.where(plane, 2, np.minimum(fit.count, 1))
+        mixed = fit.mixed & hit
+    else:
+        # Support: points in the pixel agreeing with its depth within tau.
+        agree = np.abs(z - sparse[pixel]) <= sparse[pixel] * params.tau
+        support = np.bincount(pixel[agree], minlength=h * w)
+        mixed = np.zeros(h * w, bool)
+    confidence = ORIGIN_WEIGHTS[origin_map] * np.where(support >= 2, 1.0, 0.75)
+    confidence = np.where(mixed, 0.5 * confidence, confidence)
+    if params.mixed_pixels == "drop":
+        hit &= ~mixed
+    counts["mixed_pixels"] = int(mixed.sum())
+    confidence = np.where(hit, confidence, 0.0).astype(np.float32)
+    origin_map = np.where(hit, origin_map, 0).astype(np.uint8)
     depth = np.where(hit, sparse, 0.0).astype(np.float32)
+    edge = depth_edge_band(
+        depth.reshape(h, w),
+        params.edge_band_px,
+        params.edge_tolerance_rel,
+        params.edge_tolerance_m,
+        params.edge_min_share,
+        params.edge_near_band_px,
+    ).reshape(-1)
+    counts["edge_pixels"] = int(edge.sum())
+    confidence[edge] *= params.edge_confidence
     if ego_depth is not None:
         body = np.isfinite(ego_depth.reshape(-1))
         depth[body], confidence[body], origin_map[body] = 0.0, 0.0, 0
@@ -529,11 +938,14 @@ class _Projector:
             )
             self._warned = True
         step = self.sweep_step(frame)
-        for camera in frame.cameras:
+        static = None
+        if self.lidar_map is not None:
+            static = static_points_per_camera(frame, self.lidar_map, self.params)
+        for k, camera in enumerate(frame.cameras):
             rays, ego_depth = self.rays_and_ego_depth(camera)
             occluders = None
             if self.lidar_map is not None:
-                pts = scene_points(frame, camera, self.lidar_map, self.params)
+                pts = scene_points(frame, camera, self.lidar_map, self.params, static[k])
                 if self.params.vehicle_occluders:
                     occluders = vehicle_far_depth(
                         frame, camera, self.lidar_map.moving_tracks, self.params, rays

@@ -1,0 +1,284 @@
+"""Sub-pixel plane fits, depth-edge bands, culling and thinning of the depth projection, and the
+map's voxel centroids: unit tests against exact geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from phigenesis import geometry
+from phigenesis.data.records import TRUSTED_DEPTH_CONFIDENCE, CameraCalibration, CameraDepth, CameraImage
+from phigenesis.data.stages import get_stage
+from phigenesis.data.stages.aggregate import TILE_M, LidarMap, _tile_sort, voxel_downsample
+from phigenesis.data.stages.project import (
+    MOMENT_NAMES,
+    CameraPoints,
+    ProjectParams,
+    depth_edge_band,
+    fit_pixels,
+    moments,
+    normalized_bounds,
+    project_camera,
+    seen_past_lidar_top,
+    static_points_per_camera,
+    thinning_strides,
+    window_moments,
+)
+from tests.test_depth_stages import _camera, _wall
+
+
+def _plane_points(n: int, normal_cam: np.ndarray, offset_m: float, cam: CameraImage, rng) -> np.ndarray:
+    """``n`` points of the plane ``normal . p = offset`` (camera frame) seen at random pixels."""
+    cal = cam.calibration
+    uv = rng.uniform([-0.5, -0.5], [cal.width - 0.5, cal.height - 0.5], size=(n, 2))
+    rays = geometry.unproject_pixels(uv, cal.intrinsics, cal.distortion)
+    t = offset_m / (rays @ normal_cam)
+    return (rays * t[:, None])[t > 0]
+
+
+def _yaw(angle_rad: float) -> np.ndarray:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _to_world(cam: CameraImage, p_cam: np.ndarray) -> np.ndarray:
+    return geometry.transform_points(cam.world_from_camera, p_cam)
+
+
+def test_window_moments_equal_brute_force_sums():
+    rng = np.random.default_rng(0)
+    h, w, n, r = 7, 9, 300, 2
+    pixel = rng.integers(0, h * w, n)
+    du, dv, y = rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n), rng.uniform(0.01, 1.0, n)
+    window = window_moments(moments(pixel, du, dv, y, h * w), (h, w), r)
+    row, col = np.divmod(pixel, w)
+    for p in range(h * w):
+        pr, pc = divmod(p, w)
+        sel = (np.abs(row - pr) <= r) & (np.abs(col - pc) <= r)
+        u, v, yy = du[sel] + col[sel] - pc, dv[sel] + row[sel] - pr, y[sel]
+        brute = {
+            "n": sel.sum(),
+            "u": u.sum(),
+            "v": v.sum(),
+            "uu": (u * u).sum(),
+            "vv": (v * v).sum(),
+            "uv": (u * v).sum(),
+            "y": yy.sum(),
+            "uy": (u * yy).sum(),
+            "vy": (v * yy).sum(),
+            "yy": (yy * yy).sum(),
+        }
+        for name in MOMENT_NAMES:
+            assert window[name][p] == pytest.approx(brute[name], abs=1e-9)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    tilt=st.floats(-1.2, 1.2),
+    turn=st.floats(-0.8, 0.8),
+    distance=st.floats(3.0, 60.0),
+    window=st.integers(0, 2),
+)
+def test_plane_fit_is_exact_on_a_plane(tilt: float, turn: float, distance: float, window: int):
+    """Inverse depth is affine in the pixel position on a plane, so the fit at each pixel centre
+    equals the plane's depth there, wherever the points fall in the pixel."""
+    cam = _camera()
+    normal = np.array([np.sin(turn), np.sin(tilt), np.cos(tilt) * np.cos(turn)])
+    normal /= np.linalg.norm(normal)
+    rng = np.random.default_rng(1)
+    pts = _plane_points(30000, normal, distance, cam, rng)
+    pts = pts[pts[:, 2] < 1e4]  # rays nearly parallel to the plane
+    cal = cam.calibration
+    uv, _ = geometry.project_points(pts, cal.intrinsics)
+    pixel = (np.rint(uv[:, 1]) * cal.width + np.rint(uv[:, 0])).astype(np.int64)
+    params = ProjectParams(fit_window_px=window)
+    fit = fit_pixels(
+        pixel, uv, pts[:, 2], (cal.height, cal.width), np.full(cal.width * cal.height, np.nan), params
+    )
+    centres = geometry.unproject_pixels(geometry.pixel_grid(cal.width, cal.height), cal.intrinsics)
+    truth = distance / (centres @ normal)
+    # Pixels that the horizon crosses are not planar patches; leave them out.
+    corners = [
+        geometry.unproject_pixels(geometry.pixel_grid(cal.width, cal.height) + off, cal.intrinsics)
+        for off in ([-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5])
+    ]
+    whole = np.all([(d > 0) & (d < 1e3) for d in (distance / (c @ normal) for c in corners)], axis=0)
+    done = np.isfinite(fit.depth_m) & whole
+    assert done.sum() > 0.5 * np.sum(np.bincount(pixel, minlength=len(truth)) > 0)
+    rel = np.abs(fit.depth_m[done] / truth[done] - 1)
+    # Exact, except where the points hug one corner and the clip to the pixel's own depth range
+    # (widened by its span) stops a far extrapolation.
+    assert np.mean(rel < 1e-6) > 0.99 and rel.max() < 0.05
+    assert not fit.mixed[whole].any()
+
+
+def test_plane_fit_averages_range_noise_and_flags_mixed_pixels():
+    cam = _camera()
+    rng = np.random.default_rng(2)
+    normal = np.array([0.0, -0.3, 1.0]) / np.hypot(0.3, 1.0)
+    pts = _plane_points(20000, normal, 12.0, cam, rng)
+    noisy = pts * (1 + rng.normal(0, 0.02, len(pts)) / np.linalg.norm(pts, axis=1))[:, None]
+    origin = np.full(len(pts), 1, np.uint8)
+    spacing = np.full(len(pts), 0.02, np.float32)
+    world = CameraPoints(_to_world(cam, noisy), origin, spacing)
+    centres = geometry.unproject_pixels(geometry.pixel_grid(64, 48), cam.calibration.intrinsics)
+    truth = (12.0 / (centres @ normal)).reshape(48, 64)
+    errors = {}
+    for estimator in ("plane", "nearest_centre"):
+        depth, _ = project_camera(cam, world, ProjectParams(estimator=estimator, edge_band_px=0))
+        known = depth.sparse_m > 0
+        assert known.mean() > 0.95
+        errors[estimator] = np.median(np.abs(depth.sparse_m[known] - truth[known]))
+    assert errors["nearest_centre"] > 0.01  # 2 cm range noise
+    assert errors["plane"] < 0.4 * errors["nearest_centre"]
+    # A pixel holding points of two surfaces 5 m apart is mixed and is dropped.
+    pixel = np.array([10, 10, 10, 10, 11], np.int64)
+    uv = np.array([[10.2, 0.0], [9.8, 0.1], [10.0, -0.2], [10.1, 0.2], [11.0, 0.0]])
+    z = np.array([10.0, 10.0, 15.0, 10.0, 10.0])
+    fit = fit_pixels(pixel, uv, z, (1, 20), np.full(20, 10.0), ProjectParams(fit_window_px=0))
+    assert fit.mixed[10] and not fit.mixed[11]
+
+
+def test_edge_band_marks_both_sides_of_a_silhouette_but_not_around_a_lone_leak():
+    depth = np.full((30, 40), 10.0, np.float32)
+    depth[:, 20:] = 30.0
+    band = depth_edge_band(depth, 4, 0.1, 0.3)
+    cols = np.flatnonzero(band.any(axis=0))
+    assert cols.min() == 16 and cols.max() == 23  # 4 pixels on each side of the edge
+    leak = np.full((30, 40), 10.0, np.float32)
+    leak[15, 20] = 30.0
+    band = depth_edge_band(leak, 4, 0.1, 0.3)
+    assert band[15, 20] and band.sum() == 1
+    assert not depth_edge_band(np.full((8, 8), 10.0, np.float32), 4, 0.1, 0.3).any()
+
+
+def test_edge_pixels_keep_their_depth_below_the_trusted_confidence():
+    """A sparse wall leaks background through its gaps on the image's own grid: the leaks and the
+    pixels beside them stay in the sparse map, but below the confidence densification uses."""
+    cam = _camera()
+    front, back = _wall(10.0, 0.25), _wall(30.0, 0.1)
+    pts = CameraPoints(
+        np.concatenate([front, back]),
+        np.full(len(front) + len(back), 1, np.uint8),
+        np.concatenate([np.full(len(front), 0.25, np.float32), np.full(len(back), 0.1, np.float32)]),
+    )
+    depth, counts = project_camera(cam, pts, ProjectParams(supersample=1))
+    trusted = depth.sparse_confidence >= TRUSTED_DEPTH_CONFIDENCE
+    assert counts["edge_pixels"] > 0
+    assert np.isclose(depth.sparse_m, 30.0).any()  # leaks are kept, untrusted
+    assert not np.isclose(depth.sparse_m[trusted], 30.0).any()
+    assert trusted.sum() > 0.25 * trusted.size
+
+
+def test_densify_stage_seeds_only_from_trusted_depths():
+    cam = _camera(32, 24)
+    sparse = np.zeros((24, 32), np.float32)
+    sparse[::3, ::3] = 10.0
+    conf = np.where(sparse > 0, 1.0, 0.0).astype(np.float32)
+    sparse[12, 15], conf[12, 15] = 50.0, 0.2  # an untrusted outlier
+    cam.depth = CameraDepth(sparse, conf, (sparse > 0).astype(np.uint8))
+    from phigenesis.data.records import Boxes, Frame, Scene
+
+    frame = Frame("s", 0, 0, np.eye(4), [cam], None, Boxes.empty())
+    scene = Scene("s", "synthetic", [cam.calibration], [frame])
+    out = get_stage("densify_depth")(scene, {"method": "ipbasic"}).frames[0].cameras[0].depth
+    assert out.dense_m.max() < 11.0  # the untrusted 50 m seed was not spread
+    with_all = get_stage("densify_depth")(
+        Scene("s", "synthetic", [cam.calibration], [frame]), {"method": "ipbasic", "min_confidence": 0.1}
+    )
+    assert with_all.frames[0].cameras[0].depth.dense_m.max() > 40.0
+
+
+def _slow_seen_past_lidar_top(points, sensor, world_from_ego, limit, band, bin_rad):
+    """The rule of :func:`seen_past_lidar_top` written out with angles, as the reference."""
+    d = (points - sensor) @ world_from_ego[:3, :3]
+    r = np.hypot(d[:, 0], d[:, 1])
+    elevation = np.arctan2(d[:, 2], r)
+    bins = int(np.ceil(2 * np.pi / bin_rad))
+    az = np.floor((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / bin_rad).astype(int) % bins
+    inside = elevation <= limit
+    in_band = inside & (elevation >= limit - band)
+    profile = np.full(bins, np.inf)
+    np.minimum.at(profile, az[in_band], r[in_band])
+    profile = np.minimum(profile, np.minimum(np.roll(profile, 1), np.roll(profile, -1)))
+    return inside | (r < profile[az])
+
+
+@settings(max_examples=20, deadline=None)
+@given(yaw=st.floats(-3.1, 3.1), limit_deg=st.floats(0.5, 10.0), seed=st.integers(0, 100))
+def test_seen_past_lidar_top_matches_the_angle_formulation(yaw: float, limit_deg: float, seed: int):
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform([-60, -60, -3], [60, 60, 12], size=(3000, 3)).astype(np.float32)
+    world_from_ego = geometry.make_transform(_yaw(yaw), [1.0, 2.0, 0.0])
+    sensor = np.array([1.5, 2.0, 1.9])
+    args = (np.radians(limit_deg), np.radians(1.5), np.radians(0.5))
+    fast = seen_past_lidar_top(pts, sensor, world_from_ego, *args)
+    slow = _slow_seen_past_lidar_top(pts.astype(np.float64), sensor, world_from_ego, *args)
+    # float32 differences only move points lying on a bin or elevation boundary.
+    assert np.mean(fast != slow) < 0.002
+
+
+def test_thinning_keeps_near_tiles_whole_and_thins_far_ones_quadratically():
+    centres = np.array([[0.0, 0.0], [30.0, 0.0], [100.0, 0.0], [0.0, -200.0]])
+    stride = thinning_strides(centres, np.zeros(3), 40.0)
+    half = TILE_M / np.sqrt(2)
+    assert stride[0] == 1 and stride[1] == 1
+    assert stride[2] == int(((100 - half) / 40) ** 2)
+    assert stride[3] == int(((200 - half) / 40) ** 2)
+
+
+def test_culling_keeps_every_map_point_that_lands_in_the_image():
+    """Tiles outside an image's azimuth wedge are skipped: no point that projects into the image
+    may be lost (thinning off)."""
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-100, -100, -1], [100, 100, 1], size=(200000, 3)).astype(np.float32)
+    sorted_pts, keys, start = _tile_sort(pts)
+    lidar_map = LidarMap(
+        sorted_pts, keys, start, 0.05, frozenset(), frozenset(), {}, [], max_elevation_rad=np.pi / 2
+    )
+    from phigenesis.data.records import Boxes, Frame
+
+    cameras = []
+    for k, yaw in enumerate((0.0, 1.2, 2.9, -1.9)):
+        rotation = _yaw(yaw) @ geometry.BODY_FROM_OPENCV
+        ego_from_camera = geometry.make_transform(rotation, [1.0, 0.0, 1.5])
+        intrinsics = geometry.intrinsic_matrix(40.0, 40.0, 31.5, 23.5)
+        cal = CameraCalibration(f"C{k}", 64, 48, intrinsics, np.zeros(5), ego_from_camera)
+        cameras.append(CameraImage(cal, 0, geometry.make_transform(_yaw(0.4), [5.0, -3.0, 0.0]), None))
+    frame = Frame("s", 0, 0, cameras[0].world_from_ego, cameras, None, Boxes.empty())
+    params = ProjectParams(thin=False, max_range_m=80.0)
+    culled = static_points_per_camera(frame, lidar_map, params)
+    for cam, kept in zip(cameras, culled, strict=True):
+        p_cam = geometry.transform_points(np.linalg.inv(cam.world_from_camera), sorted_pts)
+        uv, valid = geometry.project_points(p_cam, cam.calibration.intrinsics)
+        seen = valid & geometry.in_image(uv, 64, 48) & (np.linalg.norm(p_cam, axis=1) < 80.0)
+        assert seen.sum() > 100
+        kept_set = {tuple(p) for p in kept.tolist()}
+        assert all(tuple(p) in kept_set for p in sorted_pts[seen].tolist())
+        assert len(kept) < 0.6 * len(sorted_pts)  # and most of the map was skipped
+        (x0, x1), (y0, y1) = normalized_bounds(cam)
+        z = p_cam[seen, 2]
+        assert np.all((p_cam[seen, 0] / z >= x0) & (p_cam[seen, 0] / z <= x1))
+        assert np.all((p_cam[seen, 1] / z >= y0) & (p_cam[seen, 1] / z <= y1))
+
+
+def test_numpy_voxel_centroids_are_each_voxels_mean():
+    rng = np.random.default_rng(4)
+    voxel = 0.1
+    pts = rng.uniform(-2.0, 2.0, size=(5000, 3))
+    cells = np.floor(pts / voxel).astype(np.int64)
+    groups: dict[tuple, list[np.ndarray]] = {}
+    for cell, p in zip(map(tuple, cells), pts, strict=True):
+        groups.setdefault(cell, []).append(p)
+    reference = np.array([np.mean(g, axis=0) for g in groups.values()])
+    got = voxel_downsample(pts, voxel, "numpy")
+    assert len(got) == len(reference)
+    order = lambda a: a[np.lexsort(np.round(a, 4).T)]  # noqa: E731
+    np.testing.assert_allclose(order(got), order(reference), atol=1e-6)
+    # Open3D's grid is anchored at the points' minimum: other voxels, same bounds and spacing.
+    o3d_points = voxel_downsample(pts, voxel, "open3d")
+    assert abs(len(o3d_points) - len(got)) < 0.1 * len(got)
+    with pytest.raises(ValueError, match="voxel_backend"):
+        get_stage("aggregate_lidar")(None, {"voxel_backend": "pcl"})  # type: ignore[arg-type]
