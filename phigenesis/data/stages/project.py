@@ -713,10 +713,18 @@ def fit_pixels(
     base = np.where(np.isfinite(depth), depth, reference_m)
     tolerance = params.fit_tolerance_m + params.fit_tolerance_rel * base
     mixed = (worst > tolerance) & (count > 0)
-    if params.fit_window_px > 0:
-        wa, _, _, rms = _plane_at_centre(
-            window_moments(own, shape, params.fit_window_px), params.plane_min_points
+    if params.fit_window_px > 0 and len(pixel):
+        # Only the rows that hold points (and the window's reach around them) are filtered: the
+        # sky and whatever lies above the LiDAR's field stay out of the work.
+        r = params.fit_window_px
+        rows = pixel // w
+        r0, r1 = max(int(rows.min()) - r, 0), min(int(rows.max()) + r + 1, h)
+        band = {k: v[r0 * w : r1 * w] for k, v in own.items()}
+        wa_band, _, _, rms_band = _plane_at_centre(
+            window_moments(band, (r1 - r0, w), r), params.plane_min_points
         )
+        wa, rms = np.full(size, np.nan), np.zeros(size)
+        wa[r0 * w : r1 * w], rms[r0 * w : r1 * w] = wa_band, rms_band
         with np.errstate(divide="ignore", invalid="ignore"):
             window_z = 1.0 / wa
             window_tolerance = params.window_tolerance_m + params.window_tolerance_rel * window_z
