@@ -366,12 +366,13 @@ def project_points(
     assert k.shape == (3, 3), k.shape
     d = _as_distortion(distortion)
     z = p[:, 2]
-    valid = np.isfinite(p).all(axis=1) & (z > min_depth_m)
+    # Column-wise tests: a reduction along the short axis is several times slower.
+    valid = np.isfinite(p[:, 0]) & np.isfinite(p[:, 1]) & np.isfinite(z) & (z > min_depth_m)
     safe_z = np.where(valid, z, 1.0)
     # Invalid rows (inf, NaN) are zeroed so that no inf * 0 reaches the arithmetic below.
     xy = np.where(valid[:, None], p[:, :2] / safe_z[:, None], 0.0)
     if np.any(d != 0.0):
-        r2 = np.sum(xy * xy, axis=1)
+        r2 = xy[:, 0] * xy[:, 0] + xy[:, 1] * xy[:, 1]
         valid &= r2 <= max_monotonic_radius(d) ** 2
         xy = distort_normalized(xy, d)
     uv = np.empty_like(xy)

@@ -22,6 +22,7 @@ from phigenesis.data.stages.project import (
     normalized_bounds,
     project_camera,
     seen_past_lidar_top,
+    silhouette_pixels,
     static_points_per_camera,
     thinning_strides,
     window_moments,
@@ -282,3 +283,18 @@ def test_numpy_voxel_centroids_are_each_voxels_mean():
     assert abs(len(o3d_points) - len(got)) < 0.1 * len(got)
     with pytest.raises(ValueError, match="voxel_backend"):
         get_stage("aggregate_lidar")(None, {"voxel_backend": "pcl"})  # type: ignore[arg-type]
+
+
+def test_silhouette_pixels_need_both_a_rim_of_the_known_region_and_an_image_edge():
+    rgb = np.zeros((40, 60, 3), np.uint8)
+    rgb[10:30, 20:40] = 220  # a bright object on a dark background
+    depth = np.zeros((40, 60), np.float32)
+    depth[10:30, 20:40] = 8.0  # known on the object only (the background has no depth)
+    depth[10:30, 50:58] = 20.0  # a known patch with no image edge at its rim
+    flagged = silhouette_pixels(rgb, depth, 150.0)
+    rim = np.zeros_like(flagged)
+    rim[10:30, 20:40] = True
+    rim[11:29, 21:39] = False
+    assert flagged[rim].all()  # the object's outline
+    assert not flagged[12:28, 22:38].any()  # its interior
+    assert not flagged[:, 45:].any()  # a rim where the image is flat

@@ -121,6 +121,8 @@ class ProjectParams:
             known pixels around are on its far side (:func:`depth_edge_band`), so a lone
             background leak does not mark the surface around it; ``edge_near_band_px`` (default
             ``edge_band_px``) is the near side's band.
+        image_edge_threshold: pixels on the rim of the known region that sit on a strong image
+            edge (:func:`silhouette_pixels`) get ``edge_confidence`` too; None turns it off.
         thin, thin_points_per_cell: far map tiles contribute a uniform subset of their points,
             about this many per cell of the visibility grid (:func:`thinning_strides`; the plane
             fits need several per pixel).
@@ -160,6 +162,7 @@ class ProjectParams:
     edge_min_share: float = 0.05
     edge_near_band_px: int | None = None
     edge_confidence: float = 0.25
+    image_edge_threshold: float | None = 150.0
     thin: bool = True
     thin_points_per_cell: float = 9.0
     use_map: bool = True
@@ -777,6 +780,28 @@ def depth_edge_band(
     return far_side | near_side
 
 
+def silhouette_pixels(
+    rgb: NDArray[np.uint8], depth_m: NDArray[np.floating], threshold: float
+) -> NDArray[np.bool_]:
+    """(H, W) True for known pixels (depth > 0) on the rim of the known region (an unknown
+    8-neighbour) that lie within a pixel of a strong image edge (Sobel magnitude of the grey image,
+    0-255 scale, above ``threshold``).
+
+    A foreground point landing in a pixel whose centre sees the background beyond a silhouette
+    cannot be caught by comparing depths when the background has no depth there (above the
+    LiDAR's field, beyond its range): the image still shows the silhouette."""
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    magnitude = np.hypot(
+        cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+    )
+    near_edge = cv2.dilate((magnitude > threshold).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    known = depth_m > 0
+    neighbours = cv2.boxFilter(
+        known.astype(np.float32), -1, (3, 3), normalize=False, borderType=cv2.BORDER_REPLICATE
+    )
+    return known & (neighbours < 9) & near_edge
+
+
 def project_camera(
     camera: CameraImage,
     points: CameraPoints,
@@ -894,6 +919,10 @@ def project_camera(
         params.edge_min_share,
         params.edge_near_band_px,
     ).reshape(-1)
+    if params.image_edge_threshold is not None and camera.image_bytes is not None:
+        edge |= silhouette_pixels(
+            camera.decode_image(), depth.reshape(h, w), params.image_edge_threshold
+        ).reshape(-1)
     counts["edge_pixels"] = int(edge.sum())
     confidence[edge] *= params.edge_confidence
     if ego_depth is not None:
