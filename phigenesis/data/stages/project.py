@@ -33,6 +33,7 @@ a single point supports the pixel, 1.0 if two or more agree within ``tau``.
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -126,6 +127,7 @@ class ProjectParams:
         thin, thin_points_per_cell: far map tiles contribute a uniform subset of their points,
             about this many per cell of the visibility grid (:func:`thinning_strides`; the plane
             fits need several per pixel).
+        threads: cameras projected in parallel threads (1: one after the other).
         use_map: project the aggregated map when the scene has one (False: own sweep only).
     """
 
@@ -164,6 +166,7 @@ class ProjectParams:
     edge_confidence: float = 0.25
     image_edge_threshold: float | None = 150.0
     thin: bool = True
+    threads: int = 2
     thin_points_per_cell: float = 9.0
     use_map: bool = True
 
@@ -978,7 +981,11 @@ class _Projector:
         static = None
         if self.lidar_map is not None:
             static = static_points_per_camera(frame, self.lidar_map, self.params)
-        for k, camera in enumerate(frame.cameras):
+        for camera in frame.cameras:  # the per-scene tables, filled before any thread runs
+            self.rays_and_ego_depth(camera)
+
+        def one_camera(k: int) -> None:
+            camera = frame.cameras[k]
             rays, ego_depth = self.rays_and_ego_depth(camera)
             occluders = None
             if self.lidar_map is not None:
@@ -990,6 +997,14 @@ class _Projector:
             else:
                 pts = sweep_points(frame)
             camera.depth, _ = project_camera(camera, pts, self.params, ego_depth, occluders, step)
+
+        if self.params.threads > 1 and len(frame.cameras) > 1:
+            # Cameras are independent and numpy/OpenCV release the GIL on large arrays.
+            with ThreadPoolExecutor(max_workers=self.params.threads) as pool:
+                list(pool.map(one_camera, range(len(frame.cameras))))
+        else:
+            for k in range(len(frame.cameras)):
+                one_camera(k)
         return frame
 
 
