@@ -25,6 +25,9 @@ depth_sparse_confidence    float32 [C, H, W]             in [0, 1], 0 where dept
 depth_sparse_origin        uint8 [C, H, W]               records.DEPTH_ORIGINS index (0 = none)
 depth_dense                float32 [C, H, W]             densified depth GT, 0 = none
 depth_dense_confidence     float32 [C, H, W]             in [0, 1], 0 where depth_dense is 0
+pseudo_semantic            uint8 [C, H, W]               pseudo labels, unified classes, 255 = none
+pseudo_confidence          float32 [C, H, W]             in [0, 1], 0 where no label
+pseudo_source              uint8 [C, H, W]               records.PSEUDO_SOURCES index (0 = none)
 lidar_points_ego           float32 [N, 3]                LiDAR points, ego frame at frame time
 lidar_intensity            float32 [N]
 lidar_beam_index           int64 [N]
@@ -40,11 +43,13 @@ boxes_instance_id          int64 [M]
 boxes_track_id             list[str] (M)
 =========================  ===========================  ==========================================
 
-Choose groups with ``fields`` ("images", "cameras", "truth", "depth", "lidar", "boxes"); only what is
-asked for is read, checked and decoded. Label maps stay compact (uint8 classes, int32 instances);
+Choose groups with ``fields`` ("images", "cameras", "truth", "depth", "pseudo", "lidar", "boxes"); only
+what is asked for is read, checked and decoded. Label maps stay compact (uint8 classes, int32 instances);
 cast them on the device (``.long()`` for a cross-entropy target). :func:`collate_frames` stacks
 fixed-size entries over the batch and keeps variable-size ones (LiDAR, boxes, per-camera lists)
-as lists.
+as lists. The further groups ``RANGE_FIELD_GROUPS``, "range_view" (all views side by side as one
+image) and "lidar_range_image" (the sweep as beams x azimuth), give the keys listed in
+:mod:`phigenesis.data.loader_rangeview`.
 """
 
 from __future__ import annotations
@@ -61,10 +66,13 @@ import torch
 from torch.utils.data import Dataset
 
 from phigenesis.data import codec
+from phigenesis.data.loader_rangeview import lidar_range_sample, range_view_sample
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheError, CacheReader
 
-FIELD_GROUPS = ("images", "cameras", "truth", "depth", "lidar", "boxes")
+FIELD_GROUPS = ("images", "cameras", "truth", "depth", "pseudo", "lidar", "boxes")
+#: Groups of packed views, documented in :mod:`phigenesis.data.loader_rangeview`.
+RANGE_FIELD_GROUPS = ("range_view", "lidar_range_image")
 
 
 def _bytes_view(arr: pa.BinaryArray, i: int) -> np.ndarray | None:
@@ -126,6 +134,11 @@ _DEPTH_JOBS = (
     _MapJob(
         "depth_dense_confidence", "depth_dense_confidence_png", codec.decode_confidence, np.float32, None
     ),
+)
+_PSEUDO_JOBS = (
+    _MapJob("pseudo_semantic", "pseudo_semantic_png", codec.decode_semantic, np.uint8, None),
+    _MapJob("pseudo_confidence", "pseudo_semantic_confidence_png", codec.decode_confidence, np.float32, None),
+    _MapJob("pseudo_source", "pseudo_semantic_source_png", codec.decode_semantic, np.uint8, None),
 )
 
 
@@ -189,9 +202,10 @@ class FrameDataset(Dataset):
         fields: Sequence[str] = ("images", "cameras", "truth", "boxes"),
         check_crc: bool = True,
     ):
-        unknown = set(fields) - set(FIELD_GROUPS)
+        groups = FIELD_GROUPS + RANGE_FIELD_GROUPS
+        unknown = set(fields) - set(groups)
         if unknown:
-            raise ValueError(f"unknown field groups {sorted(unknown)}; choose from {FIELD_GROUPS}")
+            raise ValueError(f"unknown field groups {sorted(unknown)}; choose from {groups}")
         self.reader = CacheReader(cache_dir, check_crc=check_crc)
         self.fields = tuple(fields)
 
@@ -210,7 +224,11 @@ class FrameDataset(Dataset):
         """The columns this dataset's fields need (only these are read and CRC-checked)."""
         available = self.reader.columns_of(index)
         cols = ["scene_id", "frame_index", "frame_timestamp_micros", "world_from_ego", "cameras"]
-        return cols + [c for c in ("lidar", "boxes") if c in self.fields and c in available]
+        wanted = set(self.fields)
+        if "lidar_range_image" in wanted:
+            wanted.add("lidar")  # range and intensity come from the sweep
+        names = ("lidar", "boxes", "range_view", "lidar_range_image")
+        return cols + [c for c in names if c in wanted and c in available]
 
     def _convert(self, batch: pa.RecordBatch) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -227,6 +245,7 @@ class FrameDataset(Dataset):
             ([_IMAGE_JOB] if "images" in self.fields else [])
             + (list(_TRUTH_JOBS) if "truth" in self.fields else [])
             + (list(_DEPTH_JOBS) if "depth" in self.fields else [])
+            + (list(_PSEUDO_JOBS) if "pseudo" in self.fields else [])
         )
         out.update(_decode_maps(cf, names, jobs))
         if "cameras" in self.fields:
@@ -256,6 +275,10 @@ class FrameDataset(Dataset):
                 out["lidar_truth_semantic"] = torch.from_numpy(_flat(lf["truth_semantic"]).copy())
             if "truth_instance" in lf and lf["truth_instance"][0].is_valid:
                 out["lidar_truth_instance"] = torch.from_numpy(_flat(lf["truth_instance"]).astype(np.int32))
+        if "range_view" in self.fields:
+            out.update(range_view_sample(batch, cf, out))
+        if "lidar_range_image" in self.fields:
+            out.update(lidar_range_sample(batch))
         if "boxes" in self.fields:
             bx = batch.column("boxes").flatten()
             bf = {f.name: a for f, a in zip(bx.type, bx.flatten(), strict=True)}

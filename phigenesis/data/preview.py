@@ -1,4 +1,17 @@
-"""Pictures of a frame: cameras as a panorama with boxes, depth and semantics, and a bird's-eye view."""
+"""Pictures of a frame: its camera range view (RGB with boxes, depth, semantics) and a bird's-eye view.
+
+Entry point: :func:`draw_frame`. The range view is the frame's views side by side in azimuth order
+(:mod:`phigenesis.data.rangeview`); each row of the picture is that range view:
+
+1. RGB, each camera's name in its top-left corner, views separated by a thin line, the frame's
+   boxes drawn with their projected edges in every view that sees them (at the image's own time),
+   and cells whose direction a neighbouring view owns (the overlap rule) dimmed;
+2. depth (dense, else sparse, else exact truth), turbo-coloured by inverse depth, unknown black;
+3. semantics (pseudo-labels, else truth, else the dataset's labels) in the taxonomy's palette.
+
+Rows without data are left out; cells no view covers are dark grey. A top view of the LiDAR and
+the boxes, as tall as the rows, is on the right.
+"""
 
 from __future__ import annotations
 
@@ -8,59 +21,130 @@ from numpy.typing import NDArray
 
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
-from phigenesis.data.records import CameraImage, Frame
+from phigenesis.data.rangeview import RangeView, ViewPlacement, pack_range_view
+from phigenesis.data.records import Boxes, CameraImage, Frame
 
 BEV_RANGE_M = 60.0
-#: Camera images taller than this are drawn shrunk to it (real datasets' 1280-pixel images).
+#: Range views taller than this are drawn shrunk to it (real datasets' 1280-pixel images).
 MAX_CAMERA_HEIGHT_PX = 320
+#: Colour of cells no view covers.
+EMPTY_RGB = (48, 48, 48)
+#: Brightness of cells whose direction another view owns.
+OVERLAP_DIM = 0.6
+#: Box edges are clipped to this depth in front of the camera (metres) before projection.
+NEAR_M = 0.1
 
 
 def draw_frame(frame: Frame, scale: int = 2) -> NDArray[np.uint8]:
-    """An RGB picture of a frame: rows of camera images (left to right as seen from the car) with
-    projected boxes, then truth depth and semantics (or the dataset's labels) where the frame has
-    them, and a bird's-eye view of the LiDAR and boxes on the right."""
-    cams = sorted(frame.cameras, key=lambda c: -_camera_yaw(c))
-    factor = min(1.0, MAX_CAMERA_HEIGHT_PX / max(c.calibration.height for c in cams))
+    """An (H, W, 3) uint8 RGB picture of a frame (see the module docstring).
 
-    def shrink(img: NDArray[np.uint8]) -> NDArray[np.uint8]:
-        if factor == 1.0:
-            return img
-        size = (round(img.shape[1] * factor), round(img.shape[0] * factor))
-        return cv2.resize(img, size, interpolation=cv2.INTER_NEAREST)
+    ``scale`` magnifies the range view (after range views taller than
+    :data:`MAX_CAMERA_HEIGHT_PX` are shrunk to it); each row is ``round(Hr * zoom)`` pixels high.
+    """
+    rv = pack_range_view(frame, depth_sources=("dense", "sparse", "truth"))
+    layout = rv.layout
+    zoom = min(1.0, MAX_CAMERA_HEIGHT_PX / layout.height) * scale
+    size = (round(layout.width * zoom), round(layout.height * zoom))
+    empty = _resize(~layout.valid(), size, cv2.INTER_NEAREST)
+    rows = [_rgb_row(rv, frame, size, zoom)]
+    if rv.depth_m is not None:
+        rows.append(_resize(_depth_color(rv.depth_m), size, cv2.INTER_NEAREST))
+    if rv.semantic is not None:
+        rows.append(_resize(tx.PALETTE_RGB[rv.semantic], size, cv2.INTER_NEAREST))
+    for row in rows[1:]:
+        row[empty] = EMPTY_RGB
+    mosaic = np.concatenate(rows, axis=0)
+    return np.concatenate([mosaic, _bev(frame, mosaic.shape[0])], axis=1)
 
-    height = max(round(c.calibration.height * factor) for c in cams)
-    rows = [[_with_boxes(c, frame, factor) for c in cams]]
-    if all(c.truth is not None for c in cams):
-        rows.append([shrink(_depth_color(c.truth.depth_m)) for c in cams])
-        rows.append([shrink(tx.PALETTE_RGB[c.truth.semantic]) for c in cams])
-    elif any(c.labels is not None for c in cams):
-        rows.append(
-            [
-                shrink(tx.PALETTE_RGB[c.labels.semantic])
-                if c.labels is not None
-                else np.zeros(
-                    (round(c.calibration.height * factor), round(c.calibration.width * factor), 3), np.uint8
+
+def _resize(plane: NDArray, size: tuple[int, int], interpolation: int) -> NDArray:
+    if (plane.shape[1], plane.shape[0]) == size:
+        return plane.copy()
+    as_u8 = plane.dtype == bool
+    out = cv2.resize(plane.astype(np.uint8) if as_u8 else plane, size, interpolation=interpolation)
+    return out.astype(bool) if as_u8 else out
+
+
+def _rgb_row(rv: RangeView, frame: Frame, size: tuple[int, int], zoom: float) -> NDArray[np.uint8]:
+    """The RGB row: images (dimmed where another view owns the direction), boxes, names, borders."""
+    layout = rv.layout
+    rgb = np.zeros((layout.height, layout.width, 3), np.uint8) if rv.rgb is None else rv.rgb.copy()
+    shared = layout.valid() & ~layout.primary()
+    rgb[shared] = (rgb[shared] * OVERLAP_DIM).astype(np.uint8)
+    rgb[~layout.valid()] = EMPTY_RGB
+    img = _resize(rgb, size, cv2.INTER_AREA if zoom < 1 else cv2.INTER_NEAREST)
+    cams = {c.name: c for c in frame.cameras}
+    for p in layout.views:
+        x0, x1 = round(p.col0 * zoom), round((p.col0 + p.width) * zoom)
+        y0, y1 = round(p.row0 * zoom), round((p.row0 + p.height) * zoom)
+        view = img[y0:y1, x0:x1]  # drawing here clips to the view
+        _draw_boxes(view, cams[p.camera_name], frame, p, zoom)
+        if x0 > 0:
+            img[:, x0] = (255, 255, 255)
+        font = 0.3 + 0.1 * zoom
+        for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):
+            cv2.putText(img, p.camera_name, (x0 + 3, y0 + round(12 * font / 0.5)), 0, font, colour, thickness)
+    return img
+
+
+def _camera_boxes(cam: CameraImage, frame: Frame) -> NDArray[np.float64]:
+    """(M, 8, 3) world corners of the boxes at the image's capture time (its own boxes, else the
+    frame's moved with their velocity)."""
+    if cam.boxes is not None:
+        return cam.boxes.corners_world()
+    b: Boxes = frame.boxes
+    dt = (cam.timestamp_micros - frame.timestamp_micros) * 1e-6
+    return b.corners_world() + (b.velocity_world * dt)[:, None, :]
+
+
+def _draw_boxes(
+    view: NDArray[np.uint8], cam: CameraImage, frame: Frame, p: ViewPlacement, zoom: float
+) -> None:
+    """Draws the box edges seen by ``cam`` into ``view`` (its cells of the picture, in place)."""
+    boxes = cam.boxes if cam.boxes is not None else frame.boxes
+    if len(boxes) == 0:
+        return
+    corners = _camera_boxes(cam, frame)
+    camera_from_world = geometry.invert_transform(cam.world_from_camera)
+    cal = cam.calibration
+    # Picture pixel of image pixel (u, v): centres stay centres, u' = (u + 0.5) * zoom - 0.5, then
+    # relative to the view's corner in the picture.
+    x0, y0 = round(p.col0 * zoom), round(p.row0 * zoom)
+    ox, oy = (p.col0 + 0.5) * zoom - 0.5 - x0, (p.row0 + 0.5) * zoom - 0.5 - y0
+    intrinsics = np.array([[zoom, 0, ox], [0, zoom, oy], [0, 0, 1]]) @ cal.intrinsics
+    edges = np.array(geometry.BOX_EDGES)
+    for i in range(len(boxes)):
+        pts = geometry.transform_points(camera_from_world, corners[i])
+        a, b = pts[edges[:, 0]], pts[edges[:, 1]]
+        a, b, keep = _clip_near(a, b)
+        if not keep.any():
+            continue
+        uv_a, ok_a = geometry.project_points(a[keep], intrinsics, cal.distortion)
+        uv_b, ok_b = geometry.project_points(b[keep], intrinsics, cal.distortion)
+        colour = _box_color(int(boxes.class_id[i]))
+        for s, t in zip(uv_a[ok_a & ok_b], uv_b[ok_a & ok_b], strict=True):
+            if np.abs(np.concatenate([s, t])).max() < 1e5:
+                cv2.line(
+                    view,
+                    tuple(np.round(s).astype(int)),
+                    tuple(np.round(t).astype(int)),
+                    colour,
+                    1,
+                    cv2.LINE_AA,
                 )
-                for c in cams
-            ]
-        )
-    mosaic = np.concatenate([np.concatenate([_pad(p, height) for p in row], axis=1) for row in rows], axis=0)
-    mosaic = cv2.resize(mosaic, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
-    bev = _bev(frame, mosaic.shape[0])
-    return np.concatenate([mosaic, bev], axis=1)
 
 
-def _camera_yaw(cam: CameraImage) -> float:
-    axis = cam.calibration.ego_from_camera[:3, 2]
-    return float(np.arctan2(axis[1], axis[0]))
-
-
-def _pad(img: NDArray[np.uint8], height: int) -> NDArray[np.uint8]:
-    if img.shape[0] == height:
-        return img
-    out = np.zeros((height, *img.shape[1:]), np.uint8)
-    out[: img.shape[0]] = img
-    return out
+def _clip_near(
+    a: NDArray[np.float64], b: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Segments (E, 3) a-b in camera axes cut to ``z >= NEAR_M``; ``keep`` is False where wholly behind."""
+    keep = (a[:, 2] >= NEAR_M) | (b[:, 2] >= NEAR_M)
+    a, b = a.copy(), b.copy()
+    for p, q in ((a, b), (b, a)):
+        cut = keep & (p[:, 2] < NEAR_M)
+        f = (NEAR_M - p[cut, 2]) / (q[cut, 2] - p[cut, 2])
+        p[cut] = p[cut] + f[:, None] * (q[cut] - p[cut])
+    return a, b, keep
 
 
 def _depth_color(depth_m: NDArray[np.float32]) -> NDArray[np.uint8]:
@@ -76,36 +160,6 @@ def _depth_color(depth_m: NDArray[np.float32]) -> NDArray[np.uint8]:
 def _box_color(class_id: int) -> tuple[int, int, int]:
     c = tx.PALETTE_RGB[class_id]
     return (255, 255, 0) if class_id == tx.CAR else tuple(int(x) for x in np.clip(c.astype(int) + 60, 0, 255))
-
-
-def _with_boxes(cam: CameraImage, frame: Frame, factor: float = 1.0) -> NDArray[np.uint8]:
-    """The image shrunk by ``factor`` with the frame's boxes drawn at the image's capture time."""
-    cal = cam.calibration
-    width, height = round(cal.width * factor), round(cal.height * factor)
-    if cam.image_bytes is None:
-        img = np.zeros((height, width, 3), np.uint8)
-    else:
-        img = cam.decode_image()
-        img = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA) if factor != 1.0 else img.copy()
-    b = frame.boxes
-    if len(b) == 0:
-        return img
-    # Move boxes to the image's capture time with their velocity, then into the camera.
-    dt = (cam.timestamp_micros - frame.timestamp_micros) * 1e-6
-    corners = b.corners_world() + (b.velocity_world * dt)[:, None, :]
-    camera_from_world = geometry.invert_transform(cam.world_from_camera)
-    # Pixel centres stay centres when shrinking: u' = (u + 0.5) * factor - 0.5.
-    shrink = np.array([[factor, 0, 0.5 * factor - 0.5], [0, factor, 0.5 * factor - 0.5], [0, 0, 1]])
-    intrinsics = shrink @ cal.intrinsics
-    for i in range(len(b)):
-        pts = geometry.transform_points(camera_from_world, corners[i])
-        uv, valid = geometry.project_points(pts, intrinsics, cal.distortion)
-        if valid.sum() < 8 or not np.any(geometry.in_image(uv, width, height)):
-            continue
-        for a, c in geometry.BOX_EDGES:
-            p, q = np.round(uv[a]).astype(int), np.round(uv[c]).astype(int)
-            cv2.line(img, tuple(p), tuple(q), _box_color(int(b.class_id[i])), 1, cv2.LINE_AA)
-    return img
 
 
 def _bev(frame: Frame, size: int) -> NDArray[np.uint8]:

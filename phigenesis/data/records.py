@@ -16,13 +16,17 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, fields
-from typing import Any, Literal, overload
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
+
+if TYPE_CHECKING:  # records of the range-view modules, which build on this one
+    from phigenesis.data.lidar_range import LidarRangeImage
+    from phigenesis.data.rangeview import RangeViewLayout
 
 BoxStatus = Literal["annotated", "interpolated", "extrapolated"]
 BOX_STATUSES: tuple[BoxStatus, ...] = ("annotated", "interpolated", "extrapolated")
@@ -100,6 +104,18 @@ class CameraCalibration:
         )
         object.__setattr__(self, "distortion", _check_array("distortion", self.distortion, (5,), np.float64))
         object.__setattr__(self, "ego_from_camera", _check_transform("ego_from_camera", self.ego_from_camera))
+
+    def key(self) -> tuple:
+        """A hashable key, equal for equal calibrations (name, size and the matrices' bytes): for
+        caching what depends only on the camera (pixel rays, range-view layouts)."""
+        return (
+            self.name,
+            self.width,
+            self.height,
+            self.intrinsics.tobytes(),
+            self.distortion.tobytes(),
+            self.ego_from_camera.tobytes(),
+        )
 
 
 @dataclass
@@ -192,6 +208,30 @@ class CameraDepth:
         return cls(zeros, zeros.copy(), np.zeros((height, width), np.uint8))
 
 
+#: Where a pseudo-semantic label came from (:attr:`CameraSemantics.source`).
+PSEUDO_SOURCES: tuple[str, ...] = ("none", "segmenter", "box", "ground_plane", "sky")
+
+
+@dataclass
+class CameraSemantics:
+    """Pseudo-semantic labels of one image (stage ``pseudo_semantics``), (H, W) at the image's size.
+
+    Attributes:
+        semantic: uint8 class per pixel (unified taxonomy), 255 where no label was given.
+        confidence: float32 in [0, 1], 0 exactly where no label was given.
+        source: uint8 index into :data:`PSEUDO_SOURCES` (0 = none).
+    """
+
+    semantic: NDArray[np.uint8]
+    confidence: NDArray[np.float32]
+    source: NDArray[np.uint8]
+
+    def __post_init__(self) -> None:
+        self.semantic = _check_array("semantic", self.semantic, (None, None), np.uint8)
+        self.confidence = _check_array("confidence", self.confidence, self.semantic.shape, np.float32)
+        self.source = _check_array("source", self.source, self.semantic.shape, np.uint8)
+
+
 @dataclass
 class CameraImage:
     """One image of one camera.
@@ -214,6 +254,7 @@ class CameraImage:
         angular_velocity_world_radps: (3,) ego angular velocity (world axes), or None.
         boxes: the boxes at this camera's own ``timestamp_micros`` where a stage made them
             (``interpolate_boxes`` for nuScenes' staggered cameras); None: use the frame's boxes.
+        pseudo: pseudo-semantic labels from the ``pseudo_semantics`` stage, where it ran.
     """
 
     calibration: CameraCalibration
@@ -230,6 +271,7 @@ class CameraImage:
     velocity_world_mps: NDArray[np.float64] | None = None
     angular_velocity_world_radps: NDArray[np.float64] | None = None
     boxes: Boxes | None = None
+    pseudo: CameraSemantics | None = None
 
     def __post_init__(self) -> None:
         self.timestamp_micros = int(self.timestamp_micros)
@@ -239,6 +281,7 @@ class CameraImage:
             ("truth", None if self.truth is None else self.truth.semantic.shape),
             ("labels", None if self.labels is None else self.labels.semantic.shape),
             ("depth", None if self.depth is None else self.depth.sparse_m.shape),
+            ("pseudo", None if self.pseudo is None else self.pseudo.semantic.shape),
         ):
             if shape is not None and shape != size:
                 raise ValueError(
@@ -524,6 +567,9 @@ class Frame:
         source_timestamp_micros: the frame's timestamp as its dataset keys it (Waymo's
             ``frame_timestamp_micros`` is the start of the LiDAR scan, 50 ms before the pose's
             time); None means ``timestamp_micros``.
+        range_view: where each camera view sits in the frame's range view, and the overlap map
+            (stage ``range_view``; the pixels are the cameras' own: ``rangeview.pack_range_view``).
+        lidar_range_image: the sweep as a beams x azimuth image (stage ``lidar_range_image``).
     """
 
     scene_id: str
@@ -534,6 +580,8 @@ class Frame:
     lidar: LidarSweep | None
     boxes: Boxes
     source_timestamp_micros: int | None = None
+    range_view: RangeViewLayout | None = None
+    lidar_range_image: LidarRangeImage | None = None
 
     def __post_init__(self) -> None:
         self.timestamp_micros = int(self.timestamp_micros)

@@ -20,6 +20,8 @@ import pyarrow as pa
 
 from phigenesis.data import codec
 from phigenesis.data import taxonomy as tx
+from phigenesis.data.lidar_range import LidarRangeImage, with_sweep_values
+from phigenesis.data.rangeview import RangeViewLayout, ViewPlacement
 from phigenesis.data.records import (
     BOX_STATUSES,
     Boxes,
@@ -27,12 +29,13 @@ from phigenesis.data.records import (
     CameraDepth,
     CameraImage,
     CameraLabels,
+    CameraSemantics,
     CameraTruth,
     Frame,
     LidarSweep,
 )
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 TRUTH_MAPS = ("depth", "semantic", "instance", "flow")
 
 
@@ -46,6 +49,11 @@ class CacheContents:
         lidar_truth: store per-point truth class and instance (sources that have them).
         camera_labels: store the dataset's human per-pixel labels (Waymo panoptic), where present.
         depth: store the depth stages' sparse and dense depth with their confidences.
+        pseudo_semantics: store the ``pseudo_semantics`` stage's labels, confidences and sources.
+        range_view: store the ``range_view`` stage's layout and overlap map (the pixels are the
+            cameras' own columns).
+        lidar_range_image: store the ``lidar_range_image`` stage's cell -> point index map (needs
+            ``lidar``: range and intensity are read from the sweep through it).
     """
 
     camera_truth: tuple[str, ...] = TRUTH_MAPS
@@ -53,12 +61,17 @@ class CacheContents:
     lidar_truth: bool = True
     camera_labels: bool = True
     depth: bool = False
+    pseudo_semantics: bool = False
+    range_view: bool = False
+    lidar_range_image: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "camera_truth", tuple(self.camera_truth))
         unknown = set(self.camera_truth) - set(TRUTH_MAPS)
         if unknown:
             raise ValueError(f"unknown camera truth maps {sorted(unknown)}; choose from {TRUTH_MAPS}")
+        if self.lidar_range_image and not self.lidar:
+            raise ValueError("lidar_range_image needs lidar: the range image indexes the stored sweep")
 
     def includes(self, group: str | None) -> bool:
         if group is None:
@@ -71,6 +84,12 @@ class CacheContents:
             return self.camera_labels
         if group == "depth":
             return self.depth
+        if group == "pseudo_semantics":
+            return self.pseudo_semantics
+        if group == "range_view":
+            return self.range_view
+        if group == "lidar_range_image":
+            return self.lidar_range_image
         raise ValueError(f"unknown column group {group!r}")
 
 
@@ -246,6 +265,32 @@ class CameraColumns:
         "camera_labels",
         True,
     )
+    pseudo_semantic_png: bytes = col(
+        pa.binary(),
+        "pseudo-semantic class per pixel (segmenter refined by geometry), 8-bit PNG, unified taxonomy, "
+        "255 = no label; null if the stage did not run",
+        "",
+        "",
+        "pseudo_semantics",
+        True,
+    )
+    pseudo_semantic_confidence_png: bytes = col(
+        pa.binary(),
+        "confidence of pseudo_semantic_png, 8-bit PNG, value / 255, 0 where no label",
+        "1/255",
+        "",
+        "pseudo_semantics",
+        True,
+    )
+    pseudo_semantic_source_png: bytes = col(
+        pa.binary(),
+        "where each pseudo label came from, 8-bit PNG: 0 none, 1 segmenter, 2 box, 3 ground plane, "
+        "4 sky rule",
+        "",
+        "",
+        "pseudo_semantics",
+        True,
+    )
     boxes: list = col(
         BoxColumns,
         "3D boxes at this image's timestamp_micros (the interpolate_boxes stage: nuScenes' staggered "
@@ -286,6 +331,60 @@ class LidarColumns:
 
 
 @dataclass
+class ViewPlacementColumns:
+    camera_name: str = col(pa.string(), "the camera whose pixels these are")
+    row0: int = col(pa.int32(), "range-view row of the view's pixel row 0", "px")
+    col0: int = col(pa.int32(), "range-view column of the view's pixel column 0", "px")
+    height: int = col(pa.int32(), "view height (its image's)", "px")
+    width: int = col(pa.int32(), "view width (its image's)", "px")
+    axis_azimuth_rad: float = col(pa.float64(), "optical axis azimuth, [-pi, pi), 0 = forward", "rad", "ego")
+    azimuth_min_rad: float = col(pa.float64(), "least azimuth of the view's rays (unwrapped)", "rad", "ego")
+    azimuth_max_rad: float = col(pa.float64(), "largest azimuth of the view's rays (unwrapped)", "rad", "ego")
+
+
+@dataclass
+class RangeViewColumns:
+    height: int = col(pa.int32(), "range-view height: max(row0 + height) of the views", "px")
+    width: int = col(pa.int32(), "range-view width: the sum of the views' widths", "px")
+    views: list = col(
+        ViewPlacementColumns,
+        "one entry per view, left to right (optical axis azimuth decreasing); a view's pixel (v, u) is "
+        "the cell (row0 + v, col0 + u)",
+        repeated=True,
+    )
+    owner_png: bytes = col(
+        pa.binary(),
+        "8-bit PNG (height x width): index into views of the view owning the cell's direction (optical "
+        "axis nearest among the views that see it), 255 = no view",
+    )
+    coverage_png: bytes = col(
+        pa.binary(), "8-bit PNG (height x width): number of views that see the cell's direction, 0 = no view"
+    )
+
+
+@dataclass
+class LidarRangeImageColumns:
+    lidar_id: int = col(pa.uint8(), "which LiDAR of the sweep")
+    height: int = col(pa.int32(), "rows = beams (beam_index)")
+    width: int = col(
+        pa.int32(), "columns = azimuth bins; column c is centred on pi (1 - (2c + 1) / width), ego frame"
+    )
+    point_index: list = col(
+        pa.list_(pa.int32()),
+        "height x width row-major: the sweep's point in each cell (the nearest), -1 = empty; "
+        "range = |point - origin| of that point",
+    )
+    beam_inclination_rad: list = col(
+        pa.list_(pa.float32()), "elevation of each row (median of its points), NaN if none", "rad", "ego"
+    )
+    column_origin_ego: list = col(
+        pa.list_(pa.float32()), "flat x, y, z ray origin of each column (mean), NaN if none", "m", "ego"
+    )
+    overflow_index: list = col(pa.list_(pa.int32()), "points that lost a cell to a nearer point")
+    overflow_cell: list = col(pa.list_(pa.int32()), "their cells, row * width + column")
+
+
+@dataclass
 class FrameColumns:
     scene_id: str = col(pa.string(), "scene identifier, unique within the cache")
     source: str = col(pa.string(), "source dataset: synthetic, waymo or nuscenes")
@@ -300,6 +399,18 @@ class FrameColumns:
     cameras: list = col(CameraColumns, "one entry per camera, in rig order", repeated=True)
     lidar: dict = col(LidarColumns, "the LiDAR sweep, null if the frame has none", group=None, nullable=True)
     boxes: list = col(BoxColumns, "3D boxes at frame_timestamp_micros", repeated=True)
+    range_view: dict = col(
+        RangeViewColumns,
+        "layout of the camera range view (views side by side, native pixels), null if not computed",
+        group="range_view",
+        nullable=True,
+    )
+    lidar_range_image: dict = col(
+        LidarRangeImageColumns,
+        "the sweep as a beams x azimuth image (cell -> point index), null if the frame has no sweep",
+        group="lidar_range_image",
+        nullable=True,
+    )
 
 
 def _arrow_fields(columns_cls: type, contents: CacheContents) -> list[pa.Field]:
@@ -444,6 +555,13 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
         "depth_dense_confidence_png": png(
             "depth_dense_confidence_png", codec.encode_confidence, "depth", "dense_confidence"
         ),
+        "pseudo_semantic_png": png("pseudo_semantic_png", codec.encode_semantic, "pseudo", "semantic"),
+        "pseudo_semantic_confidence_png": png(
+            "pseudo_semantic_confidence_png", codec.encode_confidence, "pseudo", "confidence"
+        ),
+        "pseudo_semantic_source_png": png(
+            "pseudo_semantic_source_png", codec.encode_semantic, "pseudo", "source"
+        ),
         "boxes": _boxes_array(cam_type.value_type.field("boxes").type, [c.boxes for c in cams]),
     }
     arrays: dict[str, pa.Array] = {
@@ -477,6 +595,11 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
                 "return_index": None if s.return_index is None else [s.return_index],
             }
             arrays["lidar"] = _struct(lt, lidar, 1)
+    if "range_view" in schema.names:
+        arrays["range_view"] = _range_view_array(schema.field("range_view").type, frame.range_view)
+    if "lidar_range_image" in schema.names:
+        lri_type = schema.field("lidar_range_image").type
+        arrays["lidar_range_image"] = _lidar_range_array(lri_type, frame.lidar_range_image)
     return pa.RecordBatch.from_arrays([arrays[name] for name in schema.names], schema=schema)
 
 
@@ -534,6 +657,7 @@ def row_to_frame(batch: pa.RecordBatch, row: int = 0, decode_truth: bool = True)
                 truth=_camera_truth(cf, i, heights[i], widths[i]) if decode_truth else None,
                 labels=_camera_labels(cf, i) if decode_truth else None,
                 depth=_camera_depth(cf, i) if decode_truth else None,
+                pseudo=_camera_pseudo(cf, i) if decode_truth else None,
                 trigger_micros=triggers[i],
                 shutter_micros=shutters[i],
                 readout_micros=readouts[i],
@@ -555,6 +679,8 @@ def row_to_frame(batch: pa.RecordBatch, row: int = 0, decode_truth: bool = True)
         lidar=lidar,
         boxes=boxes,
         source_timestamp_micros=scalar["source_timestamp_micros"],
+        range_view=range_view_of(batch, row),
+        lidar_range_image=None if lidar is None else lidar_range_image_of(batch, row, lidar),
     )
 
 
@@ -589,6 +715,16 @@ def _camera_depth(cf: dict[str, pa.Array], i: int) -> CameraDepth | None:
         sparse_origin=get("depth_sparse_origin_png", codec.decode_semantic),
         dense_m=get("depth_dense_png", codec.decode_depth),
         dense_confidence=get("depth_dense_confidence_png", codec.decode_confidence),
+    )
+
+
+def _camera_pseudo(cf: dict[str, pa.Array], i: int) -> CameraSemantics | None:
+    if "pseudo_semantic_png" not in cf or cf["pseudo_semantic_png"][i].as_py() is None:
+        return None
+    return CameraSemantics(
+        semantic=codec.decode_semantic(cf["pseudo_semantic_png"][i].as_py()),
+        confidence=codec.decode_confidence(cf["pseudo_semantic_confidence_png"][i].as_py()),
+        source=codec.decode_semantic(cf["pseudo_semantic_source_png"][i].as_py()),
     )
 
 
@@ -647,3 +783,83 @@ def _boxes(bf: dict[str, pa.Array]) -> Boxes:
         instance_id=bf["instance_id"].to_numpy(zero_copy_only=False).astype(np.uint16),
         num_lidar_points=bf["num_lidar_points"].to_numpy(zero_copy_only=False).astype(np.int32),
     )
+
+
+# --------------------------------------------------------------------------------------------
+# Range views (RangeViewColumns, LidarRangeImageColumns)
+
+_PLACEMENT_FIELDS = [f.name for f in dataclasses.fields(ViewPlacement)]
+
+
+def _range_view_array(t: pa.StructType, layout: RangeViewLayout | None) -> pa.StructArray:
+    if layout is None:
+        return _struct(t, {}, 1, mask=np.array([True]))
+    placements = {name: [getattr(p, name) for p in layout.views] for name in _PLACEMENT_FIELDS}
+    columns = {
+        "height": [layout.height],
+        "width": [layout.width],
+        "views": _list_of_struct(t.field("views").type, placements, len(layout.views)),
+        "owner_png": [codec.encode_semantic(layout.owner)],
+        "coverage_png": [codec.encode_semantic(layout.coverage)],
+    }
+    return _struct(t, columns, 1)
+
+
+def range_view_of(batch: pa.RecordBatch, row: int = 0) -> RangeViewLayout | None:
+    """The range-view layout of one row, or None if the cache or the row has none."""
+    if "range_view" not in batch.schema.names or not batch.column("range_view")[row].is_valid:
+        return None
+    rf = _fields(batch.column("range_view").slice(row, 1))
+    vf = _fields(rf["views"].flatten())
+    views = tuple(
+        ViewPlacement(**dict(zip(_PLACEMENT_FIELDS, values, strict=True)))
+        for values in zip(*(vf[name].to_pylist() for name in _PLACEMENT_FIELDS), strict=True)
+    )
+    return RangeViewLayout(
+        height=rf["height"][0].as_py(),
+        width=rf["width"][0].as_py(),
+        views=views,
+        owner=codec.decode_semantic(rf["owner_png"][0].as_py()),
+        coverage=codec.decode_semantic(rf["coverage_png"][0].as_py()),
+    )
+
+
+def _lidar_range_array(t: pa.StructType, image: LidarRangeImage | None) -> pa.StructArray:
+    if image is None:
+        return _struct(t, {}, 1, mask=np.array([True]))
+    columns = {
+        "lidar_id": [image.lidar_id],
+        "height": [image.height],
+        "width": [image.width],
+        "point_index": [image.point_index],
+        "beam_inclination_rad": [image.beam_inclination_rad],
+        "column_origin_ego": [image.column_origin_ego],
+        "overflow_index": [image.overflow_index],
+        "overflow_cell": [image.overflow_cell],
+    }
+    return _struct(t, columns, 1)
+
+
+def lidar_range_image_of(batch: pa.RecordBatch, row: int, sweep: LidarSweep) -> LidarRangeImage | None:
+    """The LiDAR range image of one row (range and intensity read from ``sweep``, the row's own
+    sweep), or None if the cache or the row has none."""
+    if "lidar_range_image" not in batch.schema.names or not batch.column("lidar_range_image")[row].is_valid:
+        return None
+    lf = _fields(batch.column("lidar_range_image").slice(row, 1))
+    h, w = lf["height"][0].as_py(), lf["width"][0].as_py()
+    return with_sweep_values(
+        sweep,
+        point_index=_flat(lf["point_index"], np.int32).reshape(h, w),
+        beam_inclination_rad=_flat(lf["beam_inclination_rad"], np.float32),
+        column_origin_ego=_flat(lf["column_origin_ego"], np.float32).reshape(w, 3),
+        overflow_index=_flat(lf["overflow_index"], np.int32),
+        overflow_cell=_flat(lf["overflow_cell"], np.int32),
+        lidar_id=lf["lidar_id"][0].as_py(),
+    )
+
+
+def lidar_of(batch: pa.RecordBatch, row: int = 0) -> LidarSweep | None:
+    """The LiDAR sweep of one row, or None if the cache or the row has none."""
+    if "lidar" not in batch.schema.names or not batch.column("lidar")[row].is_valid:
+        return None
+    return _lidar(_fields(batch.column("lidar").slice(row, 1)))

@@ -1,0 +1,47 @@
+"""Models, by registered name: ``create_model("segformer_tiny")``, ``list_models()``.
+
+One model family per module; each registers its variants (a factory per named config) with
+:func:`register_model`. Every model is an ``nn.Module`` with ``name`` (its registered variant),
+``config`` (a frozen dataclass with ``to_dict``), ``forward`` and ``predict``.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from typing import Any
+
+from torch import nn
+
+ModelFactory = Callable[..., nn.Module]
+MODELS: dict[str, ModelFactory] = {}
+#: Modules of the built-in model families, imported (and so registered) on the first lookup.
+BUILTIN_MODEL_MODULES = ("segformer",)
+
+
+def register_model(fn: ModelFactory) -> ModelFactory:
+    """Decorator registering a variant factory under its function name."""
+    name = fn.__name__
+    if name in MODELS and MODELS[name] is not fn:
+        raise ValueError(f"a model named {name!r} is already registered")
+    MODELS[name] = fn
+    return fn
+
+
+def _load_builtins() -> None:
+    for module in BUILTIN_MODEL_MODULES:
+        importlib.import_module(f"{__name__}.{module}")
+
+
+def list_models() -> list[str]:
+    """Names of all registered variants, sorted."""
+    _load_builtins()
+    return sorted(MODELS)
+
+
+def create_model(name: str, **overrides: Any) -> nn.Module:
+    """The variant ``name``, freshly initialised, with config fields replaced by ``overrides``."""
+    _load_builtins()
+    if name not in MODELS:
+        raise KeyError(f"unknown model {name!r}; registered models: {sorted(MODELS)}")
+    return MODELS[name](**overrides)

@@ -83,3 +83,68 @@ def see_through_share(
     has = sparse > 0
     behind = has & ((truth <= 0) | (sparse > truth * (1 + rel_tol) + abs_tol_m))
     return int(behind.sum()), int(has.sum())
+
+
+# --------------------------------------------------------------------------------------------
+# Semantic segmentation
+
+
+def confusion_matrix(
+    pred: NDArray[np.integer], truth: NDArray[np.integer], num_classes: int, ignore_id: int = 255
+) -> NDArray[np.int64]:
+    """(K, K + 1) int64 counts over the pixels whose truth is a class (not ``ignore_id``): rows =
+    truth class, columns = predicted class, and a last column for pixels given no class (a
+    prediction outside 0..K-1, e.g. 255 from a labeller that abstains). Any shapes, equal sizes."""
+    pred = np.asarray(pred).reshape(-1).astype(np.int64)
+    truth = np.asarray(truth).reshape(-1).astype(np.int64)
+    if pred.shape != truth.shape:
+        raise ValueError(f"prediction {pred.shape} and truth {truth.shape} differ in size")
+    keep = (truth != ignore_id) & (truth >= 0) & (truth < num_classes)
+    p = pred[keep]
+    p = np.where((p >= 0) & (p < num_classes), p, num_classes)
+    index = truth[keep] * (num_classes + 1) + p
+    return np.bincount(index, minlength=num_classes * (num_classes + 1)).reshape(num_classes, num_classes + 1)
+
+
+@dataclass(frozen=True)
+class SegmentationScores:
+    """Scores from a confusion matrix (:func:`confusion_matrix`).
+
+    Attributes:
+        miou: mean IoU over the classes present in the truth (NaN if none).
+        iou: (K,) per-class IoU = TP / (TP + FP + FN), a pixel given no class being a false
+            negative of its truth class; NaN for classes absent from the truth.
+        pixel_accuracy: correct / truth pixels (pixels given no class count as wrong).
+        labelled: share of truth pixels that got a class (1.0 for a segmenter).
+        labelled_accuracy: correct / truth pixels that got a class (the precision of the labels given).
+        truth_pixels: truth pixels counted (ignore excluded).
+    """
+
+    miou: float
+    iou: tuple[float, ...]
+    pixel_accuracy: float
+    labelled: float
+    labelled_accuracy: float
+    truth_pixels: int
+
+
+def segmentation_scores(confusion: NDArray[np.integer]) -> SegmentationScores:
+    """IoUs and accuracies of a (K, K + 1) confusion matrix from :func:`confusion_matrix`."""
+    cm = np.asarray(confusion, np.float64)
+    k = cm.shape[0]
+    assert cm.shape == (k, k + 1), cm.shape
+    tp = np.diag(cm[:, :k])
+    truth, predicted, given = cm.sum(axis=1), cm[:, :k].sum(axis=0), cm[:, :k].sum()
+    total = cm.sum()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = np.where(truth > 0, tp / (truth + predicted - tp), np.nan)
+    present = truth > 0
+    nan = float("nan")
+    return SegmentationScores(
+        miou=float(np.mean(iou[present])) if present.any() else nan,
+        iou=tuple(float(v) for v in iou),
+        pixel_accuracy=float(tp.sum() / total) if total else nan,
+        labelled=float(given / total) if total else nan,
+        labelled_accuracy=float(tp.sum() / given) if given else nan,
+        truth_pixels=int(total),
+    )

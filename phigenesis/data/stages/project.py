@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
+from phigenesis.data.rangeview import undistorted_pixel_rays
 from phigenesis.data.records import DEPTH_ORIGINS, CameraDepth, CameraImage, Frame, LazyFrames, Scene
 from phigenesis.data.stages import params_from_dict, register_stage
 from phigenesis.data.stages.aggregate import (
@@ -444,10 +445,7 @@ def scene_points(
 
 def pixel_rays(camera: CameraImage) -> NDArray[np.float64]:
     """(H * W, 3) camera-frame rays through the pixel centres with z = 1 (distortion undone)."""
-    cal = camera.calibration
-    return geometry.unproject_pixels(
-        geometry.pixel_grid(cal.width, cal.height), cal.intrinsics, cal.distortion
-    )
+    return undistorted_pixel_rays(camera.calibration)
 
 
 def ray_box_depths(
@@ -949,15 +947,7 @@ class _Projector:
         self._warned = False
 
     def rays_and_ego_depth(self, camera: CameraImage) -> tuple[NDArray[np.float64], NDArray[np.float32]]:
-        cal = camera.calibration
-        key = (
-            cal.name,
-            cal.width,
-            cal.height,
-            cal.intrinsics.tobytes(),
-            cal.distortion.tobytes(),
-            cal.ego_from_camera.tobytes(),
-        )
+        key = camera.calibration.key()
         if key not in self._rays:
             rays = pixel_rays(camera)
             self._rays[key] = (rays, ego_body_depth(camera, self.ego_boxes, rays))

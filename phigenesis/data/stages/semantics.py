@@ -1,0 +1,585 @@
+"""Pseudo-semantic labels for every image: a trained segmenter, refined by geometry.
+
+Entry points: :func:`label_camera` (one image) and the stage ``pseudo_semantics``, which runs it
+for every camera of every frame, lazily, and stores a :class:`CameraSemantics` on each image
+(class, confidence and source per pixel; sources in :data:`records.PSEUDO_SOURCES`).
+
+As in the paper, a SegFormer fine-tuned on labelled frames (``phigenesis-train segmenter``) is run
+over every image. Its labels are then refined where the scene's geometry knows better:
+
+- **box** (source 2): a pixel whose 3D point (the pixel's ray at its depth: the depth stages'
+  dense depth, else their sparse depth, else the frame's own LiDAR sweep projected) lies inside a
+  box of a vehicle, person or cyclist at the image's own time (the camera's ``boxes``, else the
+  frame's moved by their velocity) takes the box's class. Boxes are grown by ``box_margin_m`` and
+  points less than ``box_clearance_m`` above a box's bottom are left out (the road under a car).
+  Always replaces the segmenter.
+- **ground plane** (source 3): a plane fitted to the sweep's low points by RANSAC (near the ego,
+  outside boxes); pixels whose points lie within ``ground_tolerance_m + ground_tolerance_rel *
+  range`` of it, nearer than ``ground_max_range_m``, are on the ground. Grass verges and car parks
+  are level with the road too, so only on-ground regions (8-connected in the image) that reach
+  the ego's own corridor (``|y_ego| <= ground_seed_half_width_m``) are road: a raised kerb or
+  anything standing cuts a region off. Replaces segmenter classes other than the flat ones (road,
+  sidewalk, terrain) that are less confident than ``keep_segmenter_above``.
+- **sky** (source 4): above the horizon, a pixel with no depth whose direction the LiDAR swept
+  without a return (inside its vertical field) is sky; so is every depth-less pixel above such a
+  pixel at the top of the LiDAR's field in its column (the LiDAR cannot see higher; a column whose
+  top-of-field pixel hit something, such as a facade, stays unlabelled there). Buildings beyond
+  the LiDAR's range look the same, so the rule only replaces segmenter labels less confident than
+  ``sky_keep_segmenter_above`` (a trained segmenter knows sky better: BENCHMARKS.md).
+
+Without a checkpoint the stage gives the geometric labels alone (255 and source 0 elsewhere) and
+logs that it did. Confidences: the segmenter's softmax maximum; :data:`RULE_CONFIDENCE` for rules
+(a rule that agrees with the segmenter keeps source 1 and the larger confidence).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from phigenesis import geometry
+from phigenesis.data import taxonomy as tx
+from phigenesis.data.records import (
+    PSEUDO_SOURCES,
+    Boxes,
+    CameraImage,
+    CameraSemantics,
+    Frame,
+    LazyFrames,
+    Scene,
+)
+from phigenesis.data.stages import params_from_dict, register_stage
+from phigenesis.data.stages.densify import sweep_sparse_depth
+from phigenesis.data.stages.project import pixel_rays
+
+if TYPE_CHECKING:  # torch is imported only when a segmenter runs (pipelines without one skip it)
+    import torch
+
+log = logging.getLogger("phigenesis.prep")
+
+RULES = ("boxes", "ground", "sky")
+SOURCE = {name: i for i, name in enumerate(PSEUDO_SOURCES)}
+#: Confidence of each geometric rule's labels ("sky_above": above the LiDAR's field).
+RULE_CONFIDENCE = {"box": 0.9, "ground_plane": 0.8, "sky": 0.9, "sky_above": 0.7}
+#: Classes whose boxes label pixels (things with 3D boxes).
+BOX_CLASSES = tx.THING_IDS
+#: Flat classes the ground-plane rule never replaces.
+FLAT_IDS = frozenset({tx.ROAD, tx.SIDEWALK, tx.TERRAIN})
+
+
+@dataclass(frozen=True)
+class PseudoSemanticsParams:
+    """Parameters of ``pseudo_semantics`` (lengths in metres, angles in degrees).
+
+    Attributes:
+        checkpoint: path of a segmenter checkpoint (``phigenesis-train segmenter``); None: the
+            geometric labels alone.
+        model: the model variant the checkpoint must hold (e.g. ``segformer_tiny``); None: any.
+        rules: geometric rules to apply, any of "boxes", "ground", "sky" (empty: segmenter only).
+        input_height: images are resized to this height (aspect kept) before the segmenter, and
+            its probabilities back to the image's size; None: the image's own size.
+        device: torch device of the segmenter.
+        box_margin_m: boxes are grown by this on every side for the point-in-box test.
+        box_clearance_m: points less than this above a box's bottom are not the object.
+        ground_tolerance_m, ground_tolerance_rel: a point is on the ground plane within
+            ``ground_tolerance_m + ground_tolerance_rel * range``.
+        ground_max_range_m: the ground rule labels points nearer than this (camera distance).
+        ground_fit_range_m: LiDAR points within this horizontal distance of the ego, and between
+            ``-ground_fit_height_m`` and ``+ground_fit_height_m`` of its ground, feed the fit.
+        ground_fit_height_m: see ``ground_fit_range_m``.
+        ground_seed_half_width_m: on-ground regions reaching points this close to the ego's x axis
+            (at the image's pose) are road.
+        sky_min_elevation_deg: the sky rule only labels pixels looking at least this far above
+            the horizontal.
+        sky_bin_deg: angular bins (azimuth and elevation) in which LiDAR returns are looked for.
+        keep_segmenter_above: the ground rule does not replace segmenter labels at least this
+            confident.
+        sky_keep_segmenter_above: the sky rule does not replace segmenter labels at least this
+            confident.
+        seed: seed of the RANSAC plane fit.
+    """
+
+    checkpoint: str | None = None
+    model: str | None = None
+    rules: tuple[str, ...] = RULES
+    input_height: int | None = None
+    device: str = "cpu"
+    box_margin_m: float = 0.1
+    box_clearance_m: float = 0.1
+    ground_tolerance_m: float = 0.06
+    ground_tolerance_rel: float = 0.002
+    ground_max_range_m: float = 40.0
+    ground_fit_range_m: float = 30.0
+    ground_fit_height_m: float = 0.5
+    ground_seed_half_width_m: float = 3.0
+    sky_min_elevation_deg: float = 0.5
+    sky_bin_deg: float = 1.0
+    keep_segmenter_above: float = 0.9
+    sky_keep_segmenter_above: float = 0.5
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "rules", tuple(self.rules))
+        unknown = set(self.rules) - set(RULES)
+        if unknown:
+            raise ValueError(f"pseudo_semantics: unknown rules {sorted(unknown)}; choose from {RULES}")
+        if self.input_height is not None and self.input_height < 8:
+            raise ValueError(f"pseudo_semantics: input_height must be >= 8, got {self.input_height}")
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> PseudoSemanticsParams:
+        return params_from_dict(cls, values, "pseudo_semantics")
+
+
+# --------------------------------------------------------------------------------------------
+# Segmenter
+
+
+@dataclass(frozen=True)
+class SegmenterOutput:
+    """A segmenter's answer for one image: class (H, W) uint8 and its probability (H, W) float32."""
+
+    label: NDArray[np.uint8]
+    confidence: NDArray[np.float32]
+
+
+@dataclass
+class Segmenter:
+    """A loaded segmentation model and how to feed it.
+
+    ``model.predict`` maps ``[B, 3, H, W]`` float RGB in [0, 1] to probabilities ``[B, K, H, W]``.
+    """
+
+    model: torch.nn.Module
+    input_height: int | None = None
+    device: str = "cpu"
+
+    @classmethod
+    def load(
+        cls, path: str, model: str | None = None, input_height: int | None = None, device: str = "cpu"
+    ) -> Segmenter:
+        """The model of the checkpoint at ``path`` (which must be of variant ``model`` if given)."""
+        from phigenesis.train.checkpoint import load_checkpoint
+
+        return cls(load_checkpoint(path, model, map_location=device).model.to(device), input_height, device)
+
+    def segment(self, rgb: list[NDArray[np.uint8]]) -> list[SegmenterOutput]:
+        """The most likely class (H, W) uint8 and its probability (H, W) float32 of each (H, W, 3)
+        uint8 RGB image (images of one size go through the model as one batch)."""
+        import torch
+        import torch.nn.functional as F
+
+        out: list[SegmenterOutput | None] = [None] * len(rgb)
+        by_size: dict[tuple[int, int], list[int]] = {}
+        for i, image in enumerate(rgb):
+            by_size.setdefault(image.shape[:2], []).append(i)
+        for (h, w), index in by_size.items():
+            x = torch.from_numpy(np.stack([rgb[i] for i in index])).permute(0, 3, 1, 2).to(self.device)
+            x = x.float() / 255.0  # [B, 3, H, W]
+            if self.input_height is not None and self.input_height != h:
+                size = (self.input_height, max(8, round(w * self.input_height / h)))
+                x = F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
+            prob = self.model.predict(x)  # [B, K, h', w']
+            for k, i in enumerate(index):
+                p = prob[k : k + 1]
+                if p.shape[-2:] != (h, w):  # one image at a time: [K, H, W] can be large
+                    p = F.interpolate(p, size=(h, w), mode="bilinear", align_corners=False)
+                confidence, label = p[0].max(dim=0)
+                out[i] = SegmenterOutput(label.to(torch.uint8).cpu().numpy(), confidence.cpu().numpy())
+        return out  # type: ignore[return-value]
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry
+
+
+def camera_boxes(frame: Frame, camera: CameraImage) -> Boxes:
+    """The boxes at the image's own capture time: the camera's where a stage made them, else the
+    frame's moved by their velocity (world frame)."""
+    if camera.boxes is not None:
+        return camera.boxes
+    boxes = frame.boxes
+    dt_s = (camera.timestamp_micros - frame.timestamp_micros) * 1e-6
+    if dt_s == 0 or len(boxes) == 0:
+        return boxes
+    return dataclasses.replace(boxes, center_world=boxes.center_world + boxes.velocity_world * dt_s)
+
+
+def pixel_depth(frame: Frame, camera: CameraImage) -> NDArray[np.float32]:
+    """(H, W) z-depth in metres, 0 where unknown: the depth stages' dense depth, else their
+    sparse depth, else the frame's own LiDAR sweep projected (nearest point), else zeros."""
+    cal = camera.calibration
+    if camera.depth is not None:
+        return camera.depth.dense_m if camera.depth.dense_m is not None else camera.depth.sparse_m
+    if frame.lidar is not None and len(frame.lidar):
+        return sweep_sparse_depth(frame, camera)
+    return np.zeros((cal.height, cal.width), np.float32)
+
+
+def box_labels(
+    points_world: NDArray[np.float64],
+    valid: NDArray[np.bool_],
+    boxes: Boxes,
+    margin_m: float,
+    clearance_m: float,
+    regions: list[NDArray[np.int64] | None] | None = None,
+) -> NDArray[np.uint8]:
+    """(P,) class of the thing box holding each point ((P, 3) world; only ``valid`` ones tested),
+    255 where none. Boxes grow by ``margin_m`` per side; the bottom ``clearance_m`` is left out.
+    Where boxes overlap, the one whose centre is nearest the point wins. ``regions``: for each
+    box, the indices of the only points that can be inside it (None: any; :func:`box_regions`)."""
+    labels = np.full(len(points_world), tx.IGNORE_ID, np.uint8)
+    best = np.full(len(points_world), np.inf)
+    all_valid = np.flatnonzero(valid)
+    rotations = geometry.quaternion_to_matrix(boxes.orientation_world).reshape(-1, 3, 3)
+    for k in range(len(boxes)):
+        cls = int(boxes.class_id[k])
+        region = None if regions is None else regions[k]
+        candidates = all_valid if region is None else region[valid[region]]
+        if cls not in BOX_CLASSES or candidates.size == 0:
+            continue
+        half = 0.5 * boxes.size_lwh[k]
+        radius = np.linalg.norm(half + abs(margin_m)) + abs(clearance_m)  # holds the grown box
+        offset = points_world[candidates] - boxes.center_world[k]  # [P', 3] world
+        dist2 = np.einsum("ij,ij->i", offset, offset)
+        near = dist2 <= radius**2
+        if not near.any():
+            continue
+        local = offset[near] @ rotations[k]  # box frame: R^T p
+        inside = (
+            (np.abs(local[:, 0]) <= half[0] + margin_m)
+            & (np.abs(local[:, 1]) <= half[1] + margin_m)
+            & (local[:, 2] <= half[2] + margin_m)
+            & (local[:, 2] >= -half[2] + clearance_m)
+        )
+        index = candidates[near][inside]
+        closer = dist2[near][inside] < best[index]
+        labels[index[closer]] = cls
+        best[index[closer]] = dist2[near][inside][closer]
+    return labels
+
+
+def box_regions(camera: CameraImage, boxes: Boxes, margin_m: float) -> list[NDArray[np.int64] | None]:
+    """For each box (grown by ``margin_m``), the flat (row-major) indices of the pixels inside its
+    projected bounding rectangle in ``camera``; None where a corner lies behind the camera (any
+    pixel may see it)."""
+    cal = camera.calibration
+    h, w = cal.height, cal.width
+    camera_from_world = geometry.invert_transform(camera.world_from_camera)
+    grown = boxes.size_lwh + 2 * abs(margin_m)
+    corners = geometry.rotated_box_corners(
+        boxes.center_world, grown, geometry.quaternion_to_matrix(boxes.orientation_world).reshape(-1, 3, 3)
+    )  # [M, 8, 3] world
+    out: list[NDArray[np.int64] | None] = []
+    for k in range(len(boxes)):
+        c_cam = geometry.transform_points(camera_from_world, corners[k])
+        uv, ok = geometry.project_points(c_cam, cal.intrinsics, cal.distortion)
+        if not ok.all():
+            out.append(None if np.any(c_cam[:, 2] > 0) else np.zeros(0, np.int64))
+            continue
+        u0, v0 = np.maximum(np.floor(uv.min(axis=0)).astype(int) - 1, 0)
+        u1, v1 = np.minimum(np.ceil(uv.max(axis=0)).astype(int) + 1, (w - 1, h - 1))
+        if u0 > u1 or v0 > v1:
+            out.append(np.zeros(0, np.int64))
+            continue
+        vv, uu = np.mgrid[v0 : v1 + 1, u0 : u1 + 1]
+        out.append((vv * w + uu).ravel())
+    return out
+
+
+@dataclass(frozen=True)
+class GroundPlane:
+    """A plane ``normal . p + offset = 0`` in the world frame, ``normal`` a unit vector pointing up."""
+
+    normal: NDArray[np.float64]
+    offset: float
+    inliers: int
+
+    def height(self, points_world: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(N,) signed distance of (N, 3) world points above the plane, metres."""
+        return points_world @ self.normal + self.offset
+
+
+def fit_ground_plane(
+    frame: Frame, params: PseudoSemanticsParams, boxes: Boxes | None = None
+) -> GroundPlane | None:
+    """The ground plane of the frame's sweep: RANSAC (threshold 5 cm, normals within 20 deg of
+    the ego's up axis) over low points near the ego outside boxes, refined by least squares on
+    the inliers. None without a sweep or with fewer than 30 candidate points."""
+    sweep = frame.lidar
+    if sweep is None or len(sweep) < 30:
+        return None
+    p_ego = sweep.points_ego.astype(np.float64)
+    keep = (np.hypot(p_ego[:, 0], p_ego[:, 1]) < params.ground_fit_range_m) & (
+        np.abs(p_ego[:, 2]) < params.ground_fit_height_m
+    )
+    p_world = geometry.transform_points(sweep.world_from_ego, p_ego[keep])
+    if boxes is not None and len(boxes):
+        in_box = box_labels(p_world, np.ones(len(p_world), bool), boxes, 0.3, -0.3) != tx.IGNORE_ID
+        p_world = p_world[~in_box]
+    if len(p_world) < 30:
+        return None
+    up = sweep.world_from_ego[:3, 2]
+    rng = np.random.default_rng(params.seed)
+    sample = p_world[rng.choice(len(p_world), min(len(p_world), 4000), replace=False)]
+    best_count, best = 0, None
+    for _ in range(64):
+        a, b, c = sample[rng.choice(len(sample), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n)
+        if norm < 1e-9:
+            continue
+        n = n / norm * np.sign(n @ up or 1.0)
+        if n @ up < np.cos(np.radians(20.0)):
+            continue
+        count = int(np.sum(np.abs((sample - a) @ n) < 0.05))
+        if count > best_count:
+            best_count, best = count, (n, -float(n @ a))
+    if best is None:
+        return None
+    n, d = best
+    inliers = p_world[np.abs(p_world @ n + d) < 0.05]
+    if len(inliers) >= 3:
+        centre = inliers.mean(axis=0)
+        _, _, vt = np.linalg.svd(inliers - centre, full_matrices=False)
+        n = vt[2] * np.sign(vt[2] @ up or 1.0)
+        d = -float(n @ centre)
+    return GroundPlane(n, d, len(inliers))
+
+
+def lidar_returns_grid(frame: Frame, bin_deg: float) -> tuple[NDArray[np.bool_], float] | None:
+    """Where the sweep got returns, as an (elevation, azimuth) occupancy grid of ``bin_deg`` bins
+    around the sensor's mean position (world axes; row 0 at -90 deg, column 0 at -180 deg),
+    dilated by one bin, and the field's top elevation (degrees, the 99.9th percentile of return
+    elevations). None without a sweep."""
+    sweep = frame.lidar
+    if sweep is None or len(sweep) == 0:
+        return None
+    origin = geometry.transform_points(sweep.world_from_ego, sweep.origins_ego.astype(np.float64)).mean(
+        axis=0
+    )
+    rays = sweep.points_world() - origin
+    azimuth = np.degrees(np.arctan2(rays[:, 1], rays[:, 0]))
+    elevation = np.degrees(np.arctan2(rays[:, 2], np.hypot(rays[:, 0], rays[:, 1])))
+    top = float(np.percentile(elevation, 99.9))
+    rows, cols = int(np.ceil(180 / bin_deg)), int(np.ceil(360 / bin_deg))
+    grid = np.zeros((rows, cols), bool)
+    grid[_bin(elevation + 90, bin_deg, rows), _bin(azimuth + 180, bin_deg, cols)] = True
+    grid = grid | np.roll(grid, 1, 1) | np.roll(grid, -1, 1)
+    grid[1:] |= grid[:-1].copy()
+    grid[:-1] |= grid[1:].copy()
+    return grid, top
+
+
+def _bin(angle_deg: NDArray[np.float64], bin_deg: float, count: int) -> NDArray[np.int64]:
+    return np.clip((angle_deg // bin_deg).astype(np.int64), 0, count - 1)
+
+
+def sky_mask(
+    returns: tuple[NDArray[np.bool_], float],
+    rays_world: NDArray[np.float64],
+    depth: NDArray[np.float32],
+    params: PseudoSemanticsParams,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """(H, W) masks of sky inside the LiDAR's field and sky above it (see the module docstring).
+
+    ``returns``: :func:`lidar_returns_grid`'s grid and top elevation; ``rays_world``: (H * W, 3)
+    pixel ray directions in world axes; ``depth``: (H, W) metres, 0 unknown.
+    """
+    h, w = depth.shape
+    grid, top_deg = returns
+    elevation = np.degrees(np.arctan2(rays_world[:, 2], np.hypot(rays_world[:, 0], rays_world[:, 1])))
+    azimuth = np.degrees(np.arctan2(rays_world[:, 1], rays_world[:, 0]))
+    rows, cols = grid.shape
+    hit = grid[_bin(elevation + 90, params.sky_bin_deg, rows), _bin(azimuth + 180, params.sky_bin_deg, cols)]
+    elevation, hit = elevation.reshape(h, w), hit.reshape(h, w)
+    no_depth = depth <= 0
+    in_field = (elevation >= params.sky_min_elevation_deg) & (elevation <= top_deg)
+    sky_in = in_field & no_depth & ~hit
+    # Above the field: a column whose highest in-field pixel is open sky is sky above it too.
+    above = elevation > top_deg
+    has_field = in_field.any(axis=0)
+    first_in = np.argmax(in_field, axis=0)  # topmost in-field row per column (rows go down)
+    open_top = has_field & sky_in[first_in, np.arange(w)]
+    sky_above = above & no_depth & open_top[None, :] & (np.arange(h)[:, None] < first_in[None, :])
+    return sky_in, sky_above
+
+
+def connected_to(mask: NDArray[np.bool_], seeds: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """(H, W) the 8-connected regions of ``mask`` that contain a ``seeds`` pixel."""
+    count, regions = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    keep = np.zeros(count, bool)
+    keep[np.unique(regions[seeds & mask])] = True
+    keep[0] = False
+    return keep[regions]
+
+
+@dataclass(frozen=True)
+class LidarEvidence:
+    """What a frame's sweep says for all its cameras: the ground plane and where it got returns
+    (:func:`lidar_returns_grid`); None where the frame has no sweep or the rule is off."""
+
+    plane: GroundPlane | None
+    returns: tuple[NDArray[np.bool_], float] | None
+
+    @classmethod
+    def of(cls, frame: Frame, params: PseudoSemanticsParams) -> LidarEvidence:
+        return cls(
+            fit_ground_plane(frame, params, frame.boxes) if "ground" in params.rules else None,
+            lidar_returns_grid(frame, params.sky_bin_deg) if "sky" in params.rules else None,
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# Labelling one image
+
+
+@dataclass
+class RayCache:
+    """Pixel rays (camera frame, z = 1, (H * W, 3)) by camera name, reused across frames."""
+
+    rays_cam: dict[str, NDArray[np.float64]] = field(default_factory=dict)
+
+    def rays(self, camera: CameraImage) -> NDArray[np.float64]:
+        key = camera.name
+        if (
+            key not in self.rays_cam
+            or len(self.rays_cam[key]) != camera.calibration.width * camera.calibration.height
+        ):
+            self.rays_cam[key] = pixel_rays(camera)
+        return self.rays_cam[key]
+
+
+def label_camera(
+    frame: Frame,
+    camera: CameraImage,
+    params: PseudoSemanticsParams,
+    segmentation: SegmenterOutput | None = None,
+    evidence: LidarEvidence | None = None,
+    rays_cam: NDArray[np.float64] | None = None,
+) -> CameraSemantics:
+    """Pseudo labels of one image (see the module docstring).
+
+    ``segmentation``: the segmenter's output, or None for geometric labels alone;
+    ``evidence``: the frame's :class:`LidarEvidence` and ``rays_cam``: (H * W, 3) camera-frame
+    pixel rays (z = 1), both computed if None.
+    """
+    cal = camera.calibration
+    h, w = cal.height, cal.width
+    label = np.full((h, w), tx.IGNORE_ID, np.uint8)
+    confidence = np.zeros((h, w), np.float32)
+    source = np.zeros((h, w), np.uint8)
+    if segmentation is not None:
+        assert segmentation.label.shape == (h, w), (segmentation.label.shape, h, w)
+        label[:] = segmentation.label
+        confidence[:] = segmentation.confidence
+        source[:] = SOURCE["segmenter"]
+    if not params.rules:
+        return CameraSemantics(label, confidence, source)
+    rays_cam = pixel_rays(camera) if rays_cam is None else rays_cam
+    evidence = LidarEvidence.of(frame, params) if evidence is None else evidence
+    depth = pixel_depth(frame, camera)
+    world_from_camera = camera.world_from_camera
+    rays_world = rays_cam @ world_from_camera[:3, :3].T  # [H*W, 3]
+    has_depth = depth.reshape(-1) > 0
+    points = world_from_camera[:3, 3] + rays_world * depth.reshape(-1, 1)  # [H*W, 3] world
+
+    def apply(mask: NDArray[np.bool_], cls: int, rule: str, replace: NDArray[np.bool_]) -> None:
+        """Labels ``mask`` pixels ``cls`` from ``rule`` where ``replace`` allows it; where the
+        segmenter already says ``cls`` it keeps its source and takes the larger confidence."""
+        conf = RULE_CONFIDENCE[rule]
+        agree = mask & (label == cls) & (source == SOURCE["segmenter"])
+        confidence[agree] = np.maximum(confidence[agree], conf)
+        take = mask & ~agree & replace
+        label[take], confidence[take] = cls, conf
+        source[take] = SOURCE["sky" if rule.startswith("sky") else rule]
+
+    unlabelled = source == SOURCE["none"]
+    weak = unlabelled | (confidence < params.keep_segmenter_above)
+    if "sky" in params.rules and evidence.returns is not None:
+        sky_in, sky_above = sky_mask(evidence.returns, rays_world, depth, params)
+        unsure = unlabelled | (confidence < params.sky_keep_segmenter_above)
+        apply(sky_in, tx.SKY, "sky", unsure)
+        apply(sky_above, tx.SKY, "sky_above", unsure)
+    plane = evidence.plane
+    if "ground" in params.rules and plane is not None:
+        rng = np.linalg.norm(rays_cam, axis=1) * depth.reshape(-1)
+        tol = params.ground_tolerance_m + params.ground_tolerance_rel * rng
+        on = has_depth & (np.abs(plane.height(points)) <= tol) & (rng <= params.ground_max_range_m)
+        lateral = geometry.transform_points(geometry.invert_transform(camera.world_from_ego), points)[:, 1]
+        seeds = on & (np.abs(lateral) <= params.ground_seed_half_width_m)
+        road = connected_to(on.reshape(h, w), seeds.reshape(h, w))
+        not_flat = ~np.isin(label, list(FLAT_IDS))
+        apply(road, tx.ROAD, "ground_plane", weak & not_flat)
+    if "boxes" in params.rules:
+        boxes = camera_boxes(frame, camera)
+        if len(boxes):
+            regions = box_regions(camera, boxes, params.box_margin_m)
+            cls = box_labels(points, has_depth, boxes, params.box_margin_m, params.box_clearance_m, regions)
+            cls = cls.reshape(h, w)
+            for c in np.unique(cls[cls != tx.IGNORE_ID]):
+                apply(cls == c, int(c), "box", np.ones((h, w), bool))
+    return CameraSemantics(label, confidence, source)
+
+
+def label_frame(
+    frame: Frame,
+    params: PseudoSemanticsParams,
+    segmenter: Segmenter | None = None,
+    cache: RayCache | None = None,
+) -> Frame:
+    """The frame with ``pseudo`` labels on every camera that has an image."""
+    cams = [c for c in frame.cameras if c.image_bytes is not None]
+    if not cams:
+        return frame
+    segmented: dict[str, SegmenterOutput] = {}
+    if segmenter is not None:
+        outputs = segmenter.segment([c.decode_image() for c in cams])
+        segmented = {c.name: p for c, p in zip(cams, outputs, strict=True)}
+    evidence = LidarEvidence.of(frame, params)
+    cache = cache or RayCache()
+    cameras = [
+        c
+        if c.image_bytes is None
+        else dataclasses.replace(
+            c,
+            pseudo=label_camera(
+                frame, c, params, segmented.get(c.name), evidence, cache.rays(c) if params.rules else None
+            ),
+        )
+        for c in frame.cameras
+    ]
+    return dataclasses.replace(frame, cameras=cameras)
+
+
+@register_stage("pseudo_semantics")
+def pseudo_semantics(scene: Scene, params: dict[str, Any]) -> Scene:
+    """Stage: pseudo-semantic labels for every image (see the module docstring). Runs after the
+    depth stages when they are in the pipeline (it uses their depth); frames are labelled lazily
+    when the scene's frames are a :class:`LazyFrames`."""
+    p = PseudoSemanticsParams.from_dict(params)
+    segmenter = None
+    if p.checkpoint is not None:
+        segmenter = Segmenter.load(p.checkpoint, p.model, p.input_height, p.device)
+    else:
+        log.info(
+            "pseudo_semantics: scene %s: no segmenter checkpoint, geometric labels only (rules: %s)",
+            scene.scene_id,
+            ", ".join(p.rules) or "none",
+        )
+    cache = RayCache()
+
+    def run(frame: Frame) -> Frame:
+        return label_frame(frame, p, segmenter, cache)
+
+    if isinstance(scene.frames, LazyFrames):
+        scene.frames = scene.frames.map(run)
+    else:
+        scene.frames = [run(f) for f in scene.frames]
+    return scene

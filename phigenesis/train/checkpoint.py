@@ -1,0 +1,96 @@
+"""Model checkpoints: the weights with the variant name and full config that made them.
+
+A checkpoint is one file written with ``torch.save`` (safetensors is not a dependency) holding::
+
+    {"format": "phigenesis.checkpoint", "version": 1, "model": "segformer_tiny",
+     "config": {...}, "state_dict": {...}, "meta": {...}}
+
+``config`` is the model's config as plain values, so a checkpoint rebuilds its model without the
+code's current defaults; ``meta`` holds JSON-like facts (training options, metrics, classes).
+Files are written under a temporary name and renamed, so a killed run never leaves half a file.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from phigenesis.models import create_model
+
+FORMAT = "phigenesis.checkpoint"
+VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be read, or that does not match what was asked for."""
+
+
+@dataclass
+class Checkpoint:
+    """A loaded checkpoint: the rebuilt model (eval mode) and what the file said about it."""
+
+    model: nn.Module
+    model_name: str
+    config: dict[str, Any]
+    meta: dict[str, Any]
+    path: Path
+
+
+def save_checkpoint(
+    path: str | os.PathLike[str], model: nn.Module, meta: dict[str, Any] | None = None
+) -> Path:
+    """Writes ``model`` (a registered variant: it has ``name`` and ``config``) to ``path`` atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": FORMAT,
+        "version": VERSION,
+        "model": model.name,
+        "config": model.config.to_dict(),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "meta": dict(meta or {}),
+    }
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def load_checkpoint(
+    path: str | os.PathLike[str], model_name: str | None = None, map_location: str = "cpu"
+) -> Checkpoint:
+    """Reads a checkpoint and rebuilds its model.
+
+    ``model_name``: the variant the caller expects; a checkpoint of another variant, or of the
+    same variant with another config than the registered one, raises :class:`CheckpointError`
+    naming both and the fields that differ.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint not found")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # any unpickling failure means "not a checkpoint"
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from e
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not a phigenesis checkpoint")
+    name, config = payload["model"], payload["config"]
+    if model_name is not None:
+        expected = create_model(model_name).config.to_dict()
+        if name != model_name or config != expected:
+            diff = sorted(k for k in set(config) | set(expected) if config.get(k) != expected.get(k))
+            raise CheckpointError(
+                f"{path}: checkpoint is of model {name!r}, not {model_name!r}"
+                + (f" (config fields differ: {', '.join(diff)})" if diff else "")
+            )
+    try:
+        model = create_model(name, **config)
+        model.load_state_dict(payload["state_dict"])
+    except (KeyError, TypeError, RuntimeError) as e:
+        raise CheckpointError(f"{path}: weights do not fit model {name!r}: {e}") from e
+    return Checkpoint(model.eval(), name, config, dict(payload.get("meta") or {}), path)

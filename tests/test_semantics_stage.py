@@ -1,0 +1,262 @@
+"""The pseudo_semantics stage: geometric rules against synthetic truth, the segmenter path, the
+fallback without a checkpoint, and the cache columns' round trip."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from phigenesis.data import taxonomy as tx
+from phigenesis.data.loader import FrameDataset
+from phigenesis.data.records import CameraDepth, CameraSemantics, Frame, Scene
+from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch, row_to_frame
+from phigenesis.data.sources.synthetic import SyntheticConfig, synthetic_scene
+from phigenesis.data.sources.synthetic.rigs import LidarSpec
+from phigenesis.data.stages import get_stage
+from phigenesis.data.stages.semantics import (
+    SOURCE,
+    PseudoSemanticsParams,
+    connected_to,
+    fit_ground_plane,
+    label_frame,
+)
+from phigenesis.models import create_model
+from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
+
+CONFIG = SyntheticConfig(
+    scenes=1, frames=2, seed=7, height=96, width=144, lidar=LidarSpec(beams=32, columns=512, sectors=8)
+)
+
+
+@pytest.fixture(scope="module")
+def depth_scene() -> tuple[Scene, list[Frame]]:
+    """One synthetic scene through the depth stages, and its two frames (rendered once)."""
+    scene = synthetic_scene(CONFIG, 0)
+    for name in ("aggregate_lidar", "project_depth", "densify_depth"):
+        scene = get_stage(name)(scene, {})
+    frames = [scene.frames[i] for i in range(len(scene.frames))]
+    return scene, frames
+
+
+def _with_exact_depth(frame: Frame) -> Frame:
+    """The frame with the exact truth depth as its cameras' depth (isolates the rules' logic)."""
+    cams = []
+    for c in frame.cameras:
+        d = c.truth.depth_m
+        cams.append(
+            dataclasses.replace(
+                c, depth=CameraDepth(d, (d > 0).astype(np.float32), np.zeros(d.shape, np.uint8))
+            )
+        )
+    return dataclasses.replace(frame, cameras=cams)
+
+
+def _precision(frames: list[Frame], source: str) -> tuple[int, float]:
+    """(labelled pixels, share equal to the truth) of one source over all cameras (truth ignore left out)."""
+    hits, total = 0, 0
+    for f in frames:
+        for c in f.cameras:
+            sel = (c.pseudo.source == SOURCE[source]) & (c.truth.semantic != tx.IGNORE_ID)
+            total += int(sel.sum())
+            hits += int(np.sum(c.pseudo.semantic[sel] == c.truth.semantic[sel]))
+    return total, hits / max(total, 1)
+
+
+def test_box_rule_labels_vehicle_pixels_with_high_precision(depth_scene) -> None:
+    _, frames = depth_scene
+    params = PseudoSemanticsParams()
+    n_dense, p_dense = _precision([label_frame(f, params) for f in frames], "box")
+    n_exact, p_exact = _precision([label_frame(_with_exact_depth(f), params) for f in frames], "box")
+    assert n_dense > 10_000 and p_dense > 0.97
+    assert n_exact > 20_000 and p_exact > 0.999
+
+
+def test_ground_plane_is_the_road_surface_and_its_labels_are_road(depth_scene) -> None:
+    _, frames = depth_scene
+    params = PseudoSemanticsParams()
+    for f in frames:
+        plane = fit_ground_plane(f, params, f.boxes)
+        # The synthetic road is the world's z = 0 plane.
+        assert plane.normal[2] > 0.9999 and abs(plane.offset) < 0.01
+    n, precision = _precision([label_frame(_with_exact_depth(f), params) for f in frames], "ground_plane")
+    assert n > 8000 and precision > 0.97
+    n, precision = _precision([label_frame(f, params) for f in frames], "ground_plane")
+    assert n > 3000 and precision > 0.99
+
+
+def test_sky_rule_is_exact_with_exact_depth_and_only_above_the_horizon(depth_scene) -> None:
+    _, frames = depth_scene
+    params = PseudoSemanticsParams()
+    labelled = [label_frame(_with_exact_depth(f), params) for f in frames]
+    n, precision = _precision(labelled, "sky")
+    assert n > 1000 and precision == 1.0
+    # With the densified LiDAR depth, buildings beyond the LiDAR's range look like open sky.
+    n, precision = _precision([label_frame(f, params) for f in frames], "sky")
+    assert n > 2000 and precision > 0.7
+
+
+def test_ground_regions_cut_off_from_the_ego_corridor_are_not_road() -> None:
+    mask = np.zeros((5, 7), bool)
+    mask[:, :3] = True
+    mask[:, 4:] = True
+    seeds = np.zeros_like(mask)
+    seeds[4, 1] = True
+    kept = connected_to(mask, seeds)
+    assert kept[:, :3].all() and not kept[:, 3:].any()
+
+
+def test_without_a_checkpoint_the_stage_gives_geometric_labels_only_and_says_so(depth_scene, caplog) -> None:
+    scene, frames = depth_scene
+    only = Scene(scene.scene_id, scene.source, scene.calibrations, frames[:1], scene.metadata)
+    with caplog.at_level(logging.INFO, logger="phigenesis.prep"):
+        out = get_stage("pseudo_semantics")(only, {})
+    assert "no segmenter checkpoint" in caplog.text
+    for cam in out.frames[0].cameras:
+        p = cam.pseudo
+        assert set(np.unique(p.source)) <= {
+            SOURCE["none"],
+            SOURCE["box"],
+            SOURCE["ground_plane"],
+            SOURCE["sky"],
+        }
+        none = p.source == SOURCE["none"]
+        assert np.all(p.semantic[none] == tx.IGNORE_ID) and np.all(p.confidence[none] == 0)
+        assert np.all(p.confidence[~none] >= 0.7)
+    labelled = np.mean([np.mean(c.pseudo.source != 0) for c in out.frames[0].cameras])
+    assert 0.2 < labelled < 0.9
+
+
+def test_with_a_checkpoint_every_pixel_is_labelled_and_rules_override(depth_scene, tmp_path: Path) -> None:
+    _, frames = depth_scene
+    ckpt = save_checkpoint(tmp_path / "seg.pt", create_model("segformer_tiny"))
+    frame = frames[0]
+    plain = label_frame(frame, PseudoSemanticsParams(checkpoint=str(ckpt), rules=()), _segmenter(ckpt))
+    for cam in plain.cameras:
+        assert np.all(cam.pseudo.source == SOURCE["segmenter"]) and np.all(
+            cam.pseudo.semantic < tx.NUM_CLASSES
+        )
+        assert np.all((cam.pseudo.confidence > 0) & (cam.pseudo.confidence <= 1))
+    refined = label_frame(frame, PseudoSemanticsParams(checkpoint=str(ckpt)), _segmenter(ckpt))
+    for before, after in zip(plain.cameras, refined.cameras, strict=True):
+        assert np.all(after.pseudo.source != SOURCE["none"])
+        box = after.pseudo.source == SOURCE["box"]
+        # An untrained segmenter is never sure: boxes replace it wherever they disagree.
+        assert np.all(np.isin(after.pseudo.semantic[box], list(tx.THING_IDS)))
+        kept = after.pseudo.source == SOURCE["segmenter"]
+        assert np.array_equal(after.pseudo.semantic[kept], before.pseudo.semantic[kept])
+    assert sum(np.sum(c.pseudo.source == SOURCE["box"]) for c in refined.cameras) > 3000
+
+
+def _segmenter(path: Path):
+    from phigenesis.data.stages.semantics import Segmenter
+
+    return Segmenter.load(str(path))
+
+
+def test_stage_refuses_a_checkpoint_of_another_model(depth_scene, tmp_path: Path) -> None:
+    scene, _ = depth_scene
+    ckpt = save_checkpoint(tmp_path / "seg.pt", create_model("segformer_tiny"))
+    with pytest.raises(CheckpointError, match=r"segformer_tiny.*not 'segformer_b0'"):
+        get_stage("pseudo_semantics")(scene, {"checkpoint": str(ckpt), "model": "segformer_b0"})
+
+
+def test_stage_params_are_checked() -> None:
+    with pytest.raises(ValueError, match="unknown rules"):
+        PseudoSemanticsParams(rules=("boxes", "walls"))
+    with pytest.raises(ValueError, match=r"pseudo_semantics: unknown parameters \['geometry'\]"):
+        PseudoSemanticsParams.from_dict({"geometry": True})
+
+
+def test_pseudo_columns_round_trip_through_the_schema(depth_scene) -> None:
+    _, frames = depth_scene
+    frame = label_frame(frames[0], PseudoSemanticsParams())
+    schema = frame_schema(CacheContents(pseudo_semantics=True))
+    back = row_to_frame(frame_to_batch(frame, "synthetic", schema))
+    for a, b in zip(frame.cameras, back.cameras, strict=True):
+        assert np.array_equal(a.pseudo.semantic, b.pseudo.semantic)
+        assert np.array_equal(a.pseudo.source, b.pseudo.source)
+        assert np.abs(a.pseudo.confidence - b.pseudo.confidence).max() <= 0.5 / 255 + 1e-6
+    names = pa.schema(frame_schema(CacheContents()).field("cameras").type.value_type).names
+    assert "pseudo_semantic_png" not in names
+    assert isinstance(back.cameras[0].pseudo, CameraSemantics)
+
+
+def test_a_camera_with_pseudo_labels_of_another_size_is_refused(depth_scene) -> None:
+    _, frames = depth_scene
+    cam = frames[0].cameras[0]
+    small = CameraSemantics(
+        np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.float32), np.zeros((4, 4), np.uint8)
+    )
+    with pytest.raises(ValueError, match="pseudo is"):
+        dataclasses.replace(cam, pseudo=small)
+
+
+def test_the_bundled_pipeline_caches_pseudo_labels_for_the_loader(tiny_cache: Path) -> None:
+    ds = FrameDataset(tiny_cache, fields=("pseudo",))
+    sample = ds[0]
+    assert sample["pseudo_semantic"].shape == (5, 60, 90)
+    assert sample["pseudo_confidence"].dtype.is_floating_point
+    source = sample["pseudo_source"].numpy()
+    assert source.max() <= SOURCE["sky"] and (source > 0).mean() > 0.05
+
+
+def test_box_labels_match_the_plain_point_in_box_test() -> None:
+    from phigenesis import geometry
+    from phigenesis.data.records import Boxes
+    from phigenesis.data.stages.semantics import box_labels
+
+    rng = np.random.default_rng(0)
+    m = 6
+    boxes = Boxes(
+        track_id=[str(k) for k in range(m)],
+        class_id=np.array([tx.CAR, tx.PERSON, tx.TRUCK, tx.CAR, tx.BUILDING, tx.BICYCLE], np.uint8),
+        center_world=rng.uniform(-10, 10, (m, 3)),
+        size_lwh=rng.uniform(0.5, 5, (m, 3)),
+        yaw_world=rng.uniform(-np.pi, np.pi, m),
+        velocity_world=np.zeros((m, 3)),
+        status=np.zeros(m, np.uint8),
+        instance_id=np.arange(1, m + 1, dtype=np.uint16),
+        num_lidar_points=np.full(m, -1, np.int32),
+    )
+    points = rng.uniform(-12, 12, (50_000, 3))
+    margin = 0.2
+    # With the bottom clearance at -margin the box grows by the margin on every side, as in the
+    # plain test; overlaps go to the box whose centre is nearest.
+    labels = box_labels(points, np.ones(len(points), bool), boxes, margin, -margin)
+    expected = np.full(len(points), tx.IGNORE_ID, np.uint8)
+    best = np.full(len(points), np.inf)
+    for k in range(m):
+        if int(boxes.class_id[k]) not in tx.THING_IDS:
+            continue
+        inside = geometry.points_in_box(
+            points, boxes.center_world[k], boxes.size_lwh[k], boxes.yaw_world[k], margin
+        )
+        d = np.sum((points - boxes.center_world[k]) ** 2, axis=1)
+        take = inside & (d < best)
+        expected[take], best[take] = boxes.class_id[k], d[take]
+    assert (expected != tx.IGNORE_ID).sum() > 300
+    assert np.array_equal(labels, expected)
+
+
+def test_box_regions_only_skip_pixels_that_cannot_be_in_a_box(depth_scene) -> None:
+    from phigenesis.data.stages.project import pixel_rays
+    from phigenesis.data.stages.semantics import box_labels, box_regions, camera_boxes
+
+    _, frames = depth_scene
+    frame = _with_exact_depth(frames[0])
+    labelled = 0
+    for cam in frame.cameras:
+        rays = pixel_rays(cam) @ cam.world_from_camera[:3, :3].T
+        depth = cam.depth.sparse_m.reshape(-1, 1)
+        points = cam.world_from_camera[:3, 3] + rays * depth
+        boxes = camera_boxes(frame, cam)
+        valid = depth[:, 0] > 0
+        fast = box_labels(points, valid, boxes, 0.1, 0.1, box_regions(cam, boxes, 0.1))
+        assert np.array_equal(fast, box_labels(points, valid, boxes, 0.1, 0.1))
+        labelled += int(np.sum(fast != tx.IGNORE_ID))
+    assert labelled > 5000
