@@ -18,6 +18,8 @@ Every function accepts leading batch dimensions where the docstring says ``...``
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -94,23 +96,25 @@ def quaternion_conjugate(q: ArrayLike) -> F64:
     return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
+def rotation_entries(w: Any, x: Any, y: Any, z: Any) -> list[Any]:
+    """The 9 entries (row-major) of the rotation matrix of the unit quaternion (w, x, y, z), for
+    any array type with arithmetic (numpy here, torch in the rasterizer)."""
+    return [
+        1 - 2 * (y * y + z * z),
+        2 * (x * y - w * z),
+        2 * (x * z + w * y),
+        2 * (x * y + w * z),
+        1 - 2 * (x * x + z * z),
+        2 * (y * z - w * x),
+        2 * (x * z - w * y),
+        2 * (y * z + w * x),
+        1 - 2 * (x * x + y * y),
+    ]
+
+
 def quaternion_to_matrix(q: ArrayLike) -> F64:
     """Rotation matrices ``(..., 3, 3)`` from quaternions ``(..., 4)`` (normalised first)."""
-    w, x, y, z = np.moveaxis(quaternion_normalize(q), -1, 0)
-    m = np.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        axis=-1,
-    )
+    m = np.stack(rotation_entries(*np.moveaxis(quaternion_normalize(q), -1, 0)), axis=-1)
     return m.reshape(*m.shape[:-1], 3, 3)
 
 

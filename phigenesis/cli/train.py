@@ -39,7 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("segmenter", help="train a semantic segmenter on a cache's labelled images")
     s.add_argument("--shards", required=True, help="cache directory to train on")
     s.add_argument("--out", required=True, help="run directory for checkpoints and metrics")
-    s.add_argument("--config", default="segformer_tiny", choices=list_models(), help="model variant")
+    s.add_argument(
+        "--config", default="segformer_tiny", choices=list_models("segformer"), help="model variant"
+    )
     s.add_argument("--steps", type=_positive, help="optimiser steps (default: --epochs passes)")
     s.add_argument("--epochs", type=float, help="passes over the training images (default 10)")
     s.add_argument("--batch-size", type=_positive, default=8, help="images per step (default 8)")

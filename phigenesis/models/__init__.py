@@ -16,7 +16,7 @@ from torch import nn
 ModelFactory = Callable[..., nn.Module]
 MODELS: dict[str, ModelFactory] = {}
 #: Modules of the built-in model families, imported (and so registered) on the first lookup.
-BUILTIN_MODEL_MODULES = ("segformer",)
+BUILTIN_MODEL_MODULES = ("segformer", "vae")
 
 
 def register_model(fn: ModelFactory) -> ModelFactory:
@@ -33,10 +33,13 @@ def _load_builtins() -> None:
         importlib.import_module(f"{__name__}.{module}")
 
 
-def list_models() -> list[str]:
-    """Names of all registered variants, sorted."""
+def list_models(family: str | None = None) -> list[str]:
+    """Names of the registered variants, sorted; with ``family``, only those of that module
+    (``"segformer"``, ``"vae"``)."""
     _load_builtins()
-    return sorted(MODELS)
+    if family is None:
+        return sorted(MODELS)
+    return sorted(n for n, fn in MODELS.items() if fn.__module__ == f"{__name__}.{family}")
 
 
 def create_model(name: str, **overrides: Any) -> nn.Module:

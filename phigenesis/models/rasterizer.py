@@ -1,0 +1,477 @@
+"""Differentiable 3D Gaussian splatting rasterizer in pure PyTorch (CPU first): :func:`rasterize`.
+
+The maths follows 3DGS / gsplat's pinhole EWA path (see docs of ``gsplat.rasterization``), written
+from the equations, with the project's conventions (``phigenesis.geometry``):
+
+- cameras use OpenCV axes (x right, y down, z forward) and are given as ``world_from_camera``;
+- quaternions are ``w, x, y, z`` and need not be normalised (a zero quaternion means identity);
+- integer pixel coordinates are pixel centres: pixel ``(row i, column j)`` sits at ``(u, v) = (j, i)``
+  (gsplat and Inria use ``j + 0.5``; give them ``cx + 0.5, cy + 0.5`` for the same image).
+
+Per camera and Gaussian: ``Sigma = R diag(s)^2 R^T``, camera-space mean and covariance, the EWA
+Jacobian ``J`` (its ``x/z``, ``y/z`` clamped to 1.3 x the field of view, only inside ``J``), the 2D
+covariance ``J Sigma J^T + 0.3 I`` (low-pass dilation), and a square support of half-width
+``ceil(3 sqrt(lambda_max))`` pixels. Gaussians with ``z <= near``, a non-finite projection or a support
+holding no pixel centre are culled. A pixel composites the Gaussians whose support contains it, front to
+back by camera z (ties in index order):
+``alpha = min(0.99, opacity * exp(-0.5 d^T Sigma2d^-1 d))``, skipped if ``alpha < 1/255``; a Gaussian
+that would bring the transmittance below ``1e-4`` is not added and ends the pixel.
+
+:func:`rasterize` bins Gaussians into ``tile x tile`` pixel tiles, sorts each tile by depth and
+composites tiles in batches (cumulative products). With gradients, a no-grad pass first finds how
+many of each tile's Gaussians any pixel adds before it stops, and the checkpointed gradient pass only
+covers those;
+:func:`rasterize_reference` loops over all depth-sorted Gaussians for every pixel with no tiles, and
+is what the tests compare against.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import Tensor
+from torch.utils.checkpoint import checkpoint
+
+from phigenesis import geometry
+
+#: Low-pass filter added to the diagonal of every 2D covariance (pixels^2).
+EPS_2D = 0.3
+#: Largest alpha one Gaussian may have at a pixel.
+MAX_ALPHA = 0.99
+#: Contributions with a smaller alpha are skipped.
+ALPHA_THRESHOLD = 1.0 / 255.0
+#: A pixel stops compositing before its transmittance would drop below this.
+TRANSMITTANCE_THRESHOLD = 1e-4
+#: Support half-width in standard deviations (of the largest axis of the 2D covariance).
+SIGMA_EXTENT = 3.0
+#: Field-of-view margin of the Jacobian clamp: ``x/z`` is clamped to 1.3 x the half-FoV (Inria, gsplat).
+FOV_CLAMP_MARGIN = 0.3
+#: Scales are clamped to this (metres) so that covariances stay finite in float32.
+MAX_SCALE = 1e4
+#: Below this squared norm a quaternion is treated as "no rotation" (identity).
+QUATERNION_ZERO_SQNORM = 1e-24
+
+Backend = Literal["torch", "gsplat"]
+
+
+@dataclass(frozen=True)
+class RenderOutput:
+    """What :func:`rasterize` returns (C cameras, H x W pixels, F feature channels, N Gaussians)."""
+
+    #: (C, H, W, F) alpha-composited features, with no background (add ``(1 - alpha) * bg`` for one).
+    features: Tensor
+    #: (C, H, W) expected camera z-depth in metres, ``sum w_i z_i / sum w_i``; 0 where alpha is 0.
+    depth: Tensor
+    #: (C, H, W) accumulated opacity ``1 - T_final``.
+    alpha: Tensor
+    #: (C, N) int64 support half-width in pixels; 0 for culled Gaussians (behind ``near``, off-screen).
+    radii: Tensor
+
+
+@dataclass(frozen=True)
+class Projection:
+    """Per-camera screen-space Gaussians, (C, N, ...)."""
+
+    means2d: Tensor  # (C, N, 2) pixel (u, v)
+    conics: Tensor  # (C, N, 3) inverse 2D covariance (A, B, C): sigma = A dx^2/2 + B dx dy + C dy^2/2
+    depths: Tensor  # (C, N) camera z in metres
+    radii: Tensor  # (C, N) float support half-width in pixels (no gradient), 0 if culled
+    valid: Tensor  # (C, N) bool
+
+
+def quaternion_to_rotation(quats: Tensor) -> Tensor:
+    """(..., 3, 3) rotation matrices from (..., 4) wxyz quaternions; zero ones give the identity."""
+    sq = (quats * quats).sum(-1, keepdim=True)  # (..., 1)
+    ok = sq > QUATERNION_ZERO_SQNORM
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
+    q = torch.where(ok, quats, identity) * torch.rsqrt(torch.where(ok, sq, torch.ones_like(sq)))
+    rot = torch.stack(geometry.rotation_entries(*q.unbind(-1)), dim=-1)
+    return rot.reshape(*rot.shape[:-1], 3, 3)
+
+
+def project_gaussians(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    world_from_camera: Tensor,
+    intrinsics: Tensor,
+    width: int,
+    height: int,
+    near: float = 0.01,
+) -> Projection:
+    """EWA projection of N Gaussians into C pinhole cameras (shared by both rasterizers)."""
+    n = means.shape[0]
+    rot = quaternion_to_rotation(quats)  # (N, 3, 3)
+    m = rot * scales.clamp(min=-MAX_SCALE, max=MAX_SCALE)[:, None, :]  # (N, 3, 3) = R diag(s)
+    r_wc = world_from_camera[:, :3, :3]  # (C, 3, 3)
+    t_wc = world_from_camera[:, :3, 3]  # (C, 3)
+    r_cw = r_wc.transpose(1, 2)  # rigid inverse
+    means_c = torch.einsum("cij,nj->cni", r_cw, means) - torch.einsum("cij,cj->ci", r_cw, t_wc)[:, None]
+    x, y, z = means_c.unbind(-1)  # (C, N)
+    valid = z > near
+    z_safe = torch.where(valid, z, torch.ones_like(z))  # keeps culled Gaussians free of inf and nan grads
+    fx, fy = intrinsics[:, 0, 0, None], intrinsics[:, 1, 1, None]  # (C, 1)
+    cx, cy = intrinsics[:, 0, 2, None], intrinsics[:, 1, 2, None]
+    u = fx * x / z_safe + cx  # (C, N), unclamped
+    v = fy * y / z_safe + cy
+    # Jacobian of the projection, its x/z, y/z clamped to the (margin-widened) field of view.
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    lim_x_pos = (width - 0.5 - cx) / fx + FOV_CLAMP_MARGIN * tan_x
+    lim_x_neg = (cx + 0.5) / fx + FOV_CLAMP_MARGIN * tan_x
+    lim_y_pos = (height - 0.5 - cy) / fy + FOV_CLAMP_MARGIN * tan_y
+    lim_y_neg = (cy + 0.5) / fy + FOV_CLAMP_MARGIN * tan_y
+    tx = torch.maximum(torch.minimum(x / z_safe, lim_x_pos), -lim_x_neg)
+    ty = torch.maximum(torch.minimum(y / z_safe, lim_y_pos), -lim_y_neg)
+    zeros = torch.zeros_like(z_safe)
+    jac = torch.stack(
+        [fx / z_safe, zeros, -fx * tx / z_safe, zeros, fy / z_safe, -fy * ty / z_safe], dim=-1
+    ).reshape(*z.shape, 2, 3)  # (C, N, 2, 3)
+    # Sigma2d = T T^T with T = J R_cw R diag(s) (2 x 3); det(T T^T) from the 2x2 minors of T
+    # (Cauchy-Binet) is never negative and avoids the cancellation of a c - b^2 for thin splats.
+    t2 = jac @ (r_cw[:, None] @ m[None])  # (C, N, 2, 3)
+    cov = t2 @ t2.transpose(-1, -2)  # (C, N, 2, 2)
+    a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
+    p, q = t2[..., 0, :], t2[..., 1, :]  # (C, N, 3)
+    minors = p[..., [0, 0, 1]] * q[..., [1, 2, 2]] - p[..., [1, 2, 2]] * q[..., [0, 0, 1]]
+    det = (minors * minors).sum(-1) + EPS_2D * (a + c) + EPS_2D * EPS_2D  # det(Sigma2d + eps I) > 0
+    a, c = a + EPS_2D, c + EPS_2D
+    conics = torch.stack([c / det, -b / det, a / det], dim=-1)  # (C, N, 3)
+    means2d = torch.stack([u, v], dim=-1)  # (C, N, 2)
+    with torch.no_grad():
+        lam_max = 0.5 * (a + c) + torch.sqrt((0.5 * (a - c)) ** 2 + b * b)
+        radii = torch.ceil(SIGMA_EXTENT * torch.sqrt(lam_max))
+        valid = (
+            valid & torch.isfinite(means2d).all(-1) & torch.isfinite(conics).all(-1) & torch.isfinite(radii)
+        )
+        # Off-screen: the square support holds no pixel centre.
+        valid &= (u + radii >= 0) & (u - radii <= width - 1) & (v + radii >= 0) & (v - radii <= height - 1)
+        radii = torch.where(valid, radii, torch.zeros_like(radii))
+    assert means2d.shape == (world_from_camera.shape[0], n, 2), means2d.shape
+    return Projection(means2d=means2d, conics=conics, depths=z, radii=radii, valid=valid)
+
+
+def _check_inputs(means, quats, scales, opacities, features, world_from_camera, intrinsics) -> None:
+    n = means.shape[0]
+    assert means.shape == (n, 3), means.shape
+    assert quats.shape == (n, 4), quats.shape
+    assert scales.shape == (n, 3), scales.shape
+    assert opacities.shape == (n,), opacities.shape
+    assert features.ndim == 2 and features.shape[0] == n, features.shape
+    c = world_from_camera.shape[0]
+    assert world_from_camera.shape == (c, 4, 4), world_from_camera.shape
+    assert intrinsics.shape == (c, 3, 3), intrinsics.shape
+
+
+def _alphas(means2d: Tensor, conics: Tensor, opac: Tensor, radii: Tensor, px: Tensor, py: Tensor) -> Tensor:
+    """Alpha of Gaussians at pixels (broadcasting), 0 outside the support or below the threshold."""
+    dx = means2d[..., 0] - px
+    dy = means2d[..., 1] - py
+    sigma = 0.5 * (conics[..., 0] * dx * dx + conics[..., 2] * dy * dy) + conics[..., 1] * dx * dy
+    alpha = torch.clamp(opac * torch.exp(-sigma.clamp(min=0.0)), max=MAX_ALPHA)
+    keep = (dx.abs() <= radii) & (dy.abs() <= radii) & (alpha >= ALPHA_THRESHOLD)
+    return torch.where(keep, alpha, torch.zeros_like(alpha))
+
+
+def _composite_tiles(
+    means2d: Tensor, conics: Tensor, opac: Tensor, radii: Tensor, feats: Tensor, px: Tensor, py: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Front-to-back compositing of B tiles of P pixels over K depth-sorted (padded) Gaussians.
+
+    ``means2d`` (B, K, 2), ``conics`` (B, K, 3), ``opac``/``radii`` (B, K) (padding has opacity 0),
+    ``feats`` (B, K, F+1) with depth as the last channel, ``px``/``py`` (B, P). Returns (B, P, F+1)
+    accumulated features and (B, P) alpha.
+    """
+    alpha = _alphas(
+        means2d[:, None], conics[:, None], opac[:, None], radii[:, None], px[..., None], py[..., None]
+    )  # (B, P, K)
+    one_minus = 1.0 - alpha
+    with torch.no_grad():
+        t_incl = torch.cumprod(one_minus, dim=-1)  # transmittance after each Gaussian
+        keep = t_incl >= TRANSMITTANCE_THRESHOLD  # monotone: once false, false for the rest
+    one_minus = torch.where(keep, one_minus, torch.ones_like(one_minus))
+    t_after = torch.cumprod(one_minus, dim=-1)  # (B, P, K)
+    t_before = torch.cat([torch.ones_like(t_after[..., :1]), t_after[..., :-1]], dim=-1)
+    weights = (1.0 - one_minus) * t_before  # (B, P, K)
+    acc = weights @ feats  # (B, P, F+1)
+    return acc, 1.0 - t_after[..., -1]
+
+
+def _used_per_tile(
+    means2d: Tensor, conics: Tensor, opac: Tensor, radii: Tensor, feats: Tensor, px: Tensor, py: Tensor
+) -> Tensor:
+    """(B,) how many of each tile's sorted Gaussians come before the last one any pixel adds."""
+    alpha = _alphas(
+        means2d[:, None], conics[:, None], opac[:, None], radii[:, None], px[..., None], py[..., None]
+    )  # (B, P, K)
+    t_incl = torch.cumprod(1.0 - alpha, dim=-1)
+    added = (alpha > 0) & (t_incl >= TRANSMITTANCE_THRESHOLD)  # (B, P, K)
+    slot = torch.arange(1, alpha.shape[-1] + 1, device=alpha.device)
+    return torch.where(added, slot, 0).amax(dim=(1, 2))
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    world_from_camera: Tensor,
+    intrinsics: Tensor,
+    width: int,
+    height: int,
+    *,
+    near: float = 0.01,
+    tile: int = 16,
+    max_batch_elements: int = 1 << 22,
+    backend: Backend = "torch",
+) -> RenderOutput:
+    """Renders N 3D Gaussians into C pinhole cameras, differentiably (tile-based, pure PyTorch).
+
+    Args:
+        means: (N, 3) centres in the world frame, metres.
+        quats: (N, 4) rotations, ``w, x, y, z``, world from Gaussian; need not be normalised, zero = identity.
+        scales: (N, 3) standard deviations along the Gaussian's axes, metres (post-activation; clamped to
+            ``MAX_SCALE``).
+        opacities: (N,) opacities in [0, 1] (post-activation).
+        features: (N, F) any per-Gaussian features (RGB colours, embeddings), composited linearly.
+        world_from_camera: (C, 4, 4) rigid camera poses, OpenCV camera axes.
+        intrinsics: (C, 3, 3) pinhole matrices ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, integer pixel
+            coordinates at pixel centres.
+        width, height: image size in pixels.
+        near: Gaussians with camera z at or below this (metres) are culled.
+        tile: tile side in pixels.
+        max_batch_elements: tiles are composited in batches of at most about this many
+            (pixel, Gaussian) pairs; bounds the peak memory.
+        backend: ``"torch"`` (this module) or ``"gsplat"`` (CUDA tensors and gsplat installed; its
+            released kernels use alpha <= 0.999 and a per-axis radius, so results differ slightly).
+
+    Returns:
+        :class:`RenderOutput` with ``features`` (C, H, W, F), ``depth`` (C, H, W), ``alpha`` (C, H, W)
+        and ``radii`` (C, N).
+
+    Example::
+
+        >>> import torch
+        >>> out = rasterize(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[1.0, 0, 0, 0]]),
+        ...     torch.full((1, 3), 0.1), torch.tensor([0.9]), torch.ones(1, 3), torch.eye(4)[None],
+        ...     torch.tensor([[[50.0, 0, 15.5], [0, 50.0, 11.5], [0, 0, 1]]]), 32, 24)
+        >>> out.features.shape, round(out.depth[0, 12, 16].item(), 3)
+        (torch.Size([1, 24, 32, 3]), 2.0)
+    """
+    _check_inputs(means, quats, scales, opacities, features, world_from_camera, intrinsics)
+    if backend == "gsplat":
+        return _rasterize_gsplat(
+            means, quats, scales, opacities, features, world_from_camera, intrinsics, width, height, near
+        )
+    assert backend == "torch", backend
+    n, f = features.shape
+    num_cams = world_from_camera.shape[0]
+    proj = project_gaussians(means, quats, scales, world_from_camera, intrinsics, width, height, near)
+    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    num_tiles = tiles_x * tiles_y
+
+    # Bin: every (camera, Gaussian) goes to all tiles its square support touches (one pixel of slack,
+    # harmless because the per-pixel support test decides), sorted by (camera, tile) then depth.
+    with torch.no_grad():
+        r = proj.radii
+        u, v = proj.means2d[..., 0], proj.means2d[..., 1]
+        big = float(max(width, height) + 2)
+        j0 = torch.floor((u - r - 1).clamp(-big, 2 * big)).long().clamp(min=0)
+        j1 = torch.ceil((u + r + 1).clamp(-big, 2 * big)).long().clamp(max=width - 1)
+        i0 = torch.floor((v - r - 1).clamp(-big, 2 * big)).long().clamp(min=0)
+        i1 = torch.ceil((v + r + 1).clamp(-big, 2 * big)).long().clamp(max=height - 1)
+        on_screen = proj.valid & (j0 <= j1) & (i0 <= i1)
+        radii_out = r.long()
+        cam_idx, g_idx = torch.nonzero(on_screen, as_tuple=True)  # (M,)
+        order = torch.argsort(proj.depths[cam_idx, g_idx], stable=True)
+        cam_idx, g_idx = cam_idx[order], g_idx[order]
+        tx0, tx1 = j0[cam_idx, g_idx] // tile, j1[cam_idx, g_idx] // tile
+        ty0, ty1 = i0[cam_idx, g_idx] // tile, i1[cam_idx, g_idx] // tile
+        nx, ny = tx1 - tx0 + 1, ty1 - ty0 + 1
+        counts = nx * ny  # (M,)
+        src = torch.repeat_interleave(torch.arange(cam_idx.numel(), device=means.device), counts)  # (I,)
+        first = torch.cumsum(counts, 0) - counts
+        k = torch.arange(src.numel(), device=means.device) - first[src]
+        tile_id = (ty0[src] + k // nx[src]) * tiles_x + tx0[src] + k % nx[src]
+        key = cam_idx[src] * num_tiles + tile_id  # (I,) global tile key
+        order = torch.argsort(key, stable=True)  # stable: depth order kept inside a tile
+        key, src = key[order], src[order]
+        isect_cam, isect_g = cam_idx[src], g_idx[src]
+        tile_keys, tile_counts = torch.unique_consecutive(key, return_counts=True)
+        tile_start = torch.cumsum(tile_counts, 0) - tile_counts
+
+    dtype = means.dtype
+    feats_d = torch.cat([features.to(dtype)[None].expand(num_cams, n, f), proj.depths[..., None]], -1)
+    out = torch.zeros(num_cams * num_tiles, tile * tile, f + 1, dtype=dtype, device=means.device)
+    alpha_out = torch.zeros(num_cams * num_tiles, tile * tile, dtype=dtype, device=means.device)
+    local = torch.arange(tile * tile, device=means.device)
+    need_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (means, quats, scales, opacities, features, world_from_camera, intrinsics)
+    )
+
+    def batches(counts: Tensor):  # tiles in batches of similar Gaussian counts, the largest first
+        by_count = torch.argsort(counts, descending=True)
+        counts_list = counts[by_count].tolist()
+        pos = 0
+        while pos < len(counts_list) and counts_list[pos] > 0:
+            kmax = counts_list[pos]
+            size = max(1, max_batch_elements // (kmax * tile * tile))
+            yield by_count[pos : pos + size], kmax
+            pos += size
+
+    def gather(batch: Tensor, kmax: int, counts: Tensor) -> tuple[Tensor, ...]:
+        with torch.no_grad():
+            slot = torch.arange(kmax, device=means.device)
+            pad = slot[None] >= counts[batch, None]  # (B, K)
+            index = torch.where(pad, torch.zeros((), dtype=torch.long), tile_start[batch, None] + slot)
+            cams, gids = isect_cam[index], isect_g[index]  # (B, K)
+            tid = tile_keys[batch] % num_tiles
+            px = ((tid % tiles_x) * tile)[:, None] + local % tile  # (B, P)
+            py = ((tid // tiles_x) * tile)[:, None] + local // tile
+        opac = torch.where(pad, torch.zeros((), dtype=dtype), opacities.to(dtype)[gids])
+        return (
+            proj.means2d[cams, gids],
+            proj.conics[cams, gids],
+            opac,
+            proj.radii[cams, gids],
+            feats_d[cams, gids],
+            px.to(dtype),
+            py.to(dtype),
+        )
+
+    counts = tile_counts
+    if need_grad:
+        # Gradient pass only over each tile's Gaussians up to the last one any of its pixels adds
+        # (the rest get exactly zero weight): a cheap no-grad pass finds where every pixel stopped.
+        counts = tile_counts.clone()
+        with torch.no_grad():
+            for batch, kmax in batches(tile_counts):
+                counts[batch] = _used_per_tile(*gather(batch, kmax, tile_counts))
+    keys, accs, alphas = [], [], []
+    for batch, kmax in batches(counts):
+        args = gather(batch, kmax, counts)
+        acc, alpha = (
+            checkpoint(_composite_tiles, *args, use_reentrant=False) if need_grad else _composite_tiles(*args)
+        )
+        keys.append(tile_keys[batch])
+        accs.append(acc)
+        alphas.append(alpha)
+    if keys:
+        index = torch.cat(keys)
+        out = out.index_copy(0, index, torch.cat(accs))
+        alpha_out = alpha_out.index_copy(0, index, torch.cat(alphas))
+
+    def untile(x: Tensor) -> Tensor:  # (C*T, P, ...) -> (C, H, W, ...)
+        x = x.reshape(num_cams, tiles_y, tiles_x, tile, tile, *x.shape[2:])
+        x = x.transpose(2, 3).reshape(num_cams, tiles_y * tile, tiles_x * tile, *x.shape[5:])
+        return x[:, :height, :width]
+
+    acc_img, alpha_img = untile(out), untile(alpha_out)
+    depth = acc_img[..., f] / alpha_img.clamp(min=1e-10)
+    return RenderOutput(features=acc_img[..., :f], depth=depth, alpha=alpha_img, radii=radii_out)
+
+
+def rasterize_reference(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    world_from_camera: Tensor,
+    intrinsics: Tensor,
+    width: int,
+    height: int,
+    *,
+    near: float = 0.01,
+) -> RenderOutput:
+    """Same image as :func:`rasterize`, the slow obvious way: for every camera, the Gaussians one by one
+    in depth order, each tested at every pixel; a per-pixel transmittance and stop flag. For tests."""
+    _check_inputs(means, quats, scales, opacities, features, world_from_camera, intrinsics)
+    f = features.shape[1]
+    proj = project_gaussians(means, quats, scales, world_from_camera, intrinsics, width, height, near)
+    py, px = torch.meshgrid(
+        torch.arange(height, dtype=means.dtype, device=means.device),
+        torch.arange(width, dtype=means.dtype, device=means.device),
+        indexing="ij",
+    )
+    images, depths, alphas = [], [], []
+    for cam in range(world_from_camera.shape[0]):
+        trans = torch.ones(height, width, dtype=means.dtype, device=means.device)
+        done = torch.zeros(height, width, dtype=torch.bool, device=means.device)
+        color = torch.zeros(height, width, f, dtype=means.dtype, device=means.device)
+        depth = torch.zeros(height, width, dtype=means.dtype, device=means.device)
+        for g in torch.argsort(proj.depths[cam], stable=True).tolist():
+            if not proj.valid[cam, g]:
+                continue
+            alpha = _alphas(
+                proj.means2d[cam, g], proj.conics[cam, g], opacities[g], proj.radii[cam, g], px, py
+            )  # (H, W)
+            next_trans = trans * (1.0 - alpha)
+            stop = (alpha > 0) & (next_trans < TRANSMITTANCE_THRESHOLD)
+            done = done | stop
+            add = (alpha > 0) & ~done
+            weight = torch.where(add, alpha * trans, torch.zeros_like(alpha))
+            color = color + weight[..., None] * features[g]
+            depth = depth + weight * proj.depths[cam, g]
+            trans = torch.where(add, next_trans, trans)
+        alpha_img = 1.0 - trans
+        images.append(color)
+        depths.append(depth / alpha_img.clamp(min=1e-10))
+        alphas.append(alpha_img)
+    radii = torch.where(proj.valid, proj.radii, torch.zeros_like(proj.radii)).long()
+    return RenderOutput(
+        features=torch.stack(images), depth=torch.stack(depths), alpha=torch.stack(alphas), radii=radii
+    )
+
+
+def gsplat_available() -> bool:
+    """Whether the optional gsplat backend can run (gsplat importable and CUDA present)."""
+    try:
+        import gsplat  # noqa: F401
+    except Exception:
+        return False
+    return torch.cuda.is_available()
+
+
+def _rasterize_gsplat(
+    means, quats, scales, opacities, features, world_from_camera, intrinsics, width, height, near
+) -> RenderOutput:
+    if not gsplat_available() or not means.is_cuda:
+        raise RuntimeError("backend='gsplat' needs gsplat installed, CUDA and CUDA tensors")
+    import gsplat
+
+    shift = torch.zeros_like(intrinsics)
+    shift[:, 0, 2] = shift[:, 1, 2] = 0.5  # gsplat puts pixel centres at j + 0.5
+    colors, alphas, meta = gsplat.rasterization(
+        means,
+        quats,
+        scales,
+        opacities,
+        features,
+        torch.linalg.inv(world_from_camera),
+        intrinsics + shift,
+        width,
+        height,
+        near_plane=near,
+        eps2d=EPS_2D,
+        packed=False,
+        tile_size=16,
+        render_mode="RGB+ED",
+    )
+    radii = meta["radii"]
+    radii = radii.max(-1).values if radii.ndim == 3 else radii
+    return RenderOutput(
+        features=colors[..., :-1], depth=colors[..., -1], alpha=alphas[..., 0], radii=radii.long()
+    )
+
+
+__all__ = [
+    "RenderOutput",
+    "gsplat_available",
+    "project_gaussians",
+    "quaternion_to_rotation",
+    "rasterize",
+    "rasterize_reference",
+]
