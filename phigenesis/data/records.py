@@ -272,6 +272,9 @@ class CameraImage:
     angular_velocity_world_radps: NDArray[np.float64] | None = None
     boxes: Boxes | None = None
     pseudo: CameraSemantics | None = None
+    # The decoded image with the bytes it came from: several stages read one frame's images
+    # (projection, densification, labels), and each JPEG should be decoded once.
+    _decoded: tuple[bytes, NDArray[np.uint8]] | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.timestamp_micros = int(self.timestamp_micros)
@@ -338,7 +341,10 @@ class CameraImage:
         """The image as (H, W, 3) uint8 RGB; raises if there is none or it does not decode."""
         if self.image_bytes is None:
             raise ValueError(f"camera {self.name} at {self.timestamp_micros}: this frame has no image")
-        return decode_rgb(self.image_bytes, f"camera {self.name} at {self.timestamp_micros}")
+        if self._decoded is None or self._decoded[0] is not self.image_bytes:
+            rgb = decode_rgb(self.image_bytes, f"camera {self.name} at {self.timestamp_micros}")
+            self._decoded = (self.image_bytes, rgb)
+        return self._decoded[1].copy()
 
 
 def decode_rgb(data: bytes, what: str) -> NDArray[np.uint8]:
