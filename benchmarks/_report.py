@@ -178,6 +178,11 @@ class Report:
         self.parts.append(part)
         print(part, end="\n\n", flush=True)
 
+    def text(self, paragraph: str) -> None:
+        """Adds (and prints) a paragraph of markdown."""
+        self.parts.append(paragraph.strip())
+        print(paragraph.strip(), end="\n\n", flush=True)
+
     def write(self, path: Path = BENCHMARKS_MD) -> Path:
         """Writes the section into ``path`` (see :func:`update_section`)."""
         return update_section(self.name, "\n\n".join(self.parts), path)

@@ -142,6 +142,21 @@ def test_plane_fit_averages_range_noise_and_flags_mixed_pixels():
     assert fit.mixed[10] and not fit.mixed[11]
 
 
+def test_a_fit_extrapolating_to_negative_inverse_depth_gives_no_negative_depth():
+    # One pixel holding points at 100 m near its centre and 1 m at its edge: the plane through them
+    # reaches a negative inverse depth at the centre (a regression: it gave a depth of -0.5 m).
+    uv = np.array([[10.3, -0.3], [10.3, 0.3], [10.45, -0.3], [10.45, 0.3]])
+    z = np.array([100.0, 100.0, 1.0, 1.0])
+    y = 1 / z
+    slope = (y[2] - y[0]) / 0.15
+    assert y[0] - 0.3 * slope < 0  # the fitted inverse depth at the centre is negative
+    pixel = np.full(4, 10, np.int64)
+    for window in (0, 2):
+        fit = fit_pixels(pixel, uv, z, (1, 20), np.full(20, np.nan), ProjectParams(fit_window_px=window))
+        depth = fit.depth_m[10]
+        assert not depth < 0.5, depth  # NaN (no fit; the nearest point stands in) or >= half the nearest
+
+
 def test_edge_band_marks_both_sides_of_a_silhouette_but_not_around_a_lone_leak():
     depth = np.full((30, 40), 10.0, np.float32)
     depth[:, 20:] = 30.0

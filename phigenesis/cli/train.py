@@ -1,34 +1,21 @@
 """``phigenesis-train``: train models on caches (a thin front end over phigenesis.train).
 
-Subcommands: ``segmenter`` (:func:`phigenesis.train.segmenter.train_segmenter`).
+Subcommands: ``segmenter`` (:func:`phigenesis.train.segmenter.train_segmenter`), ``vae``
+(:func:`phigenesis.train.vae.train_vae`) and ``stage1`` (:func:`phigenesis.train.stage1.train_stage1`).
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
 import math
+import os
 import sys
 
-from phigenesis.data.shards import CacheError
+from phigenesis.cli.common import dispatch, positive, size_hw
 from phigenesis.models import list_models
-from phigenesis.train.checkpoint import CheckpointError
 from phigenesis.train.segmenter import train_segmenter
-
-
-def _positive(value: str) -> int:
-    n = int(value)
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
-    return n
-
-
-def _size(value: str) -> tuple[int, int]:
-    try:
-        h, w = (int(v) for v in value.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected HxW (e.g. 128x192), got {value!r}") from None
-    return h, w
+from phigenesis.train.stage1 import Stage1TrainConfig, train_stage1
+from phigenesis.train.vae import train_vae
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,63 +29,148 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--config", default="segformer_tiny", choices=list_models("segformer"), help="model variant"
     )
-    s.add_argument("--steps", type=_positive, help="optimiser steps (default: --epochs passes)")
+    s.add_argument("--steps", type=positive, help="optimiser steps (default: --epochs passes)")
     s.add_argument("--epochs", type=float, help="passes over the training images (default 10)")
-    s.add_argument("--batch-size", type=_positive, default=8, help="images per step (default 8)")
+    s.add_argument("--batch-size", type=positive, default=8, help="images per step (default 8)")
     s.add_argument("--lr", type=float, default=2e-3, help="peak learning rate (default 2e-3)")
     s.add_argument("--val-fraction", type=float, default=0.2, help="share of scenes held out (default 0.2)")
     s.add_argument(
         "--labels", choices=("auto", "truth", "labels"), default="auto", help="human labels, synthetic truth"
     )
-    s.add_argument("--image-height", type=_positive, help="resize images to this height (aspect kept)")
-    s.add_argument("--crop", type=_size, help="random training crops HxW (needed for mixed image sizes)")
-    s.add_argument("--eval-every", type=_positive, default=250, help="steps between validations")
+    s.add_argument("--image-height", type=positive, help="resize images to this height (aspect kept)")
+    s.add_argument("--crop", type=size_hw, help="random training crops HxW (needed for mixed image sizes)")
+    s.add_argument("--eval-every", type=positive, default=250, help="steps between validations")
     s.add_argument("--seed", type=int, default=0, help="seed of the split, init and sampling")
-    s.add_argument("--threads", type=_positive, help="torch CPU threads")
+    s.add_argument("--threads", type=positive, help="torch CPU threads")
     s.add_argument("--device", default="cpu", help="torch device (default cpu)")
     s.add_argument("--init", help="start from this checkpoint (same --config)")
     s.add_argument("--pretrained", help="start from a local Hugging Face SegFormer pytorch_model.bin")
+
+    v = sub.add_parser("vae", help="train the causal video VAE on a cache's camera clips")
+    v.add_argument("--shards", required=True, help="cache directory to train on")
+    v.add_argument("--out", required=True, help="run directory (runs/NAME) for checkpoints and metrics")
+    v.add_argument("--config", default="vae_tiny", choices=list_models("vae"), help="VAE variant")
+    v.add_argument("--steps", type=positive, default=2000, help="optimiser steps (default 2000)")
+    v.add_argument("--batch-size", type=positive, default=8, help="clips per step, all ranks (default 8)")
+    v.add_argument("--frames", type=positive, default=5, help="frames per clip; frames - 1 must divide by 4")
+    v.add_argument("--size", type=size_hw, default=(48, 72), help="clip size HxW in pixels (default 48x72)")
+    v.add_argument("--lr", type=float, default=1e-3, help="peak learning rate (default 1e-3)")
+    v.add_argument("--kl-weight", type=float, default=1e-6, help="per-element KL weight (default 1e-6)")
+    v.add_argument("--val-fraction", type=float, default=0.2, help="share of scenes held out (default 0.2)")
+    v.add_argument("--checkpoint-every", type=positive, default=500, help="steps between checkpoints")
+    v.add_argument("--seed", type=int, default=0, help="seed of the split, init and sampling")
+    v.add_argument("--threads", type=positive, help="torch CPU threads")
+    v.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    v.add_argument("--init", help="start from this checkpoint's weights (same --config)")
+    v.add_argument("--resume", action="store_true", help="continue --out from its newest checkpoint")
+    v.add_argument("--stop-after", type=positive, help="leave after this many steps (then --resume)")
+
+    g = sub.add_parser("stage1", help="train the Stage 1 range-view adapter (frozen VAE) on a cache")
+    g.add_argument("--shards", required=True, help="cache directory to train on (needs dense depth)")
+    g.add_argument("--config", required=True, help="training config YAML (configs/stage1/tiny.yaml)")
+    g.add_argument("--out", required=True, help="run directory (runs/NAME) for checkpoints and logs")
+    g.add_argument("--vae", help="trained VAE checkpoint (overrides the config's vae_checkpoint)")
+    g.add_argument("--steps", type=positive, help="optimiser steps (overrides the config)")
+    g.add_argument("--threads", type=positive, help="torch CPU threads per process (overrides the config)")
+    g.add_argument("--resume", action="store_true", help="continue --out from its newest checkpoint")
+    g.add_argument("--stop-after", type=positive, help="leave after this many steps (then --resume)")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
+
+
+def _train_stage1(args: argparse.Namespace) -> int:
+    config = Stage1TrainConfig.load(
+        args.config, vae_checkpoint=args.vae, steps=args.steps, threads=args.threads
+    )
+    run = train_stage1(
+        args.shards,
+        args.out,
+        config,
+        resume=args.resume,
+        stop_after=args.stop_after,
+        progress=not args.no_progress,
+    )
+    if os.environ.get("RANK", "0") != "0":  # torchrun: rank 0 reports
+        return 0
+    if run.checkpoint is None:
+        print(f"stopped at step {run.steps_done}; continue with --resume")
+        return 0
+    losses = ", ".join(
+        f"{k} {run.last[k]:.4f}" for k in ("loss", "rgb", "depth", "semantic") if k in run.last
+    )
+    print(f"{run.steps_done} steps in {run.seconds / 60:.1f} min; last step: {losses}")
+    print(f"final checkpoint: {run.checkpoint}")
+    return 0
+
+
+def _train_vae(args: argparse.Namespace) -> int:
+    run = train_vae(
+        args.shards,
+        args.out,
+        config=args.config,
+        resume=args.resume,
+        stop_after=args.stop_after,
+        steps=args.steps,
+        batch_size=args.batch_size,
+        frames=args.frames,
+        size=args.size,
+        lr=args.lr,
+        kl_weight=args.kl_weight,
+        val_fraction=args.val_fraction,
+        checkpoint_every=args.checkpoint_every,
+        seed=args.seed,
+        threads=args.threads,
+        device=args.device,
+        init=args.init,
+    )
+    if os.environ.get("RANK", "0") != "0":  # torchrun: rank 0 reports
+        return 0
+    if not run.finished:
+        print(f"stopped at step {run.step}; resume with --resume; checkpoint: {run.checkpoint}")
+        return 0
+    if run.val:
+        held_out = ", ".join(run.val_scenes)
+        print(f"validation PSNR {run.val['psnr_db']:.2f} dB on {run.val['clips']} clips ({held_out})")
+    else:
+        print("no validation clips (--val-fraction 0 or too few frames)")
+    print(f"final checkpoint: {run.checkpoint}")
+    return 0
+
+
+def _train_segmenter(args: argparse.Namespace) -> int:
+    run = train_segmenter(
+        args.shards,
+        args.out,
+        config=args.config,
+        steps=args.steps,
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        val_fraction=args.val_fraction,
+        labels=args.labels,
+        image_height=args.image_height,
+        crop=args.crop,
+        eval_every=args.eval_every,
+        seed=args.seed,
+        threads=args.threads,
+        device=args.device,
+        init=args.init,
+        pretrained=args.pretrained,
+    )
+    scores = run.scores
+    if scores:
+        held_out = ", ".join(run.val_scenes)
+        print(f"validation mIoU {scores['miou']:.3f} on {scores['images']} images ({held_out})")
+        for name, iou in sorted(scores["iou"].items(), key=lambda kv: -kv[1]):
+            print(f"  {name:14s} {iou:.3f}" if not math.isnan(iou) else f"  {name:14s} -")
+    print(f"best checkpoint: {run.best}")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
-    )
-    try:
-        if args.command == "segmenter":
-            run = train_segmenter(
-                args.shards,
-                args.out,
-                config=args.config,
-                steps=args.steps,
-                epochs=args.epochs,
-                batch_size=args.batch_size,
-                lr=args.lr,
-                val_fraction=args.val_fraction,
-                labels=args.labels,
-                image_height=args.image_height,
-                crop=args.crop,
-                eval_every=args.eval_every,
-                seed=args.seed,
-                threads=args.threads,
-                device=args.device,
-                init=args.init,
-                pretrained=args.pretrained,
-            )
-            scores = run.scores
-            if scores:
-                held_out = ", ".join(run.val_scenes)
-                print(f"validation mIoU {scores['miou']:.3f} on {scores['images']} images ({held_out})")
-                for name, iou in sorted(scores["iou"].items(), key=lambda kv: -kv[1]):
-                    print(f"  {name:14s} {iou:.3f}" if not math.isnan(iou) else f"  {name:14s} -")
-            print(f"best checkpoint: {run.best}")
-            return 0
-    except (ValueError, CacheError, CheckpointError, OSError) as e:
-        print(f"phigenesis-train: error: {e}", file=sys.stderr)
-        return 2
-    return 2
+    commands = {"segmenter": _train_segmenter, "vae": _train_vae, "stage1": _train_stage1}
+    return dispatch("phigenesis-train", args, commands)
 
 
 if __name__ == "__main__":

@@ -1,23 +1,30 @@
 """Model checkpoints: the weights with the variant name and full config that made them.
 
-A checkpoint is one file written with ``torch.save`` (safetensors is not a dependency) holding::
+A checkpoint is one file holding the weights, the registered variant name, the full config and
+JSON-like facts (training options, metrics, classes). Two encodings, chosen by the file's suffix:
 
-    {"format": "phigenesis.checkpoint", "version": 1, "model": "segformer_tiny",
-     "config": {...}, "state_dict": {...}, "meta": {...}}
+- ``*.safetensors`` (the default of the trainers): the state dict as safetensors tensors, with
+  ``format``, ``version``, ``model``, ``config`` and ``meta`` as JSON strings in the header's
+  metadata; it loads without unpickling anything and memory-maps;
+- any other suffix (``*.pt``): one ``torch.save`` dict ``{"format", "version", "model", "config",
+  "state_dict", "meta"}`` (read with ``weights_only=True``).
 
 ``config`` is the model's config as plain values, so a checkpoint rebuilds its model without the
-code's current defaults; ``meta`` holds JSON-like facts (training options, metrics, classes).
-Files are written under a temporary name and renamed, so a killed run never leaves half a file.
+code's current defaults. Files are written under a temporary name and renamed, so a killed run
+never leaves half a file.
 """
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import load_file, save_file
 from torch import nn
 
 from phigenesis.models import create_model
@@ -56,9 +63,22 @@ def save_checkpoint(
         "meta": dict(meta or {}),
     }
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(payload, tmp)
+    if path.suffix == ".safetensors":
+        header = {k: json.dumps(v) for k, v in payload.items() if k != "state_dict"}
+        tensors = {k: v.contiguous() for k, v in payload["state_dict"].items()}
+        save_file(tensors, tmp, metadata=header)
+    else:
+        torch.save(payload, tmp)
     os.replace(tmp, path)
     return path
+
+
+def _read_safetensors(path: Path, map_location: str) -> dict[str, Any]:
+    with safe_open(path, framework="pt") as f:
+        header = f.metadata() or {}
+    payload: dict[str, Any] = {k: json.loads(v) for k, v in header.items()}
+    payload["state_dict"] = load_file(path, device=map_location)
+    return payload
 
 
 def load_checkpoint(
@@ -74,7 +94,12 @@ def load_checkpoint(
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
     try:
-        payload = torch.load(path, map_location=map_location, weights_only=True)
+        if path.suffix == ".safetensors":
+            payload = _read_safetensors(path, map_location)
+        else:
+            payload = torch.load(path, map_location=map_location, weights_only=True)
+    except (SafetensorError, json.JSONDecodeError) as e:
+        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({e})") from e
     except Exception as e:  # any unpickling failure means "not a checkpoint"
         raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from e
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:

@@ -706,8 +706,10 @@ def fit_pixels(
     with np.errstate(divide="ignore", invalid="ignore"):
         # The extrapolation to the centre stays within the pixel's own depth range widened by its
         # span on either side (points in one corner of a planar pixel need up to that).
+        # Half the nearest point's depth at least: a steep fit can extrapolate to a negative inverse
+        # depth (points near 1 m and 100 m in one pixel), which is no depth at all.
         span = zmax - zmin
-        depth = np.clip(1.0 / a, zmin - span, zmax + span)
+        depth = np.where(a > 0, np.clip(1.0 / a, np.maximum(zmin - span, 0.5 * zmin), zmax + span), np.nan)
         fitted = np.isfinite(a)[pixel]
         plane_z = 1.0 / (a[pixel] + b[pixel] * du + c[pixel] * dv)
         expected = np.where(fitted, plane_z, reference_m[pixel])
@@ -732,7 +734,8 @@ def fit_pixels(
         with np.errstate(divide="ignore", invalid="ignore"):
             window_z = 1.0 / wa
             window_tolerance = params.window_tolerance_m + params.window_tolerance_rel * window_z
-            good = np.isfinite(window_z) & (rms * window_z**2 <= window_tolerance) & (count > 0)
+            good = np.isfinite(window_z) & (window_z > 0) & (rms * window_z**2 <= window_tolerance)
+            good &= count > 0
             good &= np.abs(window_z - np.where(np.isfinite(depth), depth, reference_m)) <= tolerance
         depth = np.where(good, window_z, depth)
     return PixelFit(depth, count, mixed)

@@ -1,0 +1,185 @@
+"""A 4D Gaussian scene: what the Stage 1 adapter predicts, what the rasterizer renders and what
+``phigenesis-export ply`` writes.
+
+Every Gaussian lives in the scene's world frame (metres) at its own reference time ``time_s``
+(seconds after ``time_origin_micros``, the scene's first frame in caches made by this toolkit). A
+Gaussian moves at constant velocity: its centre at time ``t`` is ``means + velocity * (t - time_s)``.
+Static Gaussians (``dynamic`` false) have zero velocity exactly, so they never drift.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import torch
+from torch import Tensor
+
+from phigenesis.models.rasterizer import RenderOutput, rasterize
+
+
+@dataclass(frozen=True)
+class GaussianScene:
+    """N Gaussians with geometry, appearance, semantics and motion (torch tensors on one device).
+
+    Attributes:
+        means: (N, 3) float32 centres, world frame, metres, at each Gaussian's ``time_s``.
+        quats: (N, 4) float32 rotations ``w, x, y, z`` (world from Gaussian), unit norm.
+        scales: (N, 3) float32 standard deviations along the Gaussian's axes, metres.
+        opacities: (N,) float32 in [0, 1].
+        colors: (N, 3) float32 RGB in [0, 1] (the images' sRGB values).
+        semantic_logits: (N, K) float32 logits over the unified classes (K = 19), or (N, 0).
+        velocity: (N, 3) float32 world-frame velocity, m/s; zero where ``dynamic`` is false.
+        dynamic: (N,) bool, whether the Gaussian belongs to something that moves.
+        time_s: (N,) float32 reference time of each Gaussian, seconds after ``time_origin_micros``.
+        time_origin_micros: the time origin (int64 microseconds).
+    """
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    colors: Tensor
+    semantic_logits: Tensor
+    velocity: Tensor
+    dynamic: Tensor
+    time_s: Tensor
+    time_origin_micros: int = 0
+
+    def __post_init__(self) -> None:
+        n = self.means.shape[0]
+        expected = {
+            "means": (n, 3),
+            "quats": (n, 4),
+            "scales": (n, 3),
+            "opacities": (n,),
+            "colors": (n, 3),
+            "velocity": (n, 3),
+            "dynamic": (n,),
+            "time_s": (n,),
+        }
+        for name, shape in expected.items():
+            if tuple(getattr(self, name).shape) != shape:
+                raise ValueError(
+                    f"GaussianScene.{name}: shape {tuple(getattr(self, name).shape)}, expected {shape}"
+                )
+        if self.semantic_logits.ndim != 2 or self.semantic_logits.shape[0] != n:
+            raise ValueError(f"GaussianScene.semantic_logits: shape {tuple(self.semantic_logits.shape)}")
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def num_classes(self) -> int:
+        return int(self.semantic_logits.shape[1])
+
+    def seconds(self, timestamp_micros: int) -> float:
+        """Seconds of ``timestamp_micros`` after this scene's time origin."""
+        return (int(timestamp_micros) - self.time_origin_micros) * 1e-6
+
+    def means_at(self, t_s: float | Tensor) -> Tensor:
+        """(N, 3) centres at time ``t_s`` (seconds after the time origin), world frame, metres."""
+        return self.means + self.velocity * (t_s - self.time_s)[:, None]
+
+    def select(self, mask: Tensor) -> GaussianScene:
+        """The Gaussians where ``mask`` (N,) bool is true (or at the given indices)."""
+        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "time_origin_micros"}
+        return replace(self, **{k: v[mask] for k, v in values.items()})
+
+    def detach(self) -> GaussianScene:
+        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "time_origin_micros"}
+        return replace(self, **{k: v.detach() for k, v in values.items()})
+
+    def to(self, device: str | torch.device) -> GaussianScene:
+        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "time_origin_micros"}
+        return replace(self, **{k: v.to(device) for k, v in values.items()})
+
+    @staticmethod
+    def concatenate(scenes: list[GaussianScene]) -> GaussianScene:
+        """One scene holding the Gaussians of all ``scenes`` (same time origin and class count)."""
+        origins = {s.time_origin_micros for s in scenes}
+        if len(origins) != 1:
+            raise ValueError(f"GaussianScene.concatenate: different time origins {sorted(origins)}")
+        values = {
+            f.name: torch.cat([getattr(s, f.name) for s in scenes])
+            for f in fields(GaussianScene)
+            if f.name != "time_origin_micros"
+        }
+        return GaussianScene(**values, time_origin_micros=origins.pop())
+
+    def render(
+        self,
+        world_from_camera: Tensor,
+        intrinsics: Tensor,
+        width: int,
+        height: int,
+        t_s: float | Tensor,
+        *,
+        semantics: bool = False,
+        motion: bool = False,
+        near: float = 0.2,
+        backend: str = "torch",
+    ) -> SceneRender:
+        """Renders the scene at time ``t_s`` into C pinhole cameras.
+
+        Args:
+            world_from_camera: (C, 4, 4) camera poses (OpenCV axes), world frame.
+            intrinsics: (C, 3, 3) pinhole matrices at ``width`` x ``height`` (pixel centres at integers).
+            t_s: render time, seconds after the time origin: one for all cameras, or (C,) one per camera.
+            semantics: also composite class probabilities (softmax of the logits).
+            motion: also composite the velocities (a flow map, m/s, world frame).
+        """
+        feats = [self.colors]
+        if semantics:
+            feats.append(torch.softmax(self.semantic_logits, dim=-1))
+        if motion:
+            feats.append(self.velocity)
+        features = torch.cat(feats, dim=-1)
+        dtype = self.means.dtype
+        times = torch.as_tensor(t_s, dtype=torch.float64).reshape(-1).expand(world_from_camera.shape[0])
+        outs = []
+        # Cameras of one rig fire at different times (a rolling rig): one pass per distinct time.
+        for t in torch.unique(times):
+            cams = torch.nonzero(times == t)[:, 0]
+            out = rasterize(
+                self.means_at(float(t)),
+                self.quats,
+                self.scales,
+                self.opacities,
+                features,
+                world_from_camera[cams].to(dtype),
+                intrinsics[cams].to(dtype),
+                width,
+                height,
+                near=near,
+                backend=backend,  # type: ignore[arg-type]
+            )
+            outs.append((cams, out))
+        if len(outs) == 1:
+            out = outs[0][1]
+        else:
+            order = torch.argsort(torch.cat([c for c, _ in outs]))
+            out = RenderOutput(
+                features=torch.cat([o.features for _, o in outs])[order],
+                depth=torch.cat([o.depth for _, o in outs])[order],
+                alpha=torch.cat([o.alpha for _, o in outs])[order],
+                radii=torch.cat([o.radii for _, o in outs])[order],
+            )
+        return SceneRender.split(out, self.num_classes if semantics else 0, motion)
+
+
+@dataclass(frozen=True)
+class SceneRender:
+    """A :class:`GaussianScene` rendered into C cameras (no background: add ``(1 - alpha) * sky``)."""
+
+    rgb: Tensor  # (C, H, W, 3) premultiplied colour in [0, 1]
+    depth: Tensor  # (C, H, W) expected camera z-depth, metres; 0 where alpha is 0
+    alpha: Tensor  # (C, H, W) accumulated opacity
+    semantic_probs: Tensor | None  # (C, H, W, K) premultiplied class probabilities, if asked for
+    velocity: Tensor | None  # (C, H, W, 3) premultiplied velocity, m/s, if asked for
+
+    @staticmethod
+    def split(out: RenderOutput, num_classes: int, motion: bool) -> SceneRender:
+        f = out.features
+        sem = f[..., 3 : 3 + num_classes] if num_classes else None
+        vel = f[..., 3 + num_classes : 6 + num_classes] if motion else None
+        return SceneRender(rgb=f[..., :3], depth=out.depth, alpha=out.alpha, semantic_probs=sem, velocity=vel)

@@ -1,0 +1,670 @@
+"""Evaluation of a trained Stage 1 model on a (held-out) cache: ``phigenesis-eval stage1``.
+
+For each evaluated clip (context windows spread over every scene) the model predicts a
+:class:`~phigenesis.models.gaussians.GaussianScene` by its inference rules
+(:meth:`Stage1Model.predict`), which is rendered with the sky model behind it
+(``rgb + (1 - alpha) * sky``) and scored in sections of views:
+
+- ``input``: the context views themselves (reconstruction);
+- ``+5``, ``+10`` (``offsets``): the views of frame ``last context frame + k``, at their own poses
+  and capture times (dynamic Gaussians move at their velocity): prediction of the future;
+- ``shift_1m``, ``shift_2m``, ``shift_4m`` (``shifts_m``): novel views, every camera of the last
+  context frame moved by d metres along the ego's +y (left) at its own capture time. Their truth
+  is rendered exactly by the synthetic renderer without the ego's own body (it moves along; a
+  pinhole without distortion at the cache's image
+  size, then resized to the model's as the cache's own views are), so these sections exist only
+  for synthetic caches (others skip them with a logged reason).
+
+Scores per image: PSNR (dB) and SSIM (mean of :func:`~phigenesis.models.losses.ssim`) of the
+composited colour; depth RMSE (m), AbsRel and delta < 1.25 of the rendered depth against the truth
+depth (synthetic ``truth_depth`` when the cache has it, else the dense depth; pixels with truth > 0);
+the rendered semantics (argmax of the composited class probabilities, pixels with alpha < 0.5 as
+sky) feed one confusion matrix per section, whose mIoU is reported (truth semantics, else pseudo
+labels). Section values are means over images (depth: over images with a covered pixel).
+
+An ORACLE is scored the same way as a reference for what the representation can reach from the
+context views alone: one Gaussian per context pixel at the true depth with the pixel's colour,
+isotropic scale ``0.3 * depth / focal`` (0.3 pixel footprints: the rasterizer's 0.3 px^2 low-pass
+still closes the gaps between neighbours, and the image is sharper than at the adapter's initial 0.6,
+21.5 -> about 25 dB at 48 x 72), opacity 0.99, its true class
+and, where the truth flow exceeds 0.5 m/s, that velocity; a constant background (the mean colour of
+the context images' sky pixels). ``gap`` is oracle - model for PSNR/SSIM/mIoU/delta and
+model - oracle for the depth errors (positive = the model is worse).
+
+Frames and units: poses are ``world_from_camera`` (OpenCV axes) in the cache's world frame,
+metres; times are seconds after the clip's first context frame; images are RGB in [0, 1].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from phigenesis.data import taxonomy
+from phigenesis.data.records import CameraCalibration, CameraTruth
+from phigenesis.data.shards import MANIFEST_NAME
+from phigenesis.data.taxonomy import IGNORE_ID, NUM_CLASSES, SKY
+from phigenesis.models.gaussians import GaussianScene
+from phigenesis.models.losses import psnr, ssim
+from phigenesis.models.stage1 import Stage1Model, pixel_rays
+from phigenesis.train.metrics import confusion_matrix, depth_errors, segmentation_scores
+from phigenesis.train.stage1 import clip_inputs, load_stage1
+from phigenesis.train.stage1_data import Clip, Stage1Clips
+from phigenesis.train.views import resize_images, resize_intrinsics, resize_nearest
+
+log = logging.getLogger(__name__)
+
+#: Metric names of a section, in table order; ``HIGHER_IS_BETTER`` decides the sign of the gap.
+METRICS = ("psnr_db", "ssim", "rmse_m", "abs_rel", "delta_1_25", "miou")
+HIGHER_IS_BETTER = {
+    "psnr_db": True,
+    "ssim": True,
+    "rmse_m": False,
+    "abs_rel": False,
+    "delta_1_25": True,
+    "miou": True,
+}
+#: The oracle's opacity, logit of its true class (softmax ~ 1) and the speed above which it moves (m/s).
+ORACLE_OPACITY = 0.99
+ORACLE_CLASS_LOGIT = 20.0
+ORACLE_MOVING_MPS = 0.5
+#: The oracle's Gaussian scale in pixel footprints (depth / focal).
+ORACLE_SCALE = 0.3
+#: Rendered pixels below this alpha count as sky in the semantic maps.
+SKY_ALPHA = 0.5
+
+
+def section_name(kind: str, value: float) -> str:
+    """``"input"``, ``"+5"`` (offset 5) or ``"shift_2m"`` (2 m; ``shift_0.5m`` for fractions)."""
+    if kind == "offset":
+        return f"{int(value):+d}"
+    return f"shift_{value:g}m"
+
+
+# --------------------------------------------------------------------------------------------
+# Records
+
+
+@dataclass(frozen=True)
+class Views:
+    """N views to score, all at the model's size H x W, with their truth.
+
+    Attributes:
+        images: [N, H, W, 3] float32 RGB in [0, 1] (the truth image).
+        world_from_camera: [N, 4, 4] float64 camera poses (OpenCV axes), world frame.
+        intrinsics: [N, 3, 3] float32 pinhole matrices at H x W.
+        time_s: [N] float64 capture times, seconds after the clip's origin.
+        depth: [N, H, W] float32 truth z-depth, metres, 0 = none.
+        semantic: [N, H, W] uint8 truth classes, 255 = unknown.
+        flow: [N, H, W, 3] float32 world-frame surface velocity (m/s), or None when unknown.
+    """
+
+    images: Tensor
+    world_from_camera: Tensor
+    intrinsics: Tensor
+    time_s: Tensor
+    depth: Tensor
+    semantic: Tensor
+    flow: Tensor | None = None
+
+    def __len__(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def size_hw(self) -> tuple[int, int]:
+        return int(self.images.shape[1]), int(self.images.shape[2])
+
+
+@dataclass(frozen=True)
+class Rendered:
+    """A scene rendered into N views: ``rgb`` [N, H, W, 3] with the background composited, ``depth``
+    [N, H, W] metres (0 where nothing), ``alpha`` [N, H, W] and ``semantic`` [N, H, W] uint8 (argmax
+    of the class probabilities, sky where alpha < 0.5)."""
+
+    rgb: Tensor
+    depth: Tensor
+    alpha: Tensor
+    semantic: Tensor
+
+
+@dataclass
+class SectionScores:
+    """Running scores of one section for one renderer (model or oracle)."""
+
+    psnr_db: list[float] = field(default_factory=list)
+    ssim: list[float] = field(default_factory=list)
+    rmse_m: list[float] = field(default_factory=list)
+    abs_rel: list[float] = field(default_factory=list)
+    delta_1_25: list[float] = field(default_factory=list)
+    coverage: list[float] = field(default_factory=list)
+    confusion: np.ndarray = field(default_factory=lambda: np.zeros((NUM_CLASSES, NUM_CLASSES + 1), np.int64))
+
+    def add(self, rendered: Rendered, views: Views) -> None:
+        """Scores every view of ``rendered`` against ``views``' truth."""
+        truth_rgb = views.images
+        self.psnr_db += psnr(rendered.rgb, truth_rgb).tolist()
+        self.ssim += ssim(rendered.rgb, truth_rgb).mean(dim=(-2, -1)).tolist()
+        for i in range(len(views)):
+            err = depth_errors(rendered.depth[i].numpy(), views.depth[i].numpy())
+            self.coverage.append(err.coverage)
+            if err.covered:
+                self.rmse_m.append(err.rmse_m)
+                self.abs_rel.append(err.abs_rel)
+                self.delta_1_25.append(err.delta_1_25)
+        self.confusion += confusion_matrix(rendered.semantic.numpy(), views.semantic.numpy(), NUM_CLASSES)
+
+    def summary(self) -> dict[str, float]:
+        """Means over images (depth errors over images with a covered pixel) and the pooled mIoU."""
+
+        def mean(values: list[float]) -> float:
+            finite = [v for v in values if math.isfinite(v)]
+            return float(np.mean(finite)) if finite else float("nan")
+
+        return {
+            "psnr_db": mean(self.psnr_db),
+            "ssim": mean(self.ssim),
+            "rmse_m": mean(self.rmse_m),
+            "abs_rel": mean(self.abs_rel),
+            "delta_1_25": mean(self.delta_1_25),
+            "miou": segmentation_scores(self.confusion).miou,
+            "depth_coverage": mean(self.coverage),
+        }
+
+
+def gap(model: dict[str, float], oracle: dict[str, float]) -> dict[str, float]:
+    """How far the model is behind the oracle per metric (positive = worse than the oracle)."""
+    return {k: (oracle[k] - model[k]) if HIGHER_IS_BETTER[k] else (model[k] - oracle[k]) for k in METRICS}
+
+
+# --------------------------------------------------------------------------------------------
+# Rendering
+
+
+def render_views(scene: GaussianScene, views: Views, background: Tensor) -> Rendered:
+    """Renders ``scene`` into every view at its own time, ``background`` [N, H, W, 3] (or [3])
+    filling what the Gaussians leave uncovered."""
+    h, w = views.size_hw
+    n = len(views)
+    if len(scene) == 0:
+        bg = background.expand(n, h, w, 3).float()
+        zeros = torch.zeros(n, h, w)
+        return Rendered(bg, zeros, zeros.clone(), torch.full((n, h, w), SKY, dtype=torch.uint8))
+    out = scene.render(
+        views.world_from_camera.float(), views.intrinsics.float(), w, h, views.time_s, semantics=True
+    )
+    rgb = (out.rgb + (1 - out.alpha[..., None]) * background).clamp(0.0, 1.0)
+    assert out.semantic_probs is not None
+    labels = out.semantic_probs.argmax(-1).to(torch.uint8)
+    labels = torch.where(out.alpha < SKY_ALPHA, torch.full_like(labels, SKY), labels)
+    return Rendered(rgb=rgb, depth=out.depth, alpha=out.alpha, semantic=labels)
+
+
+def oracle_scene(views: Views, time_origin_micros: int = 0) -> GaussianScene:
+    """One Gaussian per pixel of ``views`` with truth depth > 0 (see the module docstring).
+
+    Pixels are unprojected with the pinhole ``intrinsics`` at their truth z-depth into the world
+    frame at their view's capture time; velocities come from ``views.flow`` (static if None).
+    """
+    h, w = views.size_hw
+    rays = pixel_rays(views.intrinsics.double(), h, w).permute(0, 2, 3, 1)  # [N, H, W, 3], z = 1
+    depth = views.depth.double()
+    keep = depth > 0
+    pts_cam = rays * depth[..., None]
+    rot = views.world_from_camera[:, None, None, :3, :3]
+    means = (rot @ pts_cam[..., None])[..., 0] + views.world_from_camera[:, None, None, :3, 3]
+    focal = 0.5 * (views.intrinsics[:, 0, 0] + views.intrinsics[:, 1, 1]).double()
+    scale = ORACLE_SCALE * depth / focal[:, None, None]
+    sem = views.semantic.long()
+    known = sem < NUM_CLASSES
+    logits = torch.zeros(*sem.shape, NUM_CLASSES)
+    logits[known] = ORACLE_CLASS_LOGIT * torch.nn.functional.one_hot(sem[known], NUM_CLASSES).float()
+    if views.flow is not None:
+        velocity = views.flow.float()
+        dynamic = velocity.norm(dim=-1) > ORACLE_MOVING_MPS
+        velocity = velocity * dynamic[..., None]
+    else:
+        velocity = torch.zeros(*sem.shape, 3)
+        dynamic = torch.zeros(sem.shape, dtype=torch.bool)
+    n = int(keep.sum())
+    times = views.time_s[:, None, None].expand(depth.shape)
+    quats = torch.zeros(n, 4)
+    quats[:, 0] = 1.0
+    return GaussianScene(
+        means=means[keep].float(),
+        quats=quats,
+        scales=scale[keep].float()[:, None].expand(n, 3).contiguous(),
+        opacities=torch.full((n,), ORACLE_OPACITY),
+        colors=views.images[keep].float(),
+        semantic_logits=logits[keep],
+        velocity=velocity[keep],
+        dynamic=dynamic[keep],
+        time_s=times[keep].float(),
+        time_origin_micros=time_origin_micros,
+    )
+
+
+def oracle_background(views: Views) -> Tensor:
+    """(3,) mean colour of the sky pixels of ``views`` (black when none is sky)."""
+    sky = views.semantic == SKY
+    if not sky.any():
+        return torch.zeros(3)
+    return views.images[sky].mean(0).float()
+
+
+# --------------------------------------------------------------------------------------------
+# Synthetic truth of shifted cameras
+
+
+def _translation(x: float, y: float, z: float) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, 3] = (x, y, z)
+    return t
+
+
+def shifted_calibration(
+    name: str,
+    intrinsics: np.ndarray,
+    size_hw: tuple[int, int],
+    ego_from_camera: np.ndarray,
+    shift_m: float,
+) -> CameraCalibration:
+    """A distortion-free pinhole camera of ``size_hw`` pixels (``intrinsics`` at that size) moved by
+    ``shift_m`` metres along the ego's +y (left) from ``ego_from_camera``."""
+    return CameraCalibration(
+        name=name,
+        width=int(size_hw[1]),
+        height=int(size_hw[0]),
+        intrinsics=np.asarray(intrinsics, np.float64),
+        distortion=np.zeros(5),
+        ego_from_camera=_translation(0.0, shift_m, 0.0) @ np.asarray(ego_from_camera, np.float64),
+    )
+
+
+class SyntheticTruth:
+    """Exact renders of a synthetic cache's scenes from any camera (the shifted views' truth).
+
+    Built from the cache manifest's source arguments (:meth:`SyntheticConfig.from_dict`); raises
+    ValueError when the cache is not synthetic.
+    """
+
+    def __init__(self, arguments: dict[str, Any], source: str):
+        from phigenesis.data.sources.synthetic import SOURCE_NAME, SyntheticConfig, SyntheticScene
+
+        if source != SOURCE_NAME:
+            raise ValueError(f"the cache's source is {source!r}, not {SOURCE_NAME!r}")
+        # Without the ego's own body: a camera moved metres sideways would otherwise see the ego car
+        # standing where it was (a real lane change takes the body along); the world is otherwise
+        # the same (the body is a mesh added last, drawing no random numbers).
+        self.config = dataclasses.replace(SyntheticConfig.from_dict(arguments), ego_body=False)
+        self._scene_class = SyntheticScene
+        self._scenes: dict[str, Any] = {}
+
+    def scene(self, scene_id: str) -> Any:
+        """The :class:`SyntheticScene` of ``scene_id`` (built once)."""
+        if scene_id not in self._scenes:
+            ids = self.config.scene_ids()
+            if scene_id not in ids:
+                raise ValueError(f"scene {scene_id!r} is not one of the cache's synthetic scenes")
+            self._scenes[scene_id] = self._scene_class(self.config, ids.index(scene_id))
+        return self._scenes[scene_id]
+
+    def render(
+        self, scene_id: str, calibration: CameraCalibration, world_from_ego: np.ndarray, timestamp_micros: int
+    ) -> tuple[np.ndarray, CameraTruth]:
+        """(rgb (H, W, 3) uint8, truth) of ``calibration`` on the ego at ``world_from_ego`` at a time."""
+        scene = self.scene(scene_id)
+        return scene.renderer.render_camera(calibration, world_from_ego, scene.seconds(timestamp_micros))
+
+
+# --------------------------------------------------------------------------------------------
+# Views of a clip
+
+
+@dataclass(frozen=True)
+class FrameTruth:
+    """The truth maps of one frame's V views at the model's size (see :class:`Views`)."""
+
+    depth: Tensor  # [V, H, W]
+    semantic: Tensor  # [V, H, W]
+    flow: Tensor | None  # [V, H, W, 3]
+    has_truth_depth: bool
+
+
+def frame_truth(sample: dict[str, Any], size_hw: tuple[int, int]) -> FrameTruth:
+    """Truth depth / semantics / flow of a loaded frame (synthetic truth, else dense depth and
+    pseudo labels), resized to ``size_hw`` by nearest sampling."""
+    has_depth = "truth_depth" in sample
+    depth = sample["truth_depth"] if has_depth else sample["depth_dense"]
+    if "truth_semantic" in sample:
+        sem = sample["truth_semantic"]
+    elif "pseudo_semantic" in sample:
+        sem = sample["pseudo_semantic"]
+    else:
+        sem = torch.full(depth.shape, IGNORE_ID, dtype=torch.uint8)
+    flow = None
+    if "truth_flow" in sample:
+        flow = resize_nearest(sample["truth_flow"], size_hw).permute(0, 2, 3, 1).contiguous().float()
+    return FrameTruth(
+        depth=resize_nearest(depth, size_hw).float(),
+        semantic=resize_nearest(sem, size_hw),
+        flow=flow,
+        has_truth_depth=has_depth,
+    )
+
+
+def target_views(clip: Clip, index: int, truth: FrameTruth) -> Views:
+    """The views of the clip's target frame ``index`` (position in ``clip.target_indices``)."""
+    tg = clip.targets
+    return Views(
+        images=tg.images[index].permute(0, 2, 3, 1).contiguous(),
+        world_from_camera=tg.world_from_camera[index],
+        intrinsics=clip.intrinsics,
+        time_s=tg.time_s[index],
+        depth=truth.depth,
+        semantic=truth.semantic,
+        flow=truth.flow,
+    )
+
+
+def concat_views(views: list[Views]) -> Views:
+    """The views of several lists, one after another."""
+    flows = [v.flow for v in views]
+    return Views(
+        images=torch.cat([v.images for v in views]),
+        world_from_camera=torch.cat([v.world_from_camera for v in views]),
+        intrinsics=torch.cat([v.intrinsics for v in views]),
+        time_s=torch.cat([v.time_s for v in views]),
+        depth=torch.cat([v.depth for v in views]),
+        semantic=torch.cat([v.semantic for v in views]),
+        flow=torch.cat(flows) if all(f is not None for f in flows) else None,  # type: ignore[arg-type]
+    )
+
+
+def shifted_views(
+    truth: SyntheticTruth,
+    clip: Clip,
+    sample: dict[str, Any],
+    shift_m: float,
+    size_hw: tuple[int, int],
+) -> Views:
+    """The views of frame ``sample`` (a loaded cache frame of ``clip``'s scene) with every camera
+    moved ``shift_m`` metres to the ego's left at its own capture time, truth rendered exactly.
+
+    The renderer casts a distortion-free pinhole camera at the cache's image size (the cache's
+    intrinsics), and the result is brought to ``size_hw`` as :class:`Stage1Clips` brings the cache's
+    own views (area-averaged colour, nearest-sampled depth / classes / flow), so shifted and
+    unshifted sections are equally sharp; at equal sizes this is the render itself.
+    """
+    h_in, w_in = sample["images"].shape[-2:]
+    k_in = sample["intrinsics"].double()
+    images, poses, times, depths, sems, flows = [], [], [], [], [], []
+    for c, name in enumerate(sample["camera_names"]):
+        cal = shifted_calibration(
+            name, k_in[c].numpy(), (h_in, w_in), sample["ego_from_camera"][c].numpy(), shift_m
+        )
+        world_from_ego = sample["camera_world_from_ego"][c].double().numpy()
+        stamp = int(sample["camera_timestamp_micros"][c])
+        rgb, tr = truth.render(clip.scene_id, cal, world_from_ego, stamp)
+        images.append(resize_images(torch.from_numpy(rgb).permute(2, 0, 1), size_hw).permute(1, 2, 0))
+        poses.append(torch.from_numpy(world_from_ego @ cal.ego_from_camera))
+        times.append((stamp - clip.time_origin_micros) * 1e-6)
+        depths.append(resize_nearest(torch.from_numpy(tr.depth_m), size_hw))
+        sems.append(resize_nearest(torch.from_numpy(tr.semantic), size_hw))
+        flows.append(
+            resize_nearest(torch.from_numpy(tr.flow_world_mps).permute(2, 0, 1), size_hw).permute(1, 2, 0)
+        )
+    return Views(
+        images=torch.stack(images).contiguous(),
+        world_from_camera=torch.stack(poses),
+        intrinsics=resize_intrinsics(k_in, (h_in, w_in), size_hw).float(),
+        time_s=torch.tensor(times, dtype=torch.float64),
+        depth=torch.stack(depths),
+        semantic=torch.stack(sems),
+        flow=torch.stack(flows).contiguous(),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# The evaluation
+
+
+@dataclass(frozen=True)
+class ClipResult:
+    """What one clip left for the picture: per section its views and both renders."""
+
+    scene_id: str
+    start: int
+    views: dict[str, Views]
+    model: dict[str, Rendered]
+    oracle: dict[str, Rendered]
+
+
+def clip_starts(length: int, frames: int, max_offset: int, count: int) -> list[int]:
+    """Up to ``count`` context start frames spread evenly over a scene of ``length`` frames such
+    that the last context frame + ``max_offset`` stays inside it (empty if none fits)."""
+    last = length - frames - max_offset
+    if last < 0:
+        return []
+    return sorted({round(float(v)) for v in np.linspace(0, last, max(count, 1))})
+
+
+def _open_clips(shards: Path, model: Stage1Model) -> Stage1Clips:
+    if not shards.is_dir() or not (shards / MANIFEST_NAME).is_file():
+        raise ValueError(f"{shards}: not a phigenesis cache (no {MANIFEST_NAME})")
+    return Stage1Clips(shards, model.config.image_size, model.config.frames, "auto")
+
+
+def evaluate_clip(
+    model: Stage1Model,
+    data: Stage1Clips,
+    scene_id: str,
+    start: int,
+    offsets: tuple[int, ...],
+    shifts_m: tuple[float, ...],
+    truth: SyntheticTruth | None,
+    oracle: bool,
+) -> ClipResult:
+    """Predicts one clip's scene and renders the model (and the oracle) at every section's views."""
+    size = tuple(model.config.image_size)
+    t = model.config.frames
+    clip = data.clip(scene_id, start, list(offsets))
+    samples = {i: data.dataset[data.scenes[scene_id][i]] for i in sorted(set(clip.target_indices))}
+    truths = {i: frame_truth(s, size) for i, s in samples.items()}  # type: ignore[arg-type]
+    views = {"input": concat_views([target_views(clip, j, truths[clip.target_indices[j]]) for j in range(t)])}
+    for j, off in enumerate(offsets):
+        views[section_name("offset", off)] = target_views(clip, t + j, truths[clip.target_indices[t + j]])
+    if truth is not None:
+        last = samples[clip.frame_indices[-1]]
+        for d in shifts_m:
+            views[section_name("shift", d)] = shifted_views(truth, clip, last, d, size)  # type: ignore[arg-type]
+    scene = model.predict(*clip_inputs([clip]), time_origin_micros=clip.time_origin_micros)
+    model_out, oracle_out = {}, {}
+    with torch.no_grad():
+        for name, v in views.items():
+            sky = model.background(v.world_from_camera.float(), v.intrinsics.float(), *v.size_hw)
+            model_out[name] = render_views(scene, v, sky)
+        if oracle:
+            ctx = views["input"]
+            gauss = oracle_scene(ctx, clip.time_origin_micros)
+            bg = oracle_background(ctx)
+            for name, v in views.items():
+                oracle_out[name] = render_views(gauss, v, bg)
+    return ClipResult(scene_id, start, views, model_out, oracle_out)
+
+
+def evaluate_stage1(
+    checkpoint: str | os.PathLike[str],
+    shards: str | os.PathLike[str],
+    *,
+    offsets: tuple[int, ...] | list[int] = (5, 10),
+    shifts_m: tuple[float, ...] | list[float] = (1.0, 2.0, 4.0),
+    clips_per_scene: int = 3,
+    oracle: bool = True,
+    picture: str | os.PathLike[str] | None = None,
+    threads: int | None = None,
+    out_json: str | os.PathLike[str] | None = None,
+) -> dict[str, Any]:
+    """Scores the Stage 1 model of ``checkpoint`` on the cache ``shards`` (see the module docstring).
+
+    Returns a dict: ``checkpoint``, ``shards``, ``model``, ``image_size``, ``offsets``, ``shifts_m``
+    (those evaluated), ``clips``, ``images`` (views scored per section), ``seconds_per_clip``,
+    ``clip_list`` ([scene id, start]) and ``sections``: per section name ``{"images", "model",
+    "oracle", "gap"}`` with the metrics of :data:`METRICS` (+ ``depth_coverage``); ``oracle`` and
+    ``gap`` only when ``oracle``. Writes it as JSON to ``out_json`` and a PNG of the first clip to
+    ``picture`` when given. Raises :class:`CheckpointError` for a checkpoint that is not a Stage 1
+    model and ValueError naming the cache when it is empty, lacks dense depth or has no scene long
+    enough for ``max(offsets)``.
+    """
+    if threads:
+        torch.set_num_threads(int(threads))
+    offsets = tuple(int(o) for o in offsets)
+    shifts = tuple(float(d) for d in shifts_m)
+    if any(o < 1 for o in offsets) or clips_per_scene < 1:
+        raise ValueError(f"offsets {list(offsets)} must be positive and clips_per_scene at least 1")
+    shards = Path(shards)
+    model = load_stage1(checkpoint)
+    model.eval()
+    data = _open_clips(shards, model)
+    truth = None
+    if shifts:
+        manifest = data.reader.manifest
+        try:
+            truth = SyntheticTruth(manifest.arguments, manifest.source)
+        except (ValueError, TypeError) as e:
+            log.warning("%s: skipping the shifted views (%s): no exact truth for novel views", shards, e)
+            shifts = ()
+    max_offset = max(offsets, default=0)
+    plan = [
+        (scene, s)
+        for scene in data.scenes
+        for s in clip_starts(data.scene_length(scene), model.config.frames, max_offset, clips_per_scene)
+    ]
+    if not plan:
+        raise ValueError(
+            f"{shards}: no scene has the {model.config.frames + max_offset} frames a clip with offset "
+            f"{max_offset} needs"
+        )
+    sections = ["input"] + [section_name("offset", o) for o in offsets]
+    sections += [section_name("shift", d) for d in shifts]
+    scores = {name: (SectionScores(), SectionScores()) for name in sections}
+    first: ClipResult | None = None
+    t0 = time.perf_counter()
+    for scene, start in plan:
+        result = evaluate_clip(model, data, scene, start, offsets, shifts, truth, oracle)
+        for name in sections:
+            scores[name][0].add(result.model[name], result.views[name])
+            if oracle:
+                scores[name][1].add(result.oracle[name], result.views[name])
+        first = first or result
+        log.info("clip %s @ %d done", scene, start)
+    seconds = (time.perf_counter() - t0) / len(plan)
+    report: dict[str, Any] = {
+        "checkpoint": str(checkpoint),
+        "shards": str(shards),
+        "model": model.name,
+        "image_size": list(model.config.image_size),
+        "offsets": list(offsets),
+        "shifts_m": list(shifts),
+        "clips": len(plan),
+        "images": {name: len(scores[name][0].psnr_db) for name in sections},
+        "seconds_per_clip": seconds,
+        "clip_list": [[s, i] for s, i in plan],
+        "sections": {},
+    }
+    for name in sections:
+        entry: dict[str, Any] = {"images": len(scores[name][0].psnr_db), "model": scores[name][0].summary()}
+        if oracle:
+            entry["oracle"] = scores[name][1].summary()
+            entry["gap"] = gap(entry["model"], entry["oracle"])
+        report["sections"][name] = entry
+    if out_json is not None:
+        write_json(report, out_json)
+    if picture is not None and first is not None:
+        save_picture(first, picture, shifts)
+    return report
+
+
+def write_json(report: dict[str, Any], path: str | os.PathLike[str]) -> Path:
+    """Writes ``report`` as JSON (NaN as null) to ``path``, creating its folder."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+    def clean(x: Any) -> Any:
+        if isinstance(x, float):
+            return x if math.isfinite(x) else None
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, list | tuple):
+            return [clean(v) for v in x]
+        return x
+
+    path.write_text(json.dumps(clean(report), indent=2))
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# Picture
+
+
+def _colour_depth(depth: np.ndarray, vmax: float) -> np.ndarray:
+    import matplotlib
+
+    rgb = matplotlib.colormaps["turbo"](np.clip(depth / max(vmax, 1e-6), 0, 1))[..., :3]
+    rgb[depth <= 0] = 0.0
+    return rgb
+
+
+def save_picture(result: ClipResult, path: str | os.PathLike[str], shifts_m: tuple[float, ...] = ()) -> Path:
+    """A PNG of one clip: a row per input view (at most 3), columns input image, render, rendered
+    depth, truth depth (same colour range), rendered semantics, and the shifted render beside its
+    truth for the shift nearest 2 m when there is one."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    views, render = result.views["input"], result.model["input"]
+    shift = min(shifts_m, key=lambda d: abs(d - 2.0)) if shifts_m else None
+    shift_name = section_name("shift", shift) if shift is not None else None
+    columns = ["input", "render", "rendered depth", "truth depth", "rendered semantics"]
+    if shift_name is not None:
+        columns += [f"render {shift_name}", f"truth {shift_name}"]
+    rows = min(len(views), 3)
+    fig, axes = plt.subplots(rows, len(columns), figsize=(2.2 * len(columns), 1.7 * rows), squeeze=False)
+    for r in range(rows):
+        truth_d = views.depth[r].numpy()
+        vmax = float(np.percentile(truth_d[truth_d > 0], 95)) if (truth_d > 0).any() else 1.0
+        panels = [
+            views.images[r].numpy(),
+            render.rgb[r].numpy(),
+            _colour_depth(render.depth[r].numpy(), vmax),
+            _colour_depth(truth_d, vmax),
+            taxonomy.PALETTE_RGB[render.semantic[r].numpy()],
+        ]
+        if shift_name is not None:
+            panels += [result.model[shift_name].rgb[r].numpy(), result.views[shift_name].images[r].numpy()]
+        for c, panel in enumerate(panels):
+            ax = axes[r, c]
+            ax.imshow(np.clip(panel, 0, 255) if panel.dtype == np.uint8 else np.clip(panel, 0, 1))
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(columns[c], fontsize=8)
+    fig.suptitle(f"{result.scene_id} frame {result.start}", fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

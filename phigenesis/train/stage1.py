@@ -1,0 +1,405 @@
+"""``phigenesis-train stage1``: trains the range-view adapter of a Stage 1 model on a cache.
+
+Each step draws ``batch_size`` clips (context frames + targets, see :mod:`phigenesis.train.stage1_data`)
+from a generator seeded by (seed, step, rank), predicts the clips' Gaussians with the frozen VAE and
+the adapter, renders them at every target view at its own capture time (the sky model fills what
+no Gaussian covers) and minimises:
+
+- ``rgb``: ``0.8 L1 + 0.2 (1 - SSIM)`` of the rendered views against the images;
+- ``depth``: confidence-weighted ``|log z - log z_gt|`` of the rendered depth and of the per-pixel
+  depth against the cache's dense depth;
+- ``semantic``: cross-entropy of the per-pixel logits against the labels (synthetic truth where the
+  cache has it, else the pseudo labels), plus ``-log(1 - p_sky)`` on unlabelled pixels that have a
+  dense depth (a surface is never sky);
+- ``dynamic``: binary cross-entropy of the per-pixel dynamic logit against the moving-box mask, and
+  ``velocity``: L1 of the world-frame velocity against the box's on moving pixels;
+- ``motion`` regulariser: mean |soft velocity| (what does not move should not carry motion);
+- ``opacity`` regulariser: mean rendered alpha on sky pixels (sky spawns nothing and stays empty).
+
+Pixels labelled sky spawn no Gaussians. AdamW, warm-up + cosine learning rate, gradient clipping;
+checkpoints (safetensors) every ``checkpoint_every`` steps and exact resume (see
+:mod:`phigenesis.train.runner`); under ``torchrun`` the ranks share the batch over gloo.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+import yaml
+from torch import Tensor
+from tqdm import tqdm
+
+from phigenesis.data.taxonomy import IGNORE_ID, SKY
+from phigenesis.models import create_model
+from phigenesis.models.gaussians import GaussianScene
+from phigenesis.models.losses import log_depth_loss, photometric_loss, semantic_loss
+from phigenesis.models.stage1 import Stage1Model, Stage1Prediction
+from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from phigenesis.train.runner import (
+    MetricsLog,
+    ProcessGroup,
+    cosine_lr,
+    latest_checkpoint,
+    load_training_state,
+    process_group,
+    save_training_state,
+    step_generator,
+)
+from phigenesis.train.stage1_data import Clip, Stage1Clips, ViewSet
+
+log = logging.getLogger(__name__)
+
+LOSS_NAMES = ("rgb", "depth", "pixel_depth", "semantic", "dynamic", "velocity", "motion", "opacity")
+LOG_COLUMNS = ("loss", *LOSS_NAMES, "lr", "grad_norm", "gaussians", "seconds")
+
+
+@dataclass(frozen=True)
+class Stage1TrainConfig:
+    """A Stage 1 training run (``configs/stage1/*.yaml`` holds these fields).
+
+    Attributes:
+        model: registered Stage 1 variant; ``model_overrides`` replaces fields of its config.
+        vae_checkpoint: a trained VAE (``phigenesis-train vae``) whose config matches the model's
+            VAE; None keeps the VAE at its initialisation (only for tests).
+        steps, batch_size: optimiser steps and clips per step (over all processes).
+        lr, weight_decay, warmup_steps, final_lr_ratio, grad_clip: AdamW with warm-up + cosine.
+        target_offset: targets include one frame up to this many frames before or after the clip.
+        semantic_target: "auto" (synthetic truth where the cache has it, else the pseudo labels, as
+            ``phigenesis-train segmenter --labels auto`` prefers the best labels), "pseudo" or "truth".
+        weights: weight of each loss term (``LOSS_NAMES``).
+        checkpoint_every, log_every: in steps.
+        seed: seed of the initialisation and of every step's draws.
+        threads: torch CPU threads per process (None: torch's default).
+    """
+
+    model: str = "stage1_tiny"
+    model_overrides: dict = field(default_factory=dict)
+    vae_checkpoint: str | None = None
+    steps: int = 1000
+    batch_size: int = 1
+    lr: float = 2e-3
+    weight_decay: float = 0.01
+    warmup_steps: int = 50
+    final_lr_ratio: float = 0.05
+    grad_clip: float = 1.0
+    target_offset: int = 3
+    semantic_target: str = "auto"
+    weights: dict = field(
+        default_factory=lambda: {
+            "rgb": 1.0,
+            "depth": 0.5,
+            "pixel_depth": 0.5,
+            "semantic": 0.2,
+            "dynamic": 0.2,
+            "velocity": 0.05,
+            "motion": 0.005,
+            "opacity": 0.1,
+        }
+    )
+    checkpoint_every: int = 100
+    log_every: int = 10
+    seed: int = 0
+    threads: int | None = None
+
+    def __post_init__(self) -> None:
+        unknown = set(self.weights) - set(LOSS_NAMES)
+        if unknown:
+            raise ValueError(f"Stage1TrainConfig: unknown loss weights {sorted(unknown)}; known {LOSS_NAMES}")
+        object.__setattr__(self, "weights", {k: float(self.weights.get(k, 0.0)) for k in LOSS_NAMES})
+        if self.steps < 1 or self.batch_size < 1:
+            raise ValueError("Stage1TrainConfig: steps and batch_size must be positive")
+        if self.semantic_target not in ("auto", "pseudo", "truth"):
+            raise ValueError(f"Stage1TrainConfig: semantic_target {self.semantic_target!r}")
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], **overrides: Any) -> Stage1TrainConfig:
+        """The config in a YAML file (unknown keys are an error), with ``overrides`` applied."""
+        path = Path(path)
+        try:
+            values = yaml.safe_load(path.read_text()) or {}
+        except (OSError, yaml.YAMLError) as e:
+            raise ValueError(f"{path}: cannot read the training config: {e}") from e
+        known = {f.name for f in dataclasses.fields(cls)}
+        bad = sorted(set(values) - known)
+        if bad:
+            raise ValueError(f"{path}: unknown config keys {bad}; known: {sorted(known)}")
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        return cls(**values)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class Stage1Run:
+    """What :func:`train_stage1` leaves: the run folder, final weights and the last logged losses."""
+
+    out: Path
+    checkpoint: Path | None
+    steps_done: int
+    last: dict[str, float]
+    seconds: float
+
+
+def build_model(config: Stage1TrainConfig) -> Stage1Model:
+    """The Stage 1 model of a config, with its trained VAE loaded and frozen."""
+    model = create_model(config.model, **config.model_overrides)
+    assert isinstance(model, Stage1Model)
+    if config.vae_checkpoint:
+        vae = load_checkpoint(config.vae_checkpoint).model
+        try:
+            model.load_vae(vae)  # type: ignore[arg-type]
+        except ValueError as e:
+            raise CheckpointError(f"{config.vae_checkpoint}: {e}") from e
+    else:
+        log.warning("no vae_checkpoint: the frozen VAE keeps its random initialisation")
+    return model
+
+
+def load_stage1(path: str | os.PathLike[str]) -> Stage1Model:
+    """A trained Stage 1 model from its checkpoint (a run's ``model.safetensors`` or a checkpoint
+    folder); raises :class:`CheckpointError` for files that are not Stage 1 checkpoints."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "model.safetensors"
+    ckpt = load_checkpoint(path)
+    if not isinstance(ckpt.model, Stage1Model):
+        raise CheckpointError(f"{path}: a {ckpt.model_name!r} checkpoint, not a Stage 1 model")
+    return ckpt.model
+
+
+def clip_inputs(clips: list[Clip]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(images, intrinsics, world_from_camera, time_s) of a batch of clips, as the model takes them."""
+    return (
+        torch.stack([c.context.images for c in clips]),
+        torch.stack([c.intrinsics for c in clips]),
+        torch.stack([c.context.world_from_camera for c in clips]),
+        torch.stack([c.context.time_s for c in clips]).float(),
+    )
+
+
+def training_scene(pred: Stage1Prediction, b: int, clip: Clip, model: Stage1Model) -> GaussianScene:
+    """Clip ``b``'s Gaussians for the losses: every pixel not labelled sky, soft motion."""
+    keep = clip.context.semantic != SKY
+    return pred.scene(b, keep=keep, hard=False, time_origin_micros=clip.time_origin_micros)
+
+
+def render_targets(model: Stage1Model, scene: GaussianScene, clip: Clip) -> tuple[Tensor, Tensor, Tensor]:
+    """(rgb [S, V, H, W, 3] with sky, depth [S, V, H, W], alpha [S, V, H, W]) at every target view."""
+    h, w = clip.context.images.shape[-2:]
+    rgbs, depths, alphas = [], [], []
+    for s in range(clip.targets.images.shape[0]):
+        wfc = clip.targets.world_from_camera[s]
+        r = scene.render(wfc.float(), clip.intrinsics, w, h, clip.targets.time_s[s])
+        sky = model.background(wfc.float(), clip.intrinsics, h, w)
+        rgbs.append(r.rgb + (1 - r.alpha[..., None]) * sky)
+        depths.append(r.depth)
+        alphas.append(r.alpha)
+    return torch.stack(rgbs), torch.stack(depths), torch.stack(alphas)
+
+
+def stage1_losses(model: Stage1Model, clips: list[Clip]) -> tuple[dict[str, Tensor], int]:
+    """Every loss term (unweighted, means over the batch) of a batch of clips, and the number of
+    Gaussians rendered."""
+    pred = model(*clip_inputs(clips))
+    terms: dict[str, list[Tensor]] = {k: [] for k in LOSS_NAMES}
+    gaussians = 0
+    for b, clip in enumerate(clips):
+        scene = training_scene(pred, b, clip, model)
+        gaussians += len(scene)
+        rgb, depth, alpha = render_targets(model, scene, clip)
+        tg = clip.targets
+        terms["rgb"].append(photometric_loss(rgb, tg.images.permute(0, 1, 3, 4, 2)))
+        terms["depth"].append(log_depth_loss(depth, tg.depth, tg.depth_confidence))
+        sky = (tg.semantic == SKY).float()
+        terms["opacity"].append((alpha * sky).sum() / sky.sum().clamp(min=1.0))
+        px, ctx = pred.pixels, clip.context
+        terms["pixel_depth"].append(log_depth_loss(px.depth[b], ctx.depth, ctx.depth_confidence))
+        terms["semantic"].append(
+            semantic_loss(px.semantic_logits[b], ctx.semantic) + _not_sky(px.semantic_logits[b], ctx)
+        )
+        known = ctx.moving >= 0
+        bce = F.binary_cross_entropy_with_logits(
+            px.dynamic_logit[b], ctx.moving.clamp(min=0), reduction="none"
+        )
+        terms["dynamic"].append((bce * known).sum() / known.sum().clamp(min=1))
+        moving = (ctx.moving > 0)[..., None]
+        err = (pred.velocity[b] - ctx.box_velocity).abs() * moving
+        terms["velocity"].append(err.sum() / moving.sum().clamp(min=1))
+        soft = pred.velocity[b] * pred.dynamic_prob[b][..., None]
+        terms["motion"].append(soft.abs().mean())
+    return {k: torch.stack(v).mean() for k, v in terms.items()}, gaussians
+
+
+def _not_sky(logits: Tensor, views: ViewSet) -> Tensor:
+    """-log(1 - p_sky) over unlabelled pixels with a dense depth: a surface is there, so whatever
+    its class it is not sky. Sparse labels (geometric pseudo labels alone) otherwise leave the
+    classifier free to call unlabelled walls sky, and sky spawns no Gaussians."""
+    solid = (views.semantic == IGNORE_ID) & (views.depth > 0)
+    if not solid.any():
+        return logits.sum() * 0.0
+    log_p = torch.log_softmax(logits[solid], dim=-1)  # [P, K]
+    others = torch.cat([log_p[:, :SKY], log_p[:, SKY + 1 :]], dim=-1)
+    return -torch.logsumexp(others, dim=-1).mean()  # -log(1 - p_sky), stable
+
+
+def _draw_clips(data: Stage1Clips, cfg: Stage1TrainConfig, step: int, group: ProcessGroup) -> list[Clip]:
+    """This rank's clips of ``step``: a pure function of (seed, step, rank)."""
+    per_rank = max(cfg.batch_size // group.world_size, 1)
+    g = step_generator(cfg.seed, step, group.rank)
+    windows = data.windows()
+    clips = []
+    for _ in range(per_rank):
+        scene, start = windows[int(torch.randint(len(windows), (1,), generator=g))]
+        offset = int(torch.randint(1, cfg.target_offset + 1, (1,), generator=g)) if cfg.target_offset else 0
+        sign = 1 if int(torch.randint(2, (1,), generator=g)) else -1
+        clips.append(data.clip(scene, start, [sign * offset] if offset else []))
+    return clips
+
+
+def _check_run_folder(out: Path, cfg: Stage1TrainConfig, resume: bool) -> Path | None:
+    """The checkpoint to resume from (or None); refuses to mix runs in one folder."""
+    saved = out / "config.yaml"
+    ckpt = latest_checkpoint(out)
+    if ckpt is not None and not resume:
+        raise ValueError(
+            f"{out}: holds a run already (checkpoint {ckpt.name}); pass --resume or another --out"
+        )
+    if resume and saved.exists():
+        before = yaml.safe_load(saved.read_text())
+        if before != cfg.to_dict():
+            diff = sorted(
+                k for k in set(before) | set(cfg.to_dict()) if before.get(k) != cfg.to_dict().get(k)
+            )
+            raise ValueError(f"{saved}: the run was started with another config (fields differ: {diff})")
+    return ckpt if resume else None
+
+
+def train_stage1(
+    shards: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    config: Stage1TrainConfig | str | os.PathLike[str],
+    *,
+    resume: bool = False,
+    stop_after: int | None = None,
+    progress: bool = True,
+) -> Stage1Run:
+    """Trains a Stage 1 adapter on the cache ``shards`` into the run folder ``out``.
+
+    ``config``: a :class:`Stage1TrainConfig` or a YAML path. ``resume``: continue from the run's
+    newest checkpoint. ``stop_after``: end this process after that many steps in total (as if
+    killed; for tests of resuming). Returns the run's summary; the final weights are
+    ``out/model.safetensors`` (written when all ``steps`` are done).
+    """
+    cfg = config if isinstance(config, Stage1TrainConfig) else Stage1TrainConfig.load(config)
+    out = Path(out)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    with process_group() as group:
+        return _train(Path(shards), out, cfg, group, resume, stop_after, progress)
+
+
+def _train(
+    shards: Path,
+    out: Path,
+    cfg: Stage1TrainConfig,
+    group: ProcessGroup,
+    resume: bool,
+    stop_after: int | None,
+    progress: bool,
+) -> Stage1Run:
+    out.mkdir(parents=True, exist_ok=True)
+    resume_from = _check_run_folder(out, cfg, resume)
+    torch.manual_seed(cfg.seed)
+    model = build_model(cfg)
+    data = Stage1Clips(shards, model.config.image_size, model.config.frames, cfg.semantic_target)  # type: ignore[arg-type]
+    optimizer = torch.optim.AdamW(model.trainable_parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    start = 0
+    if resume_from is not None:
+        loaded = load_checkpoint(resume_from / "model.safetensors").model
+        if loaded.config != model.config:
+            raise CheckpointError(f"{resume_from}: checkpoint of another model config than {cfg.model}")
+        model.load_state_dict(loaded.state_dict())
+        state = load_training_state(resume_from)
+        optimizer.load_state_dict(state.optimizer)
+        start = state.step
+        log.info("resuming %s at step %d", out, start)
+    if group.is_main:
+        (out / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    trainee: torch.nn.Module = model
+    if group.world_size > 1:
+        trainee = torch.nn.parallel.DistributedDataParallel(model)
+    metrics = MetricsLog(out, LOG_COLUMNS, resume_step=start) if group.is_main else None
+    model.train()
+    last: dict[str, float] = {}
+    t_start = time.perf_counter()
+    end = cfg.steps if stop_after is None else min(cfg.steps, stop_after)
+    bar = tqdm(range(start, end), initial=start, total=cfg.steps, disable=not (progress and group.is_main))
+    for step in bar:
+        t0 = time.perf_counter()
+        lr = cosine_lr(step, cfg.steps, cfg.lr, cfg.warmup_steps, cfg.final_lr_ratio)
+        for pg in optimizer.param_groups:
+            pg["lr"] = lr
+        clips = _draw_clips(data, cfg, step, group)
+        terms, gaussians = stage1_losses(
+            trainee if group.world_size == 1 else _Forward(trainee, model), clips
+        )
+        loss = sum(cfg.weights[k] * v for k, v in terms.items())
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(model.trainable_parameters(), cfg.grad_clip)
+        optimizer.step()
+        values = torch.stack([loss.detach(), *[terms[k].detach() for k in LOSS_NAMES]])
+        values = group.mean(values)
+        last = {
+            "loss": float(values[0]),
+            **{k: float(v) for k, v in zip(LOSS_NAMES, values[1:], strict=True)},
+        }
+        last |= {
+            "lr": lr,
+            "grad_norm": float(grad_norm),
+            "gaussians": gaussians,
+            "seconds": time.perf_counter() - t0,
+        }
+        if metrics is not None:
+            metrics.log(step + 1, last)
+        bar.set_postfix(loss=f"{last['loss']:.4f}")
+        if group.is_main and ((step + 1) % cfg.checkpoint_every == 0 or step + 1 == cfg.steps):
+            save_training_state(out, step + 1, model, optimizer, {"config": cfg.to_dict()})
+        group.barrier()
+    final = None
+    if group.is_main and end == cfg.steps:
+        final = save_checkpoint(
+            out / "model.safetensors", model, {"steps": cfg.steps, "train": cfg.to_dict()}
+        )
+        (out / "summary.json").write_text(json.dumps({"steps": cfg.steps, "last": last}, indent=2))
+    if metrics is not None:
+        metrics.close()
+    return Stage1Run(
+        out=out, checkpoint=final, steps_done=end, last=last, seconds=time.perf_counter() - t_start
+    )
+
+
+class _Forward(torch.nn.Module):
+    """The model as :func:`stage1_losses` uses it, with the forward pass going through DDP (so its
+    gradients are averaged over the ranks) and every other attribute from the plain model."""
+
+    def __init__(self, ddp: torch.nn.Module, model: Stage1Model):
+        super().__init__()
+        self.ddp = ddp
+        self.model = model
+
+    def forward(self, *args: Any) -> Stage1Prediction:
+        return self.ddp(*args)
+
+    def background(self, *args: Any) -> Tensor:
+        return self.model.background(*args)

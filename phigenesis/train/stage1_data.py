@@ -1,0 +1,218 @@
+"""Stage 1 clips from a cache: context frames for the model and target frames for the losses.
+
+A clip is ``T`` consecutive context frames of one scene plus target frames (the context frames
+themselves and frames a few steps before or after them), every view resized to the model's size.
+Times are seconds after the first context frame's timestamp (the clip's time origin).
+
+Per view of a context frame, what moves is found from the cache's boxes: a pixel whose dense-depth
+point lies in a box moving faster than ``MOVING_MPS`` (the box shifted to the image's own capture
+time at its velocity) is dynamic and moves at the box's velocity.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, fields
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from phigenesis import geometry
+from phigenesis.data.loader import FrameDataset
+from phigenesis.data.schema import cameras_of
+from phigenesis.data.shards import CacheReader
+from phigenesis.data.taxonomy import IGNORE_ID
+from phigenesis.train.views import resize_images, resize_intrinsics, resize_nearest
+
+#: A box moving faster than this (m/s) makes its pixels dynamic.
+MOVING_MPS = 0.5
+#: Boxes are enlarged by this (metres per side) when testing which pixels they hold.
+BOX_MARGIN_M = 0.1
+
+SemanticTarget = Literal["auto", "pseudo", "truth"]
+
+
+@dataclass(frozen=True)
+class ViewSet:
+    """The V views of F frames at the model's size (targets carry every field; context frames too)."""
+
+    images: Tensor  # [F, V, 3, H, W] RGB in [0, 1]
+    world_from_camera: Tensor  # [F, V, 4, 4] float64, OpenCV camera axes
+    time_s: Tensor  # [F, V] float64 capture times, seconds after the clip's origin
+    depth: Tensor  # [F, V, H, W] dense depth (camera z, metres), 0 = unknown
+    depth_confidence: Tensor  # [F, V, H, W] in [0, 1]
+    semantic: Tensor  # [F, V, H, W] uint8 unified classes, 255 = unknown
+    moving: Tensor  # [F, V, H, W] float32: 1 moving, 0 static, -1 unknown (no depth)
+    box_velocity: Tensor  # [F, V, H, W, 3] float32 world-frame velocity of the moving box, m/s
+
+
+@dataclass(frozen=True)
+class Clip:
+    """One training or evaluation clip."""
+
+    scene_id: str
+    frame_indices: list[int]  # scene frame indices of the context frames
+    target_indices: list[int]  # scene frame indices of the targets
+    time_origin_micros: int
+    intrinsics: Tensor  # [V, 3, 3] at the model's size
+    camera_names: list[str]
+    context: ViewSet
+    targets: ViewSet
+
+
+def _views(
+    frames: list[dict[str, Any]], size_hw: tuple[int, int], semantic: SemanticTarget, origin: int
+) -> ViewSet:
+    images, poses, times, depth, conf, sem, moving, vel = [], [], [], [], [], [], [], []
+    for f in frames:
+        h_in, w_in = f["images"].shape[-2:]
+        images.append(resize_images(f["images"], size_hw))
+        wfc = f["camera_world_from_ego"] @ f["ego_from_camera"]
+        poses.append(wfc)
+        times.append((f["camera_timestamp_micros"] - origin).double() * 1e-6)
+        d = resize_nearest(f["depth_dense"], size_hw)
+        depth.append(d)
+        conf.append(resize_nearest(f["depth_dense_confidence"], size_hw))
+        sem.append(resize_nearest(_semantic_map(f, semantic), size_hw))
+        k = resize_intrinsics(f["intrinsics"].double(), (h_in, w_in), size_hw)
+        m, v = _moving_pixels(f, d, k, wfc)
+        moving.append(m)
+        vel.append(v)
+    return ViewSet(
+        images=torch.stack(images),
+        world_from_camera=torch.stack(poses),
+        time_s=torch.stack(times),
+        depth=torch.stack(depth),
+        depth_confidence=torch.stack(conf),
+        semantic=torch.stack(sem),
+        moving=torch.stack(moving),
+        box_velocity=torch.stack(vel),
+    )
+
+
+def _semantic_map(frame: dict[str, Any], semantic: SemanticTarget) -> Tensor:
+    """The label map a clip trains on: "auto" takes synthetic truth where the cache has it (exact
+    and complete), else the pseudo labels; 255 everywhere when neither exists."""
+    if semantic in ("auto", "truth") and "truth_semantic" in frame:
+        return frame["truth_semantic"]
+    if semantic in ("auto", "pseudo") and "pseudo_semantic" in frame:
+        return frame["pseudo_semantic"]
+    return torch.full_like(frame["depth_dense"], IGNORE_ID, dtype=torch.uint8)
+
+
+def _moving_pixels(
+    frame: dict[str, Any], depth: Tensor, intrinsics: Tensor, world_from_camera: Tensor
+) -> tuple[Tensor, Tensor]:
+    """([V, H, W] moving label, [V, H, W, 3] box velocity) of one frame's views (see module doc)."""
+    v, h, w = depth.shape
+    moving = torch.where(depth > 0, 0.0, -1.0).float()
+    velocity = torch.zeros(v, h, w, 3)
+    speed = np.linalg.norm(frame["boxes_velocity_world"].numpy()[:, :2], axis=1)
+    if not np.any(speed > MOVING_MPS):
+        return moving, velocity
+    centers = frame["boxes_center_world"].numpy()
+    box_v = frame["boxes_velocity_world"].numpy()
+    rows, cols = np.mgrid[0:h, 0:w]
+    for cam in range(v):
+        known = depth[cam].numpy() > 0
+        if not known.any():
+            continue
+        k = intrinsics[cam].numpy()
+        z = depth[cam].numpy()[known]
+        y = (rows[known] - k[1, 2]) / k[1, 1] * z
+        x = (cols[known] - k[0, 2] - k[0, 1] * y / z) / k[0, 0] * z
+        pts = geometry.transform_points(world_from_camera[cam].numpy(), np.stack([x, y, z], axis=1))
+        dt = (int(frame["camera_timestamp_micros"][cam]) - int(frame["frame_timestamp_micros"])) * 1e-6
+        inside = geometry.points_in_boxes(
+            pts,
+            centers + box_v * dt,
+            frame["boxes_size_lwh"].numpy(),
+            frame["boxes_yaw_world"].numpy(),
+            BOX_MARGIN_M,
+        )
+        hit = inside >= 0
+        is_moving = np.zeros(len(pts), bool)
+        is_moving[hit] = speed[inside[hit]] > MOVING_MPS
+        vel = np.zeros((len(pts), 3))
+        vel[is_moving] = box_v[inside[is_moving]]
+        idx = np.flatnonzero(known.ravel())
+        moving[cam].view(-1)[idx] = torch.from_numpy(is_moving.astype(np.float32))
+        velocity[cam].view(-1, 3)[idx] = torch.from_numpy(vel.astype(np.float32))
+    return moving, velocity
+
+
+class Stage1Clips:
+    """Clips of a cache: ``clip(window, offsets)`` loads one; :meth:`windows` lists the context windows.
+
+    Raises ValueError naming the cache when it is empty, lacks dense depth (run the depth stages)
+    or has scenes too short for one clip.
+    """
+
+    def __init__(
+        self,
+        cache_dir: str | os.PathLike[str],
+        size_hw: tuple[int, int],
+        frames: int = 1,
+        semantic: SemanticTarget = "auto",
+        check_crc: bool = True,
+    ):
+        fields_ = ["images", "cameras", "depth", "pseudo", "boxes"] + (
+            ["truth"] if semantic != "pseudo" else []
+        )
+        self.cache_dir = str(cache_dir)
+        self.dataset = FrameDataset(cache_dir, fields=fields_, check_crc=check_crc)
+        self.reader: CacheReader = self.dataset.reader
+        self.size_hw = tuple(size_hw)
+        self.frames = frames
+        self.semantic = semantic
+        if len(self.reader) == 0:
+            raise ValueError(f"{cache_dir}: the cache holds no frames")
+        if "depth_dense_png" not in cameras_of(self.reader.read(0, ["cameras"])):
+            raise ValueError(
+                f"{cache_dir}: the cache has no dense depth (cameras.depth_dense_png); build it with the "
+                "depth stages (aggregate_lidar, project_depth, densify_depth) in the pipeline spec"
+            )
+        self.scenes = {s: list(self.reader.frames_of(s)) for s in self.reader.scene_ids()}
+        self._windows = [(s, i) for s, rows in self.scenes.items() for i in range(len(rows) - frames + 1)]
+        if not self._windows:
+            raise ValueError(f"{cache_dir}: no scene has the {frames} frames one clip needs")
+
+    def windows(self) -> list[tuple[str, int]]:
+        """Every (scene id, first context frame index within the scene)."""
+        return list(self._windows)
+
+    def scene_length(self, scene_id: str) -> int:
+        return len(self.scenes[scene_id])
+
+    def _frame(self, scene_id: str, index: int) -> dict[str, Any]:
+        sample = self.dataset[self.scenes[scene_id][index]]
+        if "depth_dense" not in sample:
+            path, row = self.reader.locate(self.scenes[scene_id][index])
+            raise ValueError(f"{path}: row {row} has no dense depth")
+        return sample
+
+    def clip(self, scene_id: str, start: int, target_offsets: list[int]) -> Clip:
+        """The clip whose context starts at frame ``start`` of ``scene_id``; targets at the context
+        frames plus ``start + T - 1 + offset`` for each offset (clamped to the scene)."""
+        n = self.scene_length(scene_id)
+        context_idx = list(range(start, start + self.frames))
+        last = context_idx[-1]
+        target_idx = context_idx + [min(max(last + o, 0), n - 1) for o in target_offsets]
+        loaded = {i: self._frame(scene_id, i) for i in sorted(set(target_idx))}
+        origin = int(loaded[start]["frame_timestamp_micros"])
+        first = loaded[start]
+        k = resize_intrinsics(first["intrinsics"].double(), tuple(first["images"].shape[-2:]), self.size_hw)
+        targets = _views([loaded[i] for i in target_idx], self.size_hw, self.semantic, origin)
+        context = ViewSet(**{f.name: getattr(targets, f.name)[: self.frames] for f in fields(ViewSet)})
+        return Clip(
+            scene_id=scene_id,
+            frame_indices=context_idx,
+            target_indices=target_idx,
+            time_origin_micros=origin,
+            intrinsics=k.float(),
+            camera_names=list(first["camera_names"]),
+            context=context,
+            targets=targets,
+        )

@@ -1,0 +1,303 @@
+"""Evaluating a Stage 1 model (phigenesis.train.evaluate_stage1, ``phigenesis-eval stage1``).
+
+One tiny synthetic cache (1 scene x 12 frames of the 5-camera rig at the model's 48 x 72, so no
+resizing) and a 2-step Stage 1 run are shared by the module; the numbers in the report are checked
+against the same quantities computed here from the model, the renderer and the cache directly.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from phigenesis import prep
+from phigenesis.cli.eval import main as eval_main
+from phigenesis.data.loader import FrameDataset
+from phigenesis.data.pipeline import PipelineSpec, load_pipeline
+from phigenesis.data.records import CameraCalibration
+from phigenesis.data.shards import MANIFEST_NAME, CacheReader
+from phigenesis.data.sources.synthetic import SyntheticScene
+from phigenesis.models import create_model
+from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
+from phigenesis.train.evaluate_stage1 import (
+    METRICS,
+    SyntheticTruth,
+    clip_starts,
+    evaluate_clip,
+    evaluate_stage1,
+    oracle_scene,
+    shifted_views,
+)
+from phigenesis.train.stage1 import Stage1TrainConfig, clip_inputs, load_stage1, train_stage1
+from phigenesis.train.stage1_data import Stage1Clips
+from phigenesis.train.views import resize_intrinsics
+from tests.conftest import TINY_PREP_ARGS, tiny_config
+
+SIZE = (48, 72)
+FRAMES = 12
+SCENE = "synthetic-s7-0000"
+SECTIONS = ["input", "+5", "+10", "shift_1m", "shift_2m", "shift_4m"]
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("eval_cache")
+    args = {**TINY_PREP_ARGS, "scenes": 1, "frames": FRAMES, "height": SIZE[0], "width": SIZE[1]}
+    prep.synthetic(out, progress=False, **args)  # type: ignore[arg-type]
+    return out
+
+
+@pytest.fixture(scope="module")
+def checkpoint(cache: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    run = train_stage1(
+        cache,
+        tmp_path_factory.mktemp("stage1_run"),
+        Stage1TrainConfig(steps=2, warmup_steps=1, threads=1),
+        progress=False,
+    )
+    assert run.checkpoint is not None
+    return run.checkpoint
+
+
+@pytest.fixture(scope="module")
+def report(cache: Path, checkpoint: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    out = tmp_path_factory.mktemp("eval_out")
+    result = evaluate_stage1(
+        checkpoint, cache, clips_per_scene=1, picture=out / "clip.png", out_json=out / "eval.json", threads=1
+    )
+    result["_out"] = out
+    return result
+
+
+def test_report_has_every_section_with_model_oracle_and_gap(report: dict[str, Any], checkpoint: Path) -> None:
+    assert list(report["sections"]) == SECTIONS
+    assert report["clips"] == 1 and report["clip_list"] == [[SCENE, 0]]
+    assert report["checkpoint"] == str(checkpoint) and report["seconds_per_clip"] > 0
+    for name, entry in report["sections"].items():
+        assert entry["images"] == 5 == report["images"][name]
+        for who in ("model", "oracle", "gap"):
+            assert set(METRICS) <= set(entry[who]), (name, who)
+        for k in ("psnr_db", "ssim", "miou"):
+            assert entry["gap"][k] == pytest.approx(entry["oracle"][k] - entry["model"][k])
+        assert entry["gap"]["rmse_m"] == pytest.approx(entry["model"]["rmse_m"] - entry["oracle"]["rmse_m"])
+    saved = json.loads((report["_out"] / "eval.json").read_text())
+    assert saved["sections"]["input"]["model"]["psnr_db"] == pytest.approx(
+        report["sections"]["input"]["model"]["psnr_db"]
+    )
+    png = (report["_out"] / "clip.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+
+
+def test_oracle_is_near_exact_at_the_input_views_and_degrades_with_the_shift(report: dict[str, Any]) -> None:
+    s = report["sections"]
+    o = s["input"]["oracle"]
+    # Measured at 48 x 72: about 24 dB (the rasterizer's low-pass blends neighbours a little; 21.5 dB
+    # with 0.6-footprint splats), AbsRel 0.05 (depth edges), delta 0.94, every truth pixel covered.
+    assert o["psnr_db"] > 22 and o["ssim"] > 0.6
+    assert o["abs_rel"] < 0.08 and o["delta_1_25"] > 0.9 and o["depth_coverage"] > 0.99
+    assert o["miou"] > 0.5
+    assert o["psnr_db"] > s["shift_1m"]["oracle"]["psnr_db"] > s["shift_4m"]["oracle"]["psnr_db"] + 1
+    assert s["shift_4m"]["oracle"]["abs_rel"] > 1.5 * o["abs_rel"]
+    assert o["psnr_db"] > s["+10"]["oracle"]["psnr_db"] + 3
+    # 2 steps from a random VAE: the model is below the oracle at its own input views.
+    assert s["input"]["gap"]["psnr_db"] > 1
+
+
+def test_model_numbers_match_an_independent_computation(
+    report: dict[str, Any], cache: Path, checkpoint: Path
+) -> None:
+    model = load_stage1(checkpoint)
+    data = Stage1Clips(cache, SIZE, 1)
+    clip = data.clip(SCENE, 0, [5, 10])
+    scene = model.predict(*clip_inputs([clip]), time_origin_micros=clip.time_origin_micros)
+    reader = CacheReader(cache)
+    with torch.no_grad():
+        # Input views: PSNR of the render over the sky model against the images.
+        wfc, k = clip.targets.world_from_camera[0].float(), clip.intrinsics
+        r = scene.render(wfc, k, SIZE[1], SIZE[0], clip.targets.time_s[0])
+        rgb = r.rgb + (1 - r.alpha[..., None]) * model.background(wfc, k, *SIZE)
+        truth = clip.targets.images[0].permute(0, 2, 3, 1)
+        mse = ((rgb - truth) ** 2).mean(dim=(1, 2, 3))
+        psnr = float((10 * torch.log10(1 / mse)).mean())
+        # Frame 10: depth RMSE against the cache's truth depth, at that frame's poses and times.
+        wfc10 = clip.targets.world_from_camera[2].float()
+        r10 = scene.render(wfc10, k, SIZE[1], SIZE[0], clip.targets.time_s[2])
+    assert clip.target_indices == [0, 5, 10]
+    truth10 = _truth_depth(reader, 10)
+    rmse = []
+    for pred, true in zip(r10.depth.numpy(), truth10, strict=True):
+        ok = (true > 0) & (pred > 0)
+        if ok.any():
+            rmse.append(math.sqrt(np.mean((pred[ok] - true[ok]) ** 2)))
+    assert report["sections"]["input"]["model"]["psnr_db"] == pytest.approx(psnr, abs=1e-3)
+    assert report["sections"]["+10"]["model"]["rmse_m"] == pytest.approx(np.mean(rmse), rel=1e-4)
+
+
+def test_views_and_oracle_gaussians_follow_the_cache(cache: Path, checkpoint: Path) -> None:
+    model = load_stage1(checkpoint)
+    data = Stage1Clips(cache, SIZE, 1)
+    result = evaluate_clip(model, data, SCENE, 1, (5, 10), (), None, oracle=True)
+    assert list(result.views) == ["input", "+5", "+10"]
+    frames = FrameDataset(cache, fields=["images", "cameras", "truth"])
+    origin = int(frames[1]["frame_timestamp_micros"])
+    for name, index in (("input", 1), ("+5", 6), ("+10", 11)):
+        f, v = frames[index], result.views[name]
+        stamps = f["camera_timestamp_micros"].numpy()
+        np.testing.assert_allclose(v.time_s.numpy(), (stamps - origin) * 1e-6, atol=1e-9)
+        pose = f["camera_world_from_ego"].double() @ f["ego_from_camera"].double()
+        np.testing.assert_allclose(v.world_from_camera.numpy(), pose.numpy(), atol=1e-9)
+        np.testing.assert_array_equal(v.depth.numpy(), f["truth_depth"].numpy())
+    # The oracle: one Gaussian per pixel with a truth depth, on the pixel's ray at that depth, moving
+    # with the truth flow where it exceeds 0.5 m/s.
+    ctx, f = result.views["input"], frames[1]
+    gauss = oracle_scene(ctx)
+    depth, flow = f["truth_depth"].numpy(), f["truth_flow"].numpy().transpose(0, 2, 3, 1)
+    assert len(gauss) == int((depth > 0).sum())
+    moving = (depth > 0) & (np.linalg.norm(flow, axis=-1) > 0.5)
+    assert moving.any() and int(gauss.dynamic.sum()) == int(moving.sum())
+    cams, rows, cols = np.nonzero(depth > 0)
+    for j in (0, len(cams) // 2, len(cams) - 1):
+        c, i, u = cams[j], rows[j], cols[j]
+        ray = np.linalg.solve(f["intrinsics"][c].double().numpy(), [u, i, 1.0])
+        wfc = f["camera_world_from_ego"][c].numpy() @ f["ego_from_camera"][c].numpy()
+        point = wfc[:3, :3] @ (ray * depth[c, i, u]) + wfc[:3, 3]
+        np.testing.assert_allclose(gauss.means[j].numpy(), point, atol=1e-3)
+        assert float(gauss.time_s[j]) == pytest.approx(float(ctx.time_s[c]), abs=1e-6)
+
+
+def _truth_depth(reader: CacheReader, frame: int) -> np.ndarray:
+    return FrameDataset(reader.cache_dir, fields=["truth"])[frame]["truth_depth"].numpy()
+
+
+def test_shifted_truth_is_the_renderer_on_a_camera_moved_left(cache: Path) -> None:
+    reader = CacheReader(cache)
+    data = Stage1Clips(cache, SIZE, 1)
+    clip = data.clip(SCENE, 3, [])
+    sample = data.dataset[data.scenes[SCENE][3]]
+    truth = SyntheticTruth(reader.manifest.arguments, reader.manifest.source)
+    v0 = shifted_views(truth, clip, sample, 0.0, SIZE)
+    v2 = shifted_views(truth, clip, sample, 2.0, SIZE)
+    # Built from the test's own config, not from the manifest; without the ego's body, which a
+    # sideways-moved camera would otherwise see standing where the ego was.
+    cfg = tiny_config(scenes=1, frames=FRAMES, height=SIZE[0], width=SIZE[1], ego_body=False)
+    scene = SyntheticScene(cfg, 0)
+    cache_depth = _truth_depth(reader, 3)
+    for c in range(5):
+        cal = CameraCalibration(
+            "cam", SIZE[1], SIZE[0], sample["intrinsics"][c].double().numpy(), np.zeros(5),
+            sample["ego_from_camera"][c].numpy(),
+        )  # fmt: skip
+        wfe = sample["camera_world_from_ego"][c].numpy()
+        t = (int(sample["camera_timestamp_micros"][c]) - cfg.start_micros) * 1e-6
+        moved = wfe.copy()
+        moved[:3, 3] += 2.0 * wfe[:3, 1]  # the whole ego 2 m to its left
+        for views, pose in ((v0, wfe), (v2, moved)):
+            rgb, tr = scene.renderer.render_camera(cal, pose, t)
+            np.testing.assert_allclose(views.depth[c].numpy(), tr.depth_m, atol=1e-4)
+            np.testing.assert_allclose(views.images[c].numpy(), rgb / 255.0, atol=1e-6)
+            np.testing.assert_allclose(
+                views.world_from_camera[c].numpy(), pose @ cal.ego_from_camera, atol=1e-9
+            )
+        assert v2.time_s[c] == pytest.approx(
+            (int(sample["camera_timestamp_micros"][c]) - clip.time_origin_micros) * 1e-6
+        )
+        # The unshifted pinhole truth agrees with the cache's (slightly distorted) truth depth.
+        both = (cache_depth[c] > 0) & (v0.depth[c].numpy() > 0)
+        rel = np.abs(v0.depth[c].numpy()[both] / cache_depth[c][both] - 1)
+        assert np.median(rel) < 0.02, c
+        assert not np.allclose(v2.depth[c].numpy(), v0.depth[c].numpy(), atol=0.05)
+    # At half the cache's size: the truth is the full-size render resized like the cache's views,
+    # which agrees with a pinhole render straight at that size (resized intrinsics).
+    half = (SIZE[0] // 2, SIZE[1] // 2)
+    v_half = shifted_views(truth, clip, sample, 2.0, half)
+    k_half = resize_intrinsics(sample["intrinsics"].double(), SIZE, half)
+    np.testing.assert_allclose(v_half.intrinsics.numpy(), k_half.numpy(), atol=1e-5)
+    np.testing.assert_allclose(
+        v_half.images.numpy(), v2.images.numpy().reshape(5, 24, 2, 36, 2, 3).mean((2, 4)), atol=1e-5
+    )
+    for c in range(5):
+        cal = CameraCalibration(
+            "cam", half[1], half[0], k_half[c].numpy(), np.zeros(5), sample["ego_from_camera"][c].numpy()
+        )
+        t = (int(sample["camera_timestamp_micros"][c]) - cfg.start_micros) * 1e-6
+        _, tr = scene.renderer.render_camera(
+            cal, v2.world_from_camera[c].numpy() @ np.linalg.inv(cal.ego_from_camera), t
+        )
+        both = (tr.depth_m > 0) & (v_half.depth[c].numpy() > 0)
+        assert np.median(np.abs(v_half.depth[c].numpy()[both] / tr.depth_m[both] - 1)) < 0.03, c
+
+
+def test_clip_starts_keep_the_last_offset_inside_the_scene() -> None:
+    assert clip_starts(12, 1, 10, 3) == [0, 1]
+    assert clip_starts(40, 1, 10, 3) == [0, 14, 29]
+    assert clip_starts(40, 5, 10, 2) == [0, 25]
+    assert clip_starts(10, 1, 10, 3) == []
+
+
+def test_errors_name_the_checkpoint_or_the_cache(cache: Path, checkpoint: Path, tmp_path: Path) -> None:
+    vae = save_checkpoint(tmp_path / "vae.safetensors", create_model("vae_tiny"))
+    with pytest.raises(CheckpointError, match=r"vae\.safetensors"):
+        evaluate_stage1(vae, cache)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ValueError, match="empty"):
+        evaluate_stage1(checkpoint, empty)
+    with pytest.raises(ValueError, match=re.escape(str(cache))):
+        evaluate_stage1(checkpoint, cache, offsets=(20,))
+    bare = tmp_path / "bare"
+    spec = load_pipeline("synthetic").to_dict()
+    spec["stages"] = []
+    spec["output"].update(
+        camera_truth=[], lidar=False, lidar_truth=False, depth=False, pseudo_semantics=False, range_view=False
+    )
+    prep.synthetic(
+        bare, pipeline=PipelineSpec.from_dict(spec), progress=False,
+        **{**TINY_PREP_ARGS, "scenes": 1, "frames": 2, "height": 32, "width": 48},  # type: ignore[arg-type]
+    )  # fmt: skip
+    with pytest.raises(ValueError, match=r"bare.*dense depth"):
+        evaluate_stage1(checkpoint, bare)
+
+
+def test_non_synthetic_caches_skip_the_shifted_views(
+    cache: Path, checkpoint: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    other = tmp_path / "other"
+    shutil.copytree(cache, other)
+    manifest = json.loads((other / MANIFEST_NAME).read_text())
+    manifest["source"] = "waymo"
+    (other / MANIFEST_NAME).write_text(json.dumps(manifest))
+    with caplog.at_level("WARNING"):
+        result = evaluate_stage1(
+            checkpoint, other, offsets=(5,), shifts_m=(2.0,), clips_per_scene=1, oracle=False
+        )
+    assert list(result["sections"]) == ["input", "+5"] and result["shifts_m"] == []
+    assert "oracle" not in result["sections"]["input"]
+    assert "skipping the shifted views" in caplog.text
+
+
+def test_cli_prints_the_table_and_writes_the_json(
+    cache: Path, checkpoint: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "r" / "eval.json"
+    argv = ["stage1", "--ckpt", str(checkpoint.parent), "--shards", str(cache), "--out", str(out)]
+    rc = eval_main([*argv, "--offsets", "5", "--shifts", "2", "--clips-per-scene", "1", "--threads", "1"])
+    printed = capsys.readouterr().out
+    assert rc == 0
+    lines = printed.splitlines()
+    assert "PSNR" in lines[1] and "mIoU" in lines[1] and "oracle" in lines[0]
+    assert [ln.split()[0] for ln in lines[2:5]] == ["input", "+5", "shift_2m"]
+    saved = json.loads(out.read_text())
+    assert list(saved["sections"]) == ["input", "+5", "shift_2m"] and saved["clips"] == 1
+    row = lines[2].split()
+    assert float(row[2]) == pytest.approx(saved["sections"]["input"]["model"]["psnr_db"], abs=0.01)
+    assert eval_main(["stage1", "--ckpt", str(tmp_path / "missing.safetensors"), "--shards", str(cache)]) == 2
+    assert "phigenesis-eval: error:" in capsys.readouterr().err

@@ -1,0 +1,390 @@
+"""Stage 1: the range-view adapter's geometry and rules, the trainer (losses, checkpoints, exact resume,
+torchrun), its clear errors, and the PLY export of a trained model."""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from phigenesis import geometry, prep
+from phigenesis.data.pipeline import PipelineSpec
+from phigenesis.data.schema import SCHEMA_VERSION
+from phigenesis.data.shards import Manifest
+from phigenesis.data.taxonomy import SKY
+from phigenesis.export.ply import scene_from_ply
+from phigenesis.export.stage1 import export_ply, predict_frame
+from phigenesis.models import create_model, list_models
+from phigenesis.models.gaussians import GaussianScene
+from phigenesis.models.stage1 import (
+    Stage1Model,
+    pixel_rays,
+    quaternion_multiply,
+    range_view_order,
+)
+from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
+from phigenesis.train.runner import latest_checkpoint, read_metrics
+from phigenesis.train.stage1 import (
+    Stage1TrainConfig,
+    load_stage1,
+    stage1_losses,
+    train_stage1,
+)
+from phigenesis.train.stage1_data import Stage1Clips
+from tests.conftest import TINY_PREP_ARGS
+
+SIZE = (24, 36)  # divisible by vae_tiny's 4x compression; resized from the cache's 60 x 90
+
+
+def tiny_train_config(**overrides: object) -> Stage1TrainConfig:
+    values: dict[str, object] = {
+        "model_overrides": {"image_size": list(SIZE), "adapter": {"width": 16}},
+        "steps": 4,
+        "warmup_steps": 1,
+        "checkpoint_every": 2,
+        "target_offset": 1,
+        "seed": 3,
+        "threads": 1,
+    }
+    values.update(overrides)
+    return Stage1TrainConfig(**values)  # type: ignore[arg-type]
+
+
+def _rig_poses() -> torch.Tensor:
+    """(5, 4, 4) camera poses of a Waymo-like rig at the origin: yaws 0, +45, -45, +90, -90 degrees
+    (left positive), OpenCV camera axes, ego x forward / y left / z up."""
+    ego_from_opencv = torch.tensor([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=torch.float64)
+    poses = []
+    for yaw_deg in (0, 45, -45, 90, -90):
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[:3, :3] = torch.from_numpy(geometry.rotation_z(math.radians(yaw_deg))) @ ego_from_opencv
+        pose[:3, 3] = torch.tensor([1.5, 0.0, 2.0])
+        poses.append(pose)
+    return torch.stack(poses)
+
+
+def _inputs(model: Stage1Model, frames: int = 1, seed: int = 0):
+    h, w = model.config.image_size
+    g = torch.Generator().manual_seed(seed)
+    images = torch.rand(1, frames, 5, 3, h, w, generator=g)
+    k = torch.tensor([[w * 0.8, 0, (w - 1) / 2], [0, w * 0.8, (h - 1) / 2], [0, 0, 1]]).expand(1, 5, 3, 3)
+    poses = _rig_poses().expand(1, frames, 5, 4, 4).clone()
+    times = torch.arange(frames, dtype=torch.float32)[None, :, None].expand(1, frames, 5) * 0.1
+    return images, k.clone(), poses, times
+
+
+# --------------------------------------------------------------------------------------------
+# Model
+
+
+def test_registry_lists_stage1_variants():
+    assert list_models("stage1") == ["stage1_base", "stage1_tiny"]
+
+
+def test_range_view_order_is_left_to_right():
+    order = range_view_order(_rig_poses())
+    assert order.tolist() == [3, 1, 0, 2, 4]  # +90, +45, 0, -45, -90 degrees
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.floats(-1, 1), min_size=8, max_size=8))
+def test_quaternion_multiply_matches_rotation_product(values):
+    a = torch.tensor(values[:4], dtype=torch.float64)
+    b = torch.tensor(values[4:], dtype=torch.float64)
+    if a.norm() < 1e-3 or b.norm() < 1e-3:
+        return
+    got = geometry.quaternion_to_matrix(quaternion_multiply(a, b).numpy())
+    want = geometry.quaternion_to_matrix(a.numpy()) @ geometry.quaternion_to_matrix(b.numpy())
+    np.testing.assert_allclose(got, want, atol=1e-9)
+
+
+def test_zero_initialised_head_gives_pixel_gaussians_on_the_rays():
+    torch.manual_seed(0)
+    model = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16})
+    images, k, poses, times = _inputs(model)
+    with torch.no_grad():
+        pred = model(images, k, poses, times)
+    c = model.config.adapter_config
+    # Depth starts at the geometric middle of [near, far]; colours are the input pixels.
+    np.testing.assert_allclose(pred.pixels.depth.numpy(), math.sqrt(c.near_m * c.far_m), rtol=1e-5)
+    rgb = images.permute(0, 1, 2, 4, 5, 3).clamp(0.01, 0.99)
+    np.testing.assert_allclose(pred.pixels.colour.numpy(), rgb.numpy(), atol=1e-5)
+    # A pixel's centre sits on its ray: camera pose times K^-1 (u, v, 1) * z.
+    v, u, cam = 5, 30, 3
+    ray = torch.linalg.solve(k[0, cam].double(), torch.tensor([u, v, 1.0], dtype=torch.float64))
+    want = (
+        poses[0, 0, cam, :3, :3] @ (ray * pred.pixels.depth[0, 0, cam, v, u].double())
+        + poses[0, 0, cam, :3, 3]
+    )
+    np.testing.assert_allclose(pred.means[0, 0, cam, v, u].double().numpy(), want.numpy(), atol=1e-4)
+    # Identity rotation in the camera frame = the camera's rotation in the world.
+    q = pred.quats[0, 0, cam, v, u].double().numpy()
+    np.testing.assert_allclose(geometry.quaternion_to_matrix(q), poses[0, 0, cam, :3, :3].numpy(), atol=1e-6)
+    # Scales: 0.6 pixel footprints; nothing moves.
+    focal = 0.5 * (k[0, cam, 0, 0] + k[0, cam, 1, 1])
+    np.testing.assert_allclose(
+        pred.pixels.scale[0, 0, cam, v, u].numpy(), 0.6 * math.sqrt(c.near_m * c.far_m) / focal, rtol=1e-5
+    )
+    assert float(pred.velocity.abs().max()) == 0.0
+
+
+def test_pixel_rays_invert_the_intrinsics():
+    k = torch.tensor([[50.0, 0.5, 20.3], [0, 48.0, 11.7], [0, 0, 1]], dtype=torch.float64)
+    rays = pixel_rays(k, 24, 36)  # (3, H, W)
+    uv = k @ rays.reshape(3, -1)
+    v, u = torch.meshgrid(torch.arange(24.0), torch.arange(36.0), indexing="ij")
+    np.testing.assert_allclose(uv[0].numpy(), u.reshape(-1).double().numpy(), atol=1e-9)
+    np.testing.assert_allclose(uv[1].numpy(), v.reshape(-1).double().numpy(), atol=1e-9)
+
+
+def test_scene_rules_sky_spawns_nothing_and_only_dynamic_gaussians_move():
+    torch.manual_seed(1)
+    model = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16})
+    with torch.no_grad():  # a random head: classes, opacities and motion vary from pixel to pixel
+        model.adapter.head[-1].weight.normal_(0.0, 0.5)
+        model.adapter.head[-1].bias.normal_(0.0, 0.5)
+    with torch.no_grad():
+        pred = model(*_inputs(model))
+    logits = pred.pixels.semantic_logits[0]
+    scene = pred.scene(0)
+    expected = ((logits.argmax(-1) != SKY) & (pred.pixels.opacity[0] >= 1 / 255)).sum()
+    assert 0 < len(scene) == int(expected) < logits[..., 0].numel()
+    static = ~scene.dynamic
+    assert 0 < int(static.sum()) < len(scene)
+    assert float(scene.velocity[static].abs().max()) == 0.0
+    assert float(scene.velocity[scene.dynamic].norm(dim=1).min()) > 0.0
+    moving = pred.dynamic_prob[0] > 0.5
+    assert int(scene.dynamic.sum()) == int(
+        (moving & (logits.argmax(-1) != SKY) & (pred.pixels.opacity[0] >= 1 / 255)).sum()
+    )
+    # The soft (training) scene keeps every pixel asked for and scales velocity by the probability.
+    keep = torch.ones(1, 5, *SIZE, dtype=torch.bool)
+    soft = pred.scene(0, keep=keep, hard=False)
+    assert len(soft) == 5 * SIZE[0] * SIZE[1]
+    np.testing.assert_allclose(
+        soft.velocity.numpy(),
+        (pred.velocity[0] * pred.dynamic_prob[0][..., None]).reshape(-1, 3).numpy(),
+        atol=1e-6,
+    )
+
+
+def test_clip_features_are_causal_over_frames():
+    torch.manual_seed(2)
+    model = create_model("stage1_tiny", image_size=list(SIZE), frames=5, adapter={"width": 16})
+    images = _inputs(model, frames=5)[0]
+    feats = model.features(images)
+    assert [f.shape[1] for f in feats] == [5, 5, 5]
+    changed = images.clone()
+    changed[:, 4] = torch.rand_like(changed[:, 4])
+    feats2 = model.features(changed)
+    for a, b in zip(feats, feats2, strict=True):
+        assert torch.equal(a[:, 0], b[:, 0])  # frame 0 never sees later frames
+    assert not torch.equal(feats[-1][:, 4], feats2[-1][:, 4])
+
+
+def test_render_with_per_camera_times_equals_separate_renders():
+    g = torch.Generator().manual_seed(4)
+    n = 300
+    means = torch.randn(n, 3, generator=g) * 2 + torch.tensor([0.0, 0.0, 8.0])
+    scene = GaussianScene(
+        means=means,
+        quats=torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4).clone(),
+        scales=torch.full((n, 3), 0.1),
+        opacities=torch.full((n,), 0.8),
+        colors=torch.rand(n, 3, generator=g),
+        semantic_logits=torch.zeros(n, 0),
+        velocity=torch.randn(n, 3, generator=g),
+        dynamic=torch.ones(n, dtype=torch.bool),
+        time_s=torch.zeros(n),
+    )
+    poses = torch.eye(4).expand(2, 4, 4).clone()
+    poses[1, 0, 3] = 0.5
+    k = torch.tensor([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]]).expand(2, 3, 3)
+    both = scene.render(poses, k, 32, 24, torch.tensor([0.0, 0.3]))
+    for cam, t in enumerate((0.0, 0.3)):
+        one = scene.render(poses[cam : cam + 1], k[cam : cam + 1], 32, 24, t)
+        torch.testing.assert_close(both.rgb[cam], one.rgb[0])
+        torch.testing.assert_close(both.depth[cam], one.depth[0])
+
+
+# --------------------------------------------------------------------------------------------
+# Data
+
+
+def test_moving_pixels_agree_with_the_truth_flow(tiny_cache):
+    data = Stage1Clips(tiny_cache, (60, 90), semantic="truth")
+    clip = data.clip(data.windows()[0][0], 0, [])
+    sample = data.dataset[data.scenes[clip.scene_id][0]]
+    speed = torch.linalg.norm(sample["truth_flow"][:, :2], dim=1)  # [V, H, W] m/s
+    known = clip.context.moving[0] >= 0
+    truth_moving = speed > 0.5
+    agree = (clip.context.moving[0] > 0) == truth_moving
+    assert known.float().mean() > 0.05  # 16-beam LiDAR over 3 frames: sparse dense depth
+    assert agree[known].float().mean() > 0.97
+    assert truth_moving[known].any(), "the tiny scenes should show something moving"
+
+
+def test_clip_times_are_relative_to_the_first_context_frame(tiny_cache):
+    data = Stage1Clips(tiny_cache, SIZE)
+    scene = data.windows()[0][0]
+    clip = data.clip(scene, 1, [1, -1])
+    assert clip.target_indices == [1, 2, 0]
+    sample = data.dataset[data.scenes[scene][2]]
+    want = (sample["camera_timestamp_micros"] - clip.time_origin_micros).double() * 1e-6
+    np.testing.assert_allclose(clip.targets.time_s[1].numpy(), want.numpy())
+    assert clip.context.images.shape == (1, 5, 3, *SIZE)
+
+
+# --------------------------------------------------------------------------------------------
+# Training
+
+
+def test_losses_fall_on_one_clip(tiny_cache):
+    torch.manual_seed(0)
+    torch.set_num_threads(1)
+    model = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16})
+    data = Stage1Clips(tiny_cache, SIZE)
+    clips = [data.clip(data.windows()[0][0], 0, [1])]
+    opt = torch.optim.AdamW(model.trainable_parameters(), lr=5e-3)
+    first = None
+    for _ in range(25):
+        terms, _n = stage1_losses(model, clips)
+        loss = terms["rgb"] + terms["depth"] + terms["pixel_depth"] + 0.2 * terms["semantic"]
+        first = first if first is not None else {k: float(v) for k, v in terms.items()}
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    last = {k: float(v) for k, v in terms.items()}
+    assert last["pixel_depth"] < 0.6 * first["pixel_depth"]
+    assert last["semantic"] < 0.8 * first["semantic"]
+    assert last["rgb"] < first["rgb"]
+
+
+def test_vae_stays_frozen_and_adapter_trains(tiny_cache, tmp_path):
+    vae = create_model("vae_tiny")
+    vae_path = save_checkpoint(tmp_path / "vae.safetensors", vae)
+    run = train_stage1(
+        tiny_cache, tmp_path / "run", tiny_train_config(steps=2, vae_checkpoint=str(vae_path)), progress=False
+    )
+    trained = load_stage1(run.checkpoint)
+    for name, p in vae.state_dict().items():
+        assert torch.equal(trained.vae.state_dict()[name], p), name
+    fresh = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16})
+    head = "adapter.head.1.weight"
+    assert not torch.equal(trained.state_dict()[head], fresh.state_dict()[head])
+
+
+def test_killed_run_resumes_to_the_same_loss_curve(tiny_cache, tmp_path):
+    cfg = tiny_train_config(steps=4, checkpoint_every=2)
+    full = train_stage1(tiny_cache, tmp_path / "full", cfg, progress=False)
+    # "Killed" after step 3: the last checkpoint is step 2, step 3's row is in the CSV already.
+    train_stage1(tiny_cache, tmp_path / "cut", cfg, stop_after=3, progress=False)
+    assert latest_checkpoint(tmp_path / "cut").name == "step-0000002"
+    assert len(read_metrics(tmp_path / "cut")) == 3
+    with pytest.raises(ValueError, match="holds a run already"):
+        train_stage1(tiny_cache, tmp_path / "cut", cfg, progress=False)
+    resumed = train_stage1(tiny_cache, tmp_path / "cut", cfg, resume=True, progress=False)
+    a, b = read_metrics(tmp_path / "full"), read_metrics(tmp_path / "cut")
+    assert [r["step"] for r in b] == [1, 2, 3, 4]
+    for ra, rb in zip(a, b, strict=True):
+        for key in ("loss", "rgb", "depth", "semantic", "grad_norm"):
+            assert ra[key] == pytest.approx(rb[key], rel=1e-6, abs=1e-9), (ra["step"], key)
+    assert full.last["loss"] == pytest.approx(resumed.last["loss"], rel=1e-6)
+    sd_a, sd_b = load_stage1(full.checkpoint).state_dict(), load_stage1(resumed.checkpoint).state_dict()
+    for name in sd_a:
+        torch.testing.assert_close(sd_a[name], sd_b[name], rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="another config"):
+        train_stage1(
+            tiny_cache, tmp_path / "cut", tiny_train_config(steps=4, lr=1.0), resume=True, progress=False
+        )
+
+
+@pytest.mark.skipif(
+    shutil.which("torchrun") is None and not (Path(sys.executable).parent / "torchrun").exists(),
+    reason="no torchrun",
+)
+def test_torchrun_two_cpu_processes(tiny_cache, tmp_path):
+    cfg_path = tmp_path / "tiny.yaml"
+    import yaml
+
+    cfg_path.write_text(yaml.safe_dump(tiny_train_config(steps=2, batch_size=2).to_dict()))
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc_per_node",
+        "2",
+        "--master_port",
+        "29533",
+        "-m",
+        "phigenesis.cli.train",
+        "stage1",
+        "--shards",
+        str(tiny_cache),
+        "--config",
+        str(cfg_path),
+        "--out",
+        str(tmp_path / "ddp"),
+        "--no-progress",
+    ]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env=env)
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = read_metrics(tmp_path / "ddp")
+    assert [r["step"] for r in rows] == [1, 2]
+    assert load_stage1(tmp_path / "ddp" / "model.safetensors").config.image_size == SIZE
+
+
+# --------------------------------------------------------------------------------------------
+# Errors
+
+
+def test_checkpoint_of_another_model_or_config_is_refused(tmp_path, tiny_cache):
+    vae_path = save_checkpoint(tmp_path / "vae.safetensors", create_model("vae_tiny"))
+    with pytest.raises(CheckpointError, match="not a Stage 1 model"):
+        load_stage1(vae_path)
+    wide = save_checkpoint(tmp_path / "wide.safetensors", create_model("vae_tiny", latent_channels=8))
+    with pytest.raises(CheckpointError, match="latent_channels"):
+        train_stage1(
+            tiny_cache, tmp_path / "run", tiny_train_config(vae_checkpoint=str(wide)), progress=False
+        )
+    (tmp_path / "junk.safetensors").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match=r"junk\.safetensors"):
+        load_stage1(tmp_path / "junk.safetensors")
+
+
+def test_cache_without_depth_or_frames_is_refused(tmp_path):
+    spec = PipelineSpec(name="bare", source="synthetic", source_params={})
+    bare = tmp_path / "bare"
+    prep.synthetic(bare, pipeline=spec, progress=False, **{**TINY_PREP_ARGS, "scenes": 1, "frames": 1})
+    with pytest.raises(ValueError, match=r"bare: the cache has no dense depth"):
+        Stage1Clips(bare, SIZE)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    Manifest(SCHEMA_VERSION, "synthetic", {}, {}, "none").save(empty)
+    with pytest.raises(ValueError, match="empty: the cache holds no frames"):
+        Stage1Clips(empty, SIZE)
+
+
+# --------------------------------------------------------------------------------------------
+# Export
+
+
+def test_export_ply_of_a_trained_model(tiny_cache, tmp_path):
+    run = train_stage1(tiny_cache, tmp_path / "run", tiny_train_config(steps=1), progress=False)
+    scene = predict_frame(run.checkpoint, tiny_cache, 1)
+    path = export_ply(run.checkpoint, tiny_cache, tmp_path / "x.ply", 1, t_s=0.0)
+    back = scene_from_ply(path)
+    assert len(back) == len(scene) > 0
+    np.testing.assert_allclose(back.means.numpy(), scene.means_at(0.0).numpy(), rtol=1e-6, atol=1e-5)
+    with pytest.raises(ValueError, match="no frame 999"):
+        predict_frame(run.checkpoint, tiny_cache, 999)
