@@ -3,7 +3,7 @@ synthetic scenes beside an oracle, with its training speed and memory.
 
 Usage (from the repository root, on a quiet machine)::
 
-    python benchmarks/stage1.py [--work /tmp/stage1-bench] [--vae-steps 1000] [--stage1-steps 450] [--reuse]
+    python benchmarks/stage1.py [--work /tmp/stage1-bench] [--vae-steps 1000] [--stage1-steps 560] [--reuse]
 
 1. Caches (reused when present): ``--train-scenes`` synthetic scenes (seed 0) and ``--eval-scenes``
    held-out scenes (seed 100), 40 frames at 96 x 144, bundled synthetic pipeline.
@@ -73,9 +73,11 @@ def main() -> None:
     ap.add_argument("--train-scenes", type=int, default=8)
     ap.add_argument("--eval-scenes", type=int, default=2)
     ap.add_argument("--vae-steps", type=int, default=1000)
-    ap.add_argument("--stage1-steps", type=int, default=450)
+    ap.add_argument("--stage1-steps", type=int, default=560)
     ap.add_argument("--clips-per-scene", type=int, default=3)
-    ap.add_argument("--reuse", action="store_true", help="keep trained runs found in --work")
+    ap.add_argument(
+        "--reuse", action="store_true", help="keep trained runs in --work (and their timings, timings.json)"
+    )
     args = ap.parse_args()
     work = args.work
     work.mkdir(parents=True, exist_ok=True)

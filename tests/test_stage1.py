@@ -25,6 +25,7 @@ from phigenesis.export.ply import scene_from_ply
 from phigenesis.export.stage1 import export_ply, predict_frame
 from phigenesis.models import create_model, list_models
 from phigenesis.models.gaussians import GaussianScene
+from phigenesis.models.losses import edge_aware_smoothness
 from phigenesis.models.stage1 import (
     Stage1Model,
     pixel_rays,
@@ -388,3 +389,18 @@ def test_export_ply_of_a_trained_model(tiny_cache, tmp_path):
     np.testing.assert_allclose(back.means.numpy(), scene.means_at(0.0).numpy(), rtol=1e-6, atol=1e-5)
     with pytest.raises(ValueError, match="no frame 999"):
         predict_frame(run.checkpoint, tiny_cache, 999)
+
+
+def test_edge_aware_smoothness_prefers_depth_edges_at_image_edges():
+    depth = torch.full((2, 12, 16), 10.0)
+    image = torch.full((2, 12, 16, 3), 0.5)
+    assert float(edge_aware_smoothness(depth, image)) == 0.0
+    step = depth.clone()
+    step[:, :, 8:] = 20.0
+    flat = float(edge_aware_smoothness(step, image))
+    edged = image.clone()
+    edged[:, :, 8:] = 0.9  # the image has an edge where the depth steps
+    at_edge = float(edge_aware_smoothness(step, edged))
+    assert flat > 0 and at_edge < 0.05 * flat  # exp(-10 * 0.4) = 0.018
+    # Scale-free: the whole scene twice as far costs the same.
+    assert float(edge_aware_smoothness(2 * step, image)) == pytest.approx(flat, rel=1e-6)

@@ -65,6 +65,21 @@ def log_depth_loss(pred: Tensor, target: Tensor, weight: Tensor) -> Tensor:
     return (w * torch.where(known, err, torch.zeros_like(err))).sum() / total
 
 
+def edge_aware_smoothness(depth: Tensor, image: Tensor, edge_scale: float = 10.0) -> Tensor:
+    """Mean ``|d(1/z)| exp(-edge_scale |dI|)`` over horizontal and vertical neighbours of (..., H, W)
+    depths (metres, > 0) in (..., H, W, 3) images in [0, 1]; the inverse depth is divided by its mean
+    per image, so the loss does not shrink the scene. Smooth where the image is, free at its edges
+    (Monodepth's prior): it carries depth from pixels the LiDAR measured to those it never reached,
+    like the upper floors of a wall."""
+    inv = 1.0 / depth.clamp(min=1e-6)
+    inv = inv / inv.mean(dim=(-2, -1), keepdim=True).clamp(min=1e-6)
+    grad_img_x = (image[..., :, 1:, :] - image[..., :, :-1, :]).abs().mean(-1)
+    grad_img_y = (image[..., 1:, :, :] - image[..., :-1, :, :]).abs().mean(-1)
+    dx = (inv[..., :, 1:] - inv[..., :, :-1]).abs() * torch.exp(-edge_scale * grad_img_x)
+    dy = (inv[..., 1:, :] - inv[..., :-1, :]).abs() * torch.exp(-edge_scale * grad_img_y)
+    return dx.mean() + dy.mean()
+
+
 def semantic_loss(logits: Tensor, labels: Tensor) -> Tensor:
     """Cross-entropy of (..., K) logits against (...) uint8 labels; 255 is ignored."""
     target = labels.long().reshape(-1)

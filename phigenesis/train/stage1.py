@@ -7,7 +7,8 @@ no Gaussian covers) and minimises:
 
 - ``rgb``: ``0.8 L1 + 0.2 (1 - SSIM)`` of the rendered views against the images;
 - ``depth``: confidence-weighted ``|log z - log z_gt|`` of the rendered depth and of the per-pixel
-  depth against the cache's dense depth;
+  depth against the cache's dense depth; ``smooth``: edge-aware smoothness of the per-pixel inverse
+  depth (it carries depth to pixels the LiDAR never reached);
 - ``semantic``: cross-entropy of the per-pixel logits against the labels (synthetic truth where the
   cache has it, else the pseudo labels), plus ``-log(1 - p_sky)`` on unlabelled pixels that have a
   dense depth (a surface is never sky);
@@ -41,7 +42,7 @@ from tqdm import tqdm
 from phigenesis.data.taxonomy import IGNORE_ID, SKY
 from phigenesis.models import create_model
 from phigenesis.models.gaussians import GaussianScene
-from phigenesis.models.losses import log_depth_loss, photometric_loss, semantic_loss
+from phigenesis.models.losses import edge_aware_smoothness, log_depth_loss, photometric_loss, semantic_loss
 from phigenesis.models.stage1 import Stage1Model, Stage1Prediction
 from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from phigenesis.train.runner import (
@@ -58,7 +59,7 @@ from phigenesis.train.stage1_data import Clip, Stage1Clips, ViewSet
 
 log = logging.getLogger(__name__)
 
-LOSS_NAMES = ("rgb", "depth", "pixel_depth", "semantic", "dynamic", "velocity", "motion", "opacity")
+LOSS_NAMES = ("rgb", "depth", "pixel_depth", "smooth", "semantic", "dynamic", "velocity", "motion", "opacity")
 LOG_COLUMNS = ("loss", *LOSS_NAMES, "lr", "grad_norm", "gaussians", "seconds")
 
 
@@ -98,6 +99,7 @@ class Stage1TrainConfig:
             "rgb": 1.0,
             "depth": 0.5,
             "pixel_depth": 0.5,
+            "smooth": 0.2,
             "semantic": 0.2,
             "dynamic": 0.2,
             "velocity": 0.05,
@@ -224,6 +226,7 @@ def stage1_losses(model: Stage1Model, clips: list[Clip]) -> tuple[dict[str, Tens
         terms["opacity"].append((alpha * sky).sum() / sky.sum().clamp(min=1.0))
         px, ctx = pred.pixels, clip.context
         terms["pixel_depth"].append(log_depth_loss(px.depth[b], ctx.depth, ctx.depth_confidence))
+        terms["smooth"].append(edge_aware_smoothness(px.depth[b], ctx.images.permute(0, 1, 3, 4, 2)))
         terms["semantic"].append(
             semantic_loss(px.semantic_logits[b], ctx.semantic) + _not_sky(px.semantic_logits[b], ctx)
         )
