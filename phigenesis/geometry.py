@@ -18,6 +18,7 @@ Every function accepts leading batch dimensions where the docstring says ``...``
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -73,21 +74,24 @@ def quaternion_canonical(q: ArrayLike) -> F64:
     return np.where(q[..., :1] < 0.0, -q, q)
 
 
+def quaternion_product_entries(a: Sequence[Any], b: Sequence[Any]) -> list[Any]:
+    """The 4 components (w, x, y, z) of the Hamilton product ``a * b`` of quaternions given as their
+    components, for any array type with arithmetic (numpy here, torch in the Stage 1 model)."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return [
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ]
+
+
 def quaternion_multiply(a: ArrayLike, b: ArrayLike) -> F64:
     """Hamilton product ``a * b`` of ``(..., 4)`` quaternions: rotate by b first, then by a."""
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
+    return np.stack(quaternion_product_entries(np.moveaxis(a, -1, 0), np.moveaxis(b, -1, 0)), axis=-1)
 
 
 def quaternion_conjugate(q: ArrayLike) -> F64:

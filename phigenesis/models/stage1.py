@@ -101,17 +101,7 @@ class Stage1Config:
 
 def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
     """Hamilton product of (..., 4) w, x, y, z quaternions (``a`` applied after ``b``)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        dim=-1,
-    )
+    return torch.stack(geometry.quaternion_product_entries(a.unbind(-1), b.unbind(-1)), dim=-1)
 
 
 def pixel_rays(intrinsics: Tensor, height: int, width: int) -> Tensor:
