@@ -478,8 +478,9 @@ def evaluate_clip(
     """Predicts one clip's scene and renders the model (and the oracle) at every section's views."""
     size = tuple(model.config.image_size)
     t = model.config.frames
-    clip = data.clip(scene_id, start, list(offsets))
-    samples = {i: data.dataset[data.scenes[scene_id][i]] for i in sorted(set(clip.target_indices))}
+    clip = data.clip(scene_id, start, list(offsets), keep_frames=True)
+    samples = clip.frames
+    assert samples is not None
     truths = {i: frame_truth(s, size) for i, s in samples.items()}  # type: ignore[arg-type]
     views = {"input": concat_views([target_views(clip, j, truths[clip.target_indices[j]]) for j in range(t)])}
     for j, off in enumerate(offsets):

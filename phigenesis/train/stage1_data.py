@@ -44,7 +44,7 @@ class ViewSet:
     depth: Tensor  # [F, V, H, W] dense depth (camera z, metres), 0 = unknown
     depth_confidence: Tensor  # [F, V, H, W] in [0, 1]
     semantic: Tensor  # [F, V, H, W] uint8 unified classes, 255 = unknown
-    moving: Tensor  # [F, V, H, W] float32: 1 moving, 0 static, -1 unknown (no depth)
+    moving: Tensor  # [F, V, H, W] float32: 1 moving, 0 static, -1 unknown (no depth, or not context)
     box_velocity: Tensor  # [F, V, H, W, 3] float32 world-frame velocity of the moving box, m/s
 
 
@@ -60,13 +60,21 @@ class Clip:
     camera_names: list[str]
     context: ViewSet
     targets: ViewSet
+    #: The loaded cache frames by scene frame index (loader dicts), when the caller asked to keep them.
+    frames: dict[int, dict[str, Any]] | None = None
 
 
 def _views(
-    frames: list[dict[str, Any]], size_hw: tuple[int, int], semantic: SemanticTarget, origin: int
+    frames: list[dict[str, Any]],
+    size_hw: tuple[int, int],
+    semantic: SemanticTarget,
+    origin: int,
+    moving_frames: int,
 ) -> ViewSet:
+    """The views of ``frames`` at ``size_hw``; what moves is found for the first ``moving_frames``
+    only (the context: the losses use it nowhere else), the others are marked unknown (-1)."""
     images, poses, times, depth, conf, sem, moving, vel = [], [], [], [], [], [], [], []
-    for f in frames:
+    for j, f in enumerate(frames):
         h_in, w_in = f["images"].shape[-2:]
         images.append(resize_images(f["images"], size_hw))
         wfc = f["camera_world_from_ego"] @ f["ego_from_camera"]
@@ -77,7 +85,10 @@ def _views(
         conf.append(resize_nearest(f["depth_dense_confidence"], size_hw))
         sem.append(resize_nearest(_semantic_map(f, semantic), size_hw))
         k = resize_intrinsics(f["intrinsics"].double(), (h_in, w_in), size_hw)
-        m, v = _moving_pixels(f, d, k, wfc)
+        if j < moving_frames:
+            m, v = _moving_pixels(f, d, k, wfc)
+        else:
+            m, v = torch.full(d.shape, -1.0), torch.zeros(*d.shape, 3)
         moving.append(m)
         vel.append(v)
     return ViewSet(
@@ -193,9 +204,11 @@ class Stage1Clips:
             raise ValueError(f"{path}: row {row} has no dense depth")
         return sample
 
-    def clip(self, scene_id: str, start: int, target_offsets: list[int]) -> Clip:
+    def clip(self, scene_id: str, start: int, target_offsets: list[int], keep_frames: bool = False) -> Clip:
         """The clip whose context starts at frame ``start`` of ``scene_id``; targets at the context
-        frames plus ``start + T - 1 + offset`` for each offset (clamped to the scene)."""
+        frames plus ``start + T - 1 + offset`` for each offset (clamped to the scene).
+        ``keep_frames``: the clip also carries the loaded cache frames (``Clip.frames``), for callers
+        that need more of them (truth maps) without decoding them again."""
         n = self.scene_length(scene_id)
         context_idx = list(range(start, start + self.frames))
         last = context_idx[-1]
@@ -204,7 +217,7 @@ class Stage1Clips:
         origin = int(loaded[start]["frame_timestamp_micros"])
         first = loaded[start]
         k = resize_intrinsics(first["intrinsics"].double(), tuple(first["images"].shape[-2:]), self.size_hw)
-        targets = _views([loaded[i] for i in target_idx], self.size_hw, self.semantic, origin)
+        targets = _views([loaded[i] for i in target_idx], self.size_hw, self.semantic, origin, self.frames)
         context = ViewSet(**{f.name: getattr(targets, f.name)[: self.frames] for f in fields(ViewSet)})
         return Clip(
             scene_id=scene_id,
@@ -215,4 +228,5 @@ class Stage1Clips:
             camera_names=list(first["camera_names"]),
             context=context,
             targets=targets,
+            frames=loaded if keep_frames else None,
         )
