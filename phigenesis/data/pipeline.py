@@ -39,13 +39,10 @@ from phigenesis.data.shards import (
 )
 from phigenesis.data.sources import make_source
 from phigenesis.data.stages import get_stage
+from phigenesis.errors import PhiGenesisError, PrepError, describe
 
 log = logging.getLogger("phigenesis.prep")
 OnError = Literal["raise", "skip"]
-
-
-class PrepError(Exception):
-    """A prep run cannot start or a scene failed; the message says which file or scene and why."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -166,6 +163,9 @@ class SceneResult:
     shards: list[ShardInfo] = field(default_factory=list)
     error: str | None = None
     seconds: float = 0.0
+    #: The failure was an input problem (a :class:`~phigenesis.errors.PhiGenesisError`, whose
+    #: message names the file and record); False for anything else, which is a toolkit bug.
+    error_is_input: bool = True
 
 
 def process_scene(task: SceneTask, progress: ProgressHandle | None = None) -> SceneResult:
@@ -191,9 +191,14 @@ def process_scene(task: SceneTask, progress: ProgressHandle | None = None) -> Sc
                     progress.put((task.scene_id, i + 1, total))
         return SceneResult(task.scene_id, scene.source, total, writer.shards, None, time.perf_counter() - t0)
     except Exception as e:  # reported per scene; the coordinator applies the error policy
-        detail = "".join(traceback.format_exception_only(type(e), e)).strip()
         log.debug("scene %s failed:\n%s", task.scene_id, traceback.format_exc())
-        return SceneResult(task.scene_id, task.source, error=detail, seconds=time.perf_counter() - t0)
+        return SceneResult(
+            task.scene_id,
+            task.source,
+            error=describe(e),
+            seconds=time.perf_counter() - t0,
+            error_is_input=isinstance(e, PhiGenesisError),
+        )
 
 
 # --------------------------------------------------------------------------------------------

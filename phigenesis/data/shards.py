@@ -32,15 +32,13 @@ from typing import Any
 
 import pyarrow as pa
 
+from phigenesis.errors import CacheError
+
 MANIFEST_NAME = "manifest.json"
 SHARDS_DIR = "shards"
 CACHE_FORMAT = "phigenesis-cache"
 DEFAULT_SHARD_MAX_BYTES = 256 * 1024 * 1024
 TMP_MARKER = ".tmp-"
-
-
-class CacheError(Exception):
-    """A cache is missing, malformed or corrupt; the message names the file and the problem."""
 
 
 # --------------------------------------------------------------------------------------------

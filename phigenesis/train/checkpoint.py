@@ -27,14 +27,11 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 from torch import nn
 
+from phigenesis.errors import CheckpointError
 from phigenesis.models import create_model
 
 FORMAT = "phigenesis.checkpoint"
 VERSION = 1
-
-
-class CheckpointError(ValueError):
-    """A checkpoint that cannot be read, or that does not match what was asked for."""
 
 
 @dataclass

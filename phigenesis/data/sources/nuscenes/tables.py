@@ -17,6 +17,8 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
+from phigenesis.errors import SourceError
+
 #: The tables of a nuScenes version, all required.
 TABLE_NAMES: tuple[str, ...] = (
     "attribute",
@@ -37,7 +39,7 @@ TABLE_NAMES: tuple[str, ...] = (
 Record = dict[str, Any]
 
 
-class NuScenesError(ValueError):
+class NuScenesError(SourceError):
     """A nuScenes dataset is incomplete or inconsistent; the message names the table, the token
     or the file."""
 

@@ -22,6 +22,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from phigenesis.errors import SourceError
+
 #: CameraName codes (dataset.proto). Perception data has 1-5; 6-8 exist in v1 only.
 CAMERA_NAMES: dict[int, str] = {
     1: "FRONT",
@@ -52,7 +54,7 @@ READOUT_CODES: dict[str, int] = {v: k for k, v in READOUT_DIRECTIONS.items()}
 BOX_TYPES: dict[int, str] = {0: "UNKNOWN", 1: "VEHICLE", 2: "PEDESTRIAN", 3: "SIGN", 4: "CYCLIST"}
 
 
-class WaymoFormatError(ValueError):
+class WaymoFormatError(SourceError):
     """Input that is not valid Waymo data; the message names the file and where in it."""
 
 

@@ -1,0 +1,48 @@
+"""The errors the toolkit reports to its users, in one hierarchy.
+
+Every error raised because of what a user gave the toolkit (a dataset file, a cache, a manifest,
+a config, a checkpoint, a run folder, an argument) is a :class:`PhiGenesisError`. Its message is
+complete on its own: it names the file, the record in it (byte offset, row, table + token) and the
+field, and says what is wrong, so the command line prints it as is, without a class path or a
+traceback. Anything else that escapes is a bug in the toolkit, and is reported as one.
+
+Hierarchy::
+
+    PhiGenesisError
+      PrepError          a prep run cannot start, or a scene failed
+        SourceError      a dataset file is invalid (WaymoFormatError, NuScenesError, ...)
+      CacheError         a cache directory, manifest or shard is missing, malformed or corrupt
+      CheckpointError    a checkpoint or a run folder cannot be used
+
+The dataset and checkpoint errors are also ``ValueError`` s, as they were before this module.
+"""
+
+from __future__ import annotations
+
+
+class PhiGenesisError(Exception):
+    """An input the toolkit cannot use; the message names the file, the record and the field."""
+
+
+class PrepError(PhiGenesisError):
+    """A prep run cannot start or a scene failed; the message says which file or scene and why."""
+
+
+class SourceError(PrepError, ValueError):
+    """A dataset file is invalid: the message names the file, the record and the field."""
+
+
+class CacheError(PhiGenesisError):
+    """A cache is missing, malformed or corrupt; the message names the file and the problem."""
+
+
+class CheckpointError(PhiGenesisError, ValueError):
+    """A checkpoint or run folder that cannot be read, or that does not match what was asked for."""
+
+
+def describe(error: BaseException) -> str:
+    """The one-line message a user sees for ``error``: a :class:`PhiGenesisError`'s own message;
+    for anything else (a bug, or an error of a library we call) the exception's type and message."""
+    if isinstance(error, PhiGenesisError):
+        return str(error)
+    return f"{type(error).__name__}: {error}"
