@@ -27,81 +27,13 @@ its range is ``|d|`` (computed in float64, stored as float32: exact), its azimut
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from numpy.typing import NDArray
 
+from phigenesis.data.range_records import EMPTY, LidarRangeImage, column_azimuths_rad
 from phigenesis.data.records import LidarSweep
 
-#: ``point_index`` of an empty cell.
-EMPTY = -1
-
-
-@dataclass
-class LidarRangeImage:
-    """One LiDAR's sweep as an ``H x W`` (beams x azimuth bins) image.
-
-    Attributes:
-        range_m: (H, W) float32 distance from the point's ray origin, metres; 0 = empty.
-        intensity: (H, W) float32 return strength of the kept point; 0 = empty.
-        point_index: (H, W) int32 index into the sweep's points of the kept point; -1 = empty.
-        beam_inclination_rad: (H,) float32 elevation of each row's rays (median of its points),
-            NaN for a row without points.
-        column_origin_ego: (W, 3) float32 ray origin of each column in the ego frame (mean of its
-            points' origins), NaN for a column without points.
-        overflow_index: (K,) int32 points that lost a collision (farther than the kept one).
-        overflow_cell: (K,) int32 their cells, ``row * W + column``.
-        lidar_id: which LiDAR of the sweep this is.
-    """
-
-    range_m: NDArray[np.float32]
-    intensity: NDArray[np.float32]
-    point_index: NDArray[np.int32]
-    beam_inclination_rad: NDArray[np.float32]
-    column_origin_ego: NDArray[np.float32]
-    overflow_index: NDArray[np.int32]
-    overflow_cell: NDArray[np.int32]
-    lidar_id: int = 0
-
-    def __post_init__(self) -> None:
-        h, w = self.point_index.shape
-        for name, shape, dtype in (
-            ("range_m", (h, w), np.float32),
-            ("intensity", (h, w), np.float32),
-            ("point_index", (h, w), np.int32),
-            ("beam_inclination_rad", (h,), np.float32),
-            ("column_origin_ego", (w, 3), np.float32),
-            ("overflow_index", self.overflow_index.shape[:1], np.int32),
-            ("overflow_cell", self.overflow_index.shape[:1], np.int32),
-        ):
-            arr = getattr(self, name)
-            if arr.shape != shape or arr.dtype != dtype:
-                raise ValueError(
-                    f"{name} must be {shape} {np.dtype(dtype).name}, got {arr.shape} {arr.dtype}"
-                )
-
-    @property
-    def height(self) -> int:
-        return self.point_index.shape[0]
-
-    @property
-    def width(self) -> int:
-        return self.point_index.shape[1]
-
-    @property
-    def valid(self) -> NDArray[np.bool_]:
-        """(H, W) True where a point is."""
-        return self.point_index != EMPTY
-
-    def column_azimuths_rad(self) -> NDArray[np.float64]:
-        """(W,) azimuth of each column's centre, ego frame."""
-        return column_azimuths_rad(self.width)
-
-
-def column_azimuths_rad(width: int) -> NDArray[np.float64]:
-    """(W,) centre azimuths of ``width`` columns, from just left of the rear, clockwise."""
-    return np.pi * (1.0 - (2.0 * np.arange(width) + 1.0) / width)
+__all__ = ["EMPTY", "LidarRangeImage", "column_azimuths_rad"]
 
 
 def _rays(sweep: LidarSweep) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:

@@ -16,17 +16,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, fields
-from typing import TYPE_CHECKING, Any, Literal, overload
+from typing import Any, Literal, overload
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
-
-if TYPE_CHECKING:  # records of the range-view modules, which build on this one
-    from phigenesis.data.lidar_range import LidarRangeImage
-    from phigenesis.data.rangeview import RangeViewLayout
+from phigenesis.data.range_records import LidarRangeImage, RangeViewLayout
 
 BoxStatus = Literal["annotated", "interpolated", "extrapolated"]
 BOX_STATUSES: tuple[BoxStatus, ...] = ("annotated", "interpolated", "extrapolated")
