@@ -145,3 +145,16 @@ def test_lazy_frames_load_on_access_and_map_lazily():
     assert [f.frame_index for f in frames[0:2]] == [0, 1]
     with pytest.raises(IndexError):
         frames[3]
+
+
+def test_dropped_values_count_each_frame_once_however_often_it_loads():
+    from phigenesis.data.records import DroppedValues
+
+    dropped = DroppedValues()
+    what = "LiDAR points with non-finite coordinates"
+    dropped.add(what, 0, 5)
+    dropped.add(what, 0, 5)  # frame 0 loaded a second time (geometry pass, then the full frame)
+    dropped.add(what, 2, 1)
+    dropped.add("boxes with a non-finite field", 1, 0)  # nothing dropped: not recorded
+    assert dropped.totals() == {what: 6}
+    assert dropped.describe() == f"6 {what} (2 frames)"

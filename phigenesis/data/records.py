@@ -680,6 +680,38 @@ class KeyframeBoxes:
     token: str = ""
 
 
+class DroppedValues:
+    """What a source left out of a scene because it was invalid (LiDAR points with non-finite
+    coordinates, ...), counted once per frame however often a lazy frame is loaded.
+
+    Sources call :meth:`add` as they build frames; the pipeline records :meth:`totals` in the
+    manifest's scene entry and logs them once the scene is written.
+    """
+
+    def __init__(self) -> None:
+        self._counts: dict[tuple[str, int], int] = {}
+
+    def add(self, what: str, frame_index: int, count: int) -> None:
+        """Records that ``count`` items of kind ``what`` (a plural noun phrase, e.g. "LiDAR points
+        with non-finite coordinates") were left out of frame ``frame_index``."""
+        if count:
+            self._counts[(what, int(frame_index))] = int(count)
+
+    def totals(self) -> dict[str, int]:
+        """Count per kind over the frames loaded so far."""
+        out: dict[str, int] = {}
+        for (what, _frame), n in sorted(self._counts.items()):
+            out[what] = out.get(what, 0) + n
+        return out
+
+    def describe(self) -> str:
+        """One line, e.g. ``12 LiDAR points with non-finite coordinates (3 frames)``; "" if none."""
+        frames: dict[str, int] = {}
+        for what, _frame in self._counts:
+            frames[what] = frames.get(what, 0) + 1
+        return "; ".join(f"{n} {what} ({frames[what]} frames)" for what, n in self.totals().items())
+
+
 @dataclass
 class Scene:
     """A driving sequence: its frames and what is fixed across them.
@@ -695,6 +727,7 @@ class Scene:
             map), keyed by name; never stored.
         keyframes: annotated keyframes where annotations are sparser than frames (nuScenes), in
             time order; empty where every frame carries its own boxes (Waymo, synthetic).
+        dropped: what the source left out because it was invalid (see :class:`DroppedValues`).
     """
 
     scene_id: str
@@ -704,6 +737,7 @@ class Scene:
     metadata: dict[str, Any] = field(default_factory=dict)
     products: dict[str, Any] = field(default_factory=dict)
     keyframes: list[KeyframeBoxes] = field(default_factory=list)
+    dropped: DroppedValues = field(default_factory=DroppedValues, compare=False)
 
     def __len__(self) -> int:
         return len(self.frames)
