@@ -91,9 +91,10 @@ def waymo(
 
     ``input`` is a ``.tfrecord`` file, a folder of them, or a v2 root; ``split`` picks a subfolder
     and ``segments`` keeps segments by name or shell pattern (see
-    :class:`~phigenesis.data.sources.waymo.WaymoConfig`). A segment that cannot be read fails
-    with an error naming the file and record (or component); with ``on_error="skip"`` the others
-    are converted and the manifest lists the skipped ones with the reason.
+    :class:`~phigenesis.data.sources.waymo.WaymoConfig`). An invalid record fails its segment
+    with an error naming the file, the record and the field; with ``on_error="skip"`` only the
+    invalid part is left out (a box, an image, a LiDAR, a frame; counted in the manifest), a
+    segment that cannot be read at all is skipped, and the manifest lists it with the reason.
     """
     overrides = {
         "input": str(Path(input).expanduser().resolve()),
@@ -101,6 +102,7 @@ def waymo(
         "segments": list(segments),
         "format": format,
         "check_crc": check_crc,
+        "on_error": on_error,
     }
     return prepare(
         out,
@@ -159,7 +161,10 @@ def nuscenes(
 
 
 def verify(cache_dir: str | os.PathLike[str]) -> VerifyReport:
-    """Re-checks every shard of a cache against its manifest (see :func:`verify_cache`)."""
+    """Re-checks a cache against its manifest: the manifest's schema and shard paths, then every
+    shard's size, SHA-256, footer, rows, columns and schema version and each row's and column's
+    CRC (see :func:`~phigenesis.data.shards.verify_cache`). Never raises on a bad cache: each
+    problem is a line of ``report.errors`` naming the shard, row and column."""
     return verify_cache(cache_dir)
 
 

@@ -76,21 +76,22 @@ def test_stages_run_in_spec_order_on_every_frame_before_writing(tmp_path: Path):
             scene.scene_id, scene.source, scene.calibrations, scene.frames.map(shift), scene.metadata
         )
 
-    @register_stage("test_only_double_time")
-    def double_time(scene: Scene, params: dict) -> Scene:
-        def double(frame: Frame) -> Frame:
-            frame.timestamp_micros *= 2
+    # Small changes of the frame time only: a frame time far from its cameras' is an invalid record.
+    @register_stage("test_only_floor_time")
+    def floor_time(scene: Scene, params: dict) -> Scene:
+        def floor(frame: Frame) -> Frame:
+            frame.timestamp_micros -= frame.timestamp_micros % params["micros"]
             return frame
 
         return Scene(
-            scene.scene_id, scene.source, scene.calibrations, scene.frames.map(double), scene.metadata
+            scene.scene_id, scene.source, scene.calibrations, scene.frames.map(floor), scene.metadata
         )
 
     try:
         base = load_pipeline("synthetic").to_dict()
         base["stages"] = [
-            {"name": "test_only_shift_time", "params": {"micros": 5}},
-            {"name": "test_only_double_time"},
+            {"name": "test_only_shift_time", "params": {"micros": 7}},
+            {"name": "test_only_floor_time", "params": {"micros": 4}},
         ]
         spec = PipelineSpec.from_dict(base)
         args = {**TINY_PREP_ARGS, "scenes": 1, "frames": 2}
@@ -100,9 +101,10 @@ def test_stages_run_in_spec_order_on_every_frame_before_writing(tmp_path: Path):
         for i in range(2):
             t_plain = plain.read(i).column("frame_timestamp_micros")[0].as_py()
             t_staged = staged.read(i).column("frame_timestamp_micros")[0].as_py()
-            assert t_staged == (t_plain + 5) * 2
+            assert t_staged == (t_plain + 7) // 4 * 4
+            assert t_staged != t_plain // 4 * 4 + 7  # what the other order gives
         assert staged.manifest.fingerprint != plain.manifest.fingerprint
         assert np.array_equal(staged.frame(0).lidar.points_ego, plain.frame(0).lidar.points_ego)
     finally:
         STAGES.pop("test_only_shift_time", None)
-        STAGES.pop("test_only_double_time", None)
+        STAGES.pop("test_only_floor_time", None)

@@ -2,12 +2,16 @@
 
 Every executor yields results as tasks finish (in completion order) and forwards progress
 messages ``(key, done, total)`` that tasks send through the ``progress`` handle they receive.
+Stopping early (the consumer closes the iterator, or an interrupt or error escapes it) cancels the
+tasks not yet started and stops the running ones: when the iterator is closed, no worker process
+still runs. Pool workers ignore Ctrl-C; the coordinating process decides what an interrupt stops.
 """
 
 from __future__ import annotations
 
 import multiprocessing as mp
 import queue as queue_module
+import signal
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from typing import Any, Literal, Protocol, TypeVar
@@ -47,7 +51,8 @@ def run_tasks(
     ``local`` with ``workers <= 1`` runs inline in this process; with more workers it uses a
     process pool (spawned processes, so native libraries start clean). ``ray`` submits Ray tasks
     to the cluster at ``ray_address`` (or a local Ray started with ``workers`` CPUs).
-    A consumer that stops iterating early cancels the tasks not yet started.
+    A consumer that stops early (closing the iterator) cancels the tasks not yet started and stops
+    the running ones.
     """
     if executor == "local":
         if workers <= 1:
@@ -72,6 +77,12 @@ def _drain(q: Any, on_progress: Callable[[ProgressMessage], None] | None) -> Non
             on_progress(item)
 
 
+def _ignore_interrupts() -> None:
+    """Pool worker initializer: Ctrl-C reaches the whole process group, and only the coordinator
+    should act on it (it stops the workers itself)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _run_pool(
     fn: Callable[[T, ProgressHandle | None], R],
     tasks: Sequence[T],
@@ -79,19 +90,44 @@ def _run_pool(
     on_progress: Callable[[ProgressMessage], None] | None,
 ) -> Iterator[R]:
     ctx = mp.get_context("spawn")
-    with ctx.Manager() as manager, ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+    with ctx.Manager() as manager:
         q = manager.Queue()
-        pending: set[Future[R]] = {pool.submit(fn, task, q) for task in tasks}
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_interrupts)
+        finished = False
         try:
+            pending: set[Future[R]] = {pool.submit(fn, task, q) for task in tasks}
             while pending:
                 done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
                 _drain(q, on_progress)
                 for fut in done:
                     yield fut.result()
             _drain(q, on_progress)
+            finished = True
         finally:
-            for fut in pending:
-                fut.cancel()
+            if finished:
+                pool.shutdown(wait=True)
+            else:
+                _stop_pool(pool)
+
+
+#: How long a worker process gets to exit after SIGTERM before it is killed, in seconds.
+_WORKER_EXIT_WAIT_S = 10.0
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Stops a pool now: cancels the tasks not started, terminates the worker processes (running
+    tasks included) and waits until they have exited, so no worker writes after this returns."""
+    # ProcessPoolExecutor has no public way to stop running tasks before Python 3.14's
+    # terminate_workers(); its process table is the one handle on them.
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        process.terminate()
+    for process in processes:
+        process.join(_WORKER_EXIT_WAIT_S)
+        if process.is_alive():
+            process.kill()
+            process.join()
 
 
 def _run_ray(
@@ -125,8 +161,8 @@ def _run_ray(
                     yield ray.get(ref)
             _drain(q, on_progress)
         finally:
-            for ref in refs:
-                ray.cancel(ref)
+            for ref in refs:  # stopped early: end the running tasks too, not only the queued ones
+                ray.cancel(ref, force=True)
     finally:
         if started_here:
             ray.shutdown()

@@ -8,6 +8,7 @@ directory resumes (finished scenes are skipped), while a different command is re
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import importlib.resources
@@ -24,18 +25,24 @@ from typing import Any, Literal
 import yaml
 
 from phigenesis import __version__
+from phigenesis.data.cache_lock import LOCK_NAME, CacheLock
 from phigenesis.data.executors import ExecutorName, ProgressHandle, ProgressMessage, run_tasks
 from phigenesis.data.schema import SCHEMA_VERSION, CacheContents, frame_schema, frame_to_batch
 from phigenesis.data.shards import (
     DEFAULT_SHARD_MAX_BYTES,
     MANIFEST_NAME,
     SHARDS_DIR,
+    STAGING_DIR,
+    SWAP_MARKER,
     TMP_MARKER,
     CacheError,
+    CacheWriteError,
     Manifest,
     SceneEntry,
     ShardInfo,
     ShardWriter,
+    atomic_write_bytes,
+    fsync_dir,
 )
 from phigenesis.data.sources import make_source
 from phigenesis.data.stages import get_stage
@@ -99,20 +106,44 @@ class PipelineSpec:
         }
 
 
+SPEC_SUFFIXES = (".yaml", ".yml")
+
+
+def bundled_pipelines() -> list[str]:
+    """Names of the pipeline specs that ship with the toolkit (``pipelines/*.yaml``)."""
+    root = importlib.resources.files("phigenesis.pipelines")
+    return sorted(p.name[: -len(".yaml")] for p in root.iterdir() if p.name.endswith(".yaml"))
+
+
+def is_spec_path(name_or_path: str | os.PathLike[str]) -> bool:
+    """Whether ``name_or_path`` names a spec file rather than a bundled pipeline: it ends in
+    ``.yaml``/``.yml`` or holds a path separator. A bare name is always a bundled pipeline, so a
+    folder called ``waymo`` in the working directory does not shadow the bundled ``waymo``."""
+    text = os.fspath(name_or_path)
+    separators = [s for s in (os.sep, os.altsep, "/") if s]
+    return text.lower().endswith(SPEC_SUFFIXES) or any(s in text for s in separators)
+
+
 def load_pipeline(name_or_path: str | os.PathLike[str]) -> PipelineSpec:
-    """A pipeline spec from a YAML file path, or by name from the bundled ``pipelines/``."""
-    path = Path(name_or_path)
-    if path.suffix in (".yaml", ".yml") or path.exists():
+    """A pipeline spec from a YAML file (a ``.yaml``/``.yml`` path, or any path with a separator)
+    or, for a bare name, the bundled spec of that name (see :func:`is_spec_path`)."""
+    if is_spec_path(name_or_path):
+        path = Path(name_or_path)
         if not path.is_file():
             raise PrepError(f"{path}: pipeline spec not found")
         text = path.read_text()
         where = str(path)
     else:
-        res = importlib.resources.files("phigenesis.pipelines") / f"{name_or_path}.yaml"
-        if not res.is_file():
-            raise PrepError(f"no bundled pipeline named {name_or_path!r}")
+        name = os.fspath(name_or_path)
+        res = importlib.resources.files("phigenesis.pipelines") / f"{name}.yaml"
+        if not name or not res.is_file():
+            raise PrepError(
+                f"no bundled pipeline named {name!r}; the bundled ones are "
+                f"{', '.join(bundled_pipelines())} (a spec file needs a .yaml or .yml suffix, "
+                "or a path such as ./my-spec)"
+            )
         text = res.read_text()
-        where = f"pipelines/{name_or_path}.yaml"
+        where = f"pipelines/{name}.yaml"
     try:
         d = yaml.safe_load(text)
     except yaml.YAMLError as e:
@@ -132,8 +163,16 @@ def _merge(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+#: Source arguments that do not make a cache another cache: the error policy. A scene that
+#: completes under ``raise`` had nothing to leave out, so it is the scene ``skip`` makes, and a
+#: rerun with ``--on-error skip`` after a failed scene resumes instead of being refused.
+POLICY_ARGUMENTS = frozenset({"on_error"})
+
+
 def fingerprint(source: str, arguments: dict[str, Any], pipeline: dict[str, Any]) -> str:
-    """Hash of everything that determines a cache's rows."""
+    """Hash of everything that determines a cache's rows (the arguments but the error policy,
+    :data:`POLICY_ARGUMENTS`)."""
+    arguments = {k: v for k, v in arguments.items() if k not in POLICY_ARGUMENTS}
     blob = json.dumps(
         {"source": source, "arguments": arguments, "pipeline": pipeline, "schema_version": SCHEMA_VERSION},
         sort_keys=True,
@@ -166,6 +205,14 @@ class SceneResult:
     #: The failure was an input problem (a :class:`~phigenesis.errors.PhiGenesisError`, whose
     #: message names the file and record); False for anything else, which is a toolkit bug.
     error_is_input: bool = True
+    #: The failure was in writing the cache (a full disk, ...), not in the scene: the run stops
+    #: whatever the error policy, and the scene is not recorded as failed.
+    error_stops_run: bool = False
+    #: What the source left out of the scene as invalid, count per kind
+    #: (:meth:`~phigenesis.data.records.DroppedValues.totals`), and the same as one line for the
+    #: log (:meth:`~phigenesis.data.records.DroppedValues.describe`; "" if nothing).
+    dropped: dict[str, int] = field(default_factory=dict)
+    dropped_description: str = ""
 
 
 def process_scene(task: SceneTask, progress: ProgressHandle | None = None) -> SceneResult:
@@ -189,7 +236,16 @@ def process_scene(task: SceneTask, progress: ProgressHandle | None = None) -> Sc
                 writer.write(frame_to_batch(frame, scene.source, schema))
                 if progress is not None:
                     progress.put((task.scene_id, i + 1, total))
-        return SceneResult(task.scene_id, scene.source, total, writer.shards, None, time.perf_counter() - t0)
+        return SceneResult(
+            task.scene_id,
+            scene.source,
+            total,
+            writer.shards,
+            None,
+            time.perf_counter() - t0,
+            dropped=scene.dropped.totals(),
+            dropped_description=scene.dropped.describe(),
+        )
     except Exception as e:  # reported per scene; the coordinator applies the error policy
         log.debug("scene %s failed:\n%s", task.scene_id, traceback.format_exc())
         return SceneResult(
@@ -198,6 +254,7 @@ def process_scene(task: SceneTask, progress: ProgressHandle | None = None) -> Sc
             error=describe(e),
             seconds=time.perf_counter() - t0,
             error_is_input=isinstance(e, PhiGenesisError),
+            error_stops_run=isinstance(e, CacheWriteError),
         )
 
 
@@ -232,6 +289,59 @@ class PrepSummary:
         return "\n".join(lines)
 
 
+class PrepInterrupted(KeyboardInterrupt):
+    """The interrupt (Ctrl-C) that stopped :func:`prepare`, raised once the cache is consistent:
+    every scene recorded complete is in the manifest, worker processes are stopped, unfinished
+    files are removed and the lock is released. ``str()`` is one line saying what was kept and how
+    to resume.
+
+    Attributes:
+        cache_dir: the cache directory of the run.
+        scenes_complete: complete scenes of the cache the run was building.
+        scenes_total: the scenes of the run.
+        frames_complete: frames of the complete scenes.
+        staging_dir: where an overwrite keeps the complete scenes of the new version for a rerun
+            (the cache in ``cache_dir`` is unchanged); None for a run that was not an overwrite,
+            or when nothing of the new version was kept.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        cache_dir: str,
+        scenes_complete: int,
+        scenes_total: int,
+        frames_complete: int,
+        staging_dir: str | None = None,
+    ):
+        super().__init__(message)
+        self.cache_dir = cache_dir
+        self.scenes_complete = scenes_complete
+        self.scenes_total = scenes_total
+        self.frames_complete = frames_complete
+        self.staging_dir = staging_dir
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+@dataclass
+class _Run:
+    """Where a run writes and what it has recorded: ``target`` is the cache directory ``out``,
+    or for an overwrite of an existing cache the staging folder inside it."""
+
+    out: Path
+    target: Path
+    manifest: Manifest
+
+    @property
+    def staged(self) -> bool:
+        return self.target != self.out
+
+    def complete_scenes(self) -> list[SceneEntry]:
+        return [s for s in self.manifest.scenes if s.status == "complete"]
+
+
 def _check_out_dir(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise PrepError(f"--out {out} is a file, not a directory")
@@ -247,6 +357,16 @@ def _check_out_dir(out: Path) -> None:
         raise PrepError(f"--out {out} is not writable: {e.strerror or e}") from e
 
 
+def _refuse_links(cache_dir: Path) -> None:
+    """Refuses a cache whose ``shards/`` (or staging folder) is a symbolic link: clean-up deletes
+    files in them, and must never follow a link out of the cache."""
+    for name in (SHARDS_DIR, STAGING_DIR, f"{STAGING_DIR}/{SHARDS_DIR}"):
+        if (cache_dir / name).is_symlink():
+            raise PrepError(
+                f"{cache_dir / name} is a symbolic link; a cache's {name}/ must be a folder inside it"
+            )
+
+
 def _describe_difference(
     old: Manifest, source: str, arguments: dict[str, Any], pipeline: dict[str, Any]
 ) -> str:
@@ -255,7 +375,7 @@ def _describe_difference(
     diffs = []
     if old.source != source:
         diffs.append(f"source {old.source} -> {source}")
-    for k in sorted(set(old.arguments) | set(arguments)):
+    for k in sorted((set(old.arguments) | set(arguments)) - POLICY_ARGUMENTS):
         if old.arguments.get(k) != arguments.get(k):
             diffs.append(f"{k} {old.arguments.get(k)!r} -> {arguments.get(k)!r}")
     if old.pipeline != pipeline:
@@ -265,47 +385,201 @@ def _describe_difference(
     return ", ".join(diffs) or "fingerprint differs"
 
 
-def _remove_cache_files(out: Path, manifest: Manifest | None) -> None:
-    """Removes what a cache consists of (its listed shards, our shard files, the manifest)."""
-    if manifest is not None:
-        for sh in manifest.shards:
-            (out / sh.path).unlink(missing_ok=True)
-    shard_dir = out / SHARDS_DIR
-    if shard_dir.is_dir():
-        for p in shard_dir.iterdir():
-            if p.suffix == ".arrow" or TMP_MARKER in p.name:
-                p.unlink()
-    (out / MANIFEST_NAME).unlink(missing_ok=True)
+def _is_ours(path: Path) -> bool:
+    """Whether a file in a ``shards/`` folder is one the toolkit writes (a shard or a temporary)."""
+    return path.suffix == ".arrow" or TMP_MARKER in path.name
 
 
-def _clean_unfinished(out: Path, manifest: Manifest) -> list[str]:
-    """Removes temporary files and shards no manifest entry lists (left by a killed run)."""
-    listed = {sh.path for sh in manifest.shards}
+def _remove_unlisted(cache_dir: Path, listed: set[str]) -> list[str]:
+    """Removes the toolkit's files in ``cache_dir/shards/`` that ``listed`` (shard file names) does
+    not name, and manifest temporaries; returns them relative to ``cache_dir``."""
     removed = []
-    shard_dir = out / SHARDS_DIR
+    shard_dir = cache_dir / SHARDS_DIR
     if shard_dir.is_dir():
-        for p in shard_dir.iterdir():
-            rel = p.relative_to(out).as_posix()
-            if TMP_MARKER in p.name or (p.suffix == ".arrow" and rel not in listed):
-                p.unlink()
-                removed.append(rel)
-    for p in out.glob(f"{MANIFEST_NAME}{TMP_MARKER}*"):
-        p.unlink()
+        for p in sorted(shard_dir.iterdir()):
+            if _is_ours(p) and (TMP_MARKER in p.name or p.name not in listed):
+                p.unlink(missing_ok=True)
+                removed.append(p.relative_to(cache_dir).as_posix())
+    for p in sorted(cache_dir.glob(f"{MANIFEST_NAME}{TMP_MARKER}*")):
+        p.unlink(missing_ok=True)
         removed.append(p.name)
     return removed
 
 
+def _clean_unfinished(out: Path, manifest: Manifest) -> list[str]:
+    """Removes temporary files and shards no manifest entry lists (left by a killed run)."""
+    return _remove_unlisted(out, {Path(sh.path).name for sh in manifest.shards})
+
+
+def _clear_staging(staging: Path) -> None:
+    """Removes an overwrite's staging folder: its manifest, marker and shard files (anything else
+    in it is not ours and stays, and so does the folder then)."""
+    if not staging.is_dir():
+        return
+    _remove_unlisted(staging, set())
+    for name in (MANIFEST_NAME, SWAP_MARKER):
+        (staging / name).unlink(missing_ok=True)
+    for folder in (staging / SHARDS_DIR, staging):
+        with contextlib.suppress(OSError):  # not empty: it holds files that are not ours
+            folder.rmdir()
+
+
 def _is_foreign(out: Path) -> bool:
     """True if ``out`` (which has no manifest) holds anything but the temporary files of a run
-    killed before its first manifest write. Our runs write the manifest before any shard, so
-    shard files without a manifest are someone else's and are never deleted."""
+    killed before its first manifest write, a lock file or a staging folder. Our runs write the
+    manifest before any shard, so shard files without a manifest are someone else's and are never
+    deleted."""
     for p in out.iterdir():
-        if p.name == SHARDS_DIR and p.is_dir():
+        if p.name == SHARDS_DIR and p.is_dir() and not p.is_symlink():
             if any(TMP_MARKER not in q.name for q in p.iterdir()):
                 return True
+        elif p.name in (LOCK_NAME, STAGING_DIR):
+            continue
         elif not p.name.startswith(f"{MANIFEST_NAME}{TMP_MARKER}"):
             return True
     return False
+
+
+def _swap_in(out: Path, staging: Path) -> None:
+    """Replaces the cache in ``out`` by the complete new version in ``staging``.
+
+    The swap is journaled: a marker in ``staging`` says it has begun, before anything of the old
+    cache is touched; a run killed part-way is finished by the next run on ``out``
+    (:func:`_finish_swap`)."""
+    atomic_write_bytes(staging / SWAP_MARKER, b"")
+    _finish_swap(out, staging)
+
+
+def _finish_swap(out: Path, staging: Path) -> None:
+    """Completes a begun swap (idempotent): removes the old manifest, moves the new shards over the
+    old ones, removes the old cache's other shard files, renames the new manifest into place and
+    removes the staging folder. Between the first step and the rename ``out`` has no manifest, so
+    a reader then fails with a clear error, never with a mix of the two versions."""
+    new_manifest = staging / MANIFEST_NAME
+    if new_manifest.is_file():  # else the rename was done: only the folder is left to remove
+        new = Manifest.load(staging)
+        (out / MANIFEST_NAME).unlink(missing_ok=True)
+        fsync_dir(out)
+        (out / SHARDS_DIR).mkdir(exist_ok=True)
+        for sh in new.shards:
+            moved = staging / sh.path
+            if moved.exists():
+                os.replace(moved, out / sh.path)
+        _remove_unlisted(out, {Path(sh.path).name for sh in new.shards})
+        fsync_dir(out / SHARDS_DIR)
+        os.replace(new_manifest, out / MANIFEST_NAME)
+        fsync_dir(out)
+    _clear_staging(staging)
+
+
+def _open_existing(
+    out: Path,
+    source: str,
+    arguments: dict[str, Any],
+    pipeline_dict: dict[str, Any],
+    fp: str,
+    overwrite: bool,
+) -> tuple[Manifest | None, bool]:
+    """The cache already in ``out``: (its manifest if this run resumes it, whether this run
+    replaces it). Refuses a cache made otherwise (unless ``overwrite``) and a foreign folder."""
+    if not (out / MANIFEST_NAME).exists():
+        if _is_foreign(out):
+            raise PrepError(
+                f"--out {out} is not empty and holds no phigenesis cache; choose a new or empty directory"
+            )
+        return None, False
+    try:
+        manifest = Manifest.load(out)
+    except CacheError as e:
+        if not overwrite:
+            raise PrepError(f"{e}. Rerun with --overwrite to rebuild the cache from scratch.") from e
+        log.warning("replacing the cache in %s: %s", out, e)
+        return None, True
+    if manifest.fingerprint == fp:
+        return manifest, False
+    if not overwrite:
+        raise PrepError(
+            f"{out} holds a cache made with other arguments "
+            f"({_describe_difference(manifest, source, arguments, pipeline_dict)}); "
+            "use --overwrite to replace it or choose another --out"
+        )
+    log.warning("replacing the cache in %s made with other arguments", out)
+    return None, True
+
+
+def _open_staging(staging: Path, fp: str) -> Manifest | None:
+    """The manifest of an interrupted overwrite with fingerprint ``fp`` staged in ``staging``
+    (this run resumes it); otherwise clears whatever an other overwrite left there."""
+    try:
+        manifest = Manifest.load(staging) if (staging / MANIFEST_NAME).is_file() else None
+    except CacheError as e:
+        log.warning("discarding the unreadable staged cache in %s: %s", staging, e)
+        manifest = None
+    if manifest is not None and manifest.fingerprint == fp:
+        return manifest
+    _clear_staging(staging)
+    return None
+
+
+def _start_run(
+    out: Path, source: str, arguments: dict[str, Any], pipeline_dict: dict[str, Any], fp: str, overwrite: bool
+) -> _Run:
+    """Decides where the run writes (``out``, or a staging folder when it replaces a cache), with
+    the manifest it resumes or a new one, after clearing what killed runs left unfinished."""
+    _refuse_links(out)
+    staging = out / STAGING_DIR
+    if (staging / SWAP_MARKER).exists():
+        log.warning("%s: finishing the overwrite that was stopped while swapping in its new version", out)
+        _finish_swap(out, staging)
+    manifest, replace = _open_existing(out, source, arguments, pipeline_dict, fp, overwrite)
+    target = out
+    if replace:
+        target = staging
+        manifest = _open_staging(staging, fp)
+        log.info(
+            "building the new cache in %s; the cache in %s stays readable until the new one is complete",
+            staging,
+            out,
+        )
+    elif staging.is_dir():
+        log.info("removing %s, left by an overwrite that did not finish", staging)
+        _clear_staging(staging)
+    if manifest is None:
+        manifest = Manifest(
+            schema_version=SCHEMA_VERSION,
+            source=source,
+            arguments=arguments,
+            pipeline=pipeline_dict,
+            fingerprint=fp,
+            phigenesis_version=__version__,
+        )
+    target.mkdir(exist_ok=True)
+    removed = _clean_unfinished(target, manifest)
+    if removed:
+        log.info(
+            "removed %d unfinished files left by an interrupted run: %s", len(removed), ", ".join(removed)
+        )
+    manifest.save(target)
+    return _Run(out, target, manifest)
+
+
+def _open_source(
+    source: str, source_overrides: dict[str, Any] | None, pipeline: str | os.PathLike[str] | PipelineSpec
+) -> tuple[PipelineSpec, dict[str, Any], list[str]]:
+    """The spec, the source's resolved arguments and its scene ids: everything is checked and the
+    source opened before the cache directory is touched, so a bad input changes nothing."""
+    spec = pipeline if isinstance(pipeline, PipelineSpec) else load_pipeline(pipeline)
+    if spec.source != source:
+        raise PrepError(f"pipeline {spec.name!r} is for source {spec.source!r}, not {source!r}")
+    try:
+        src = make_source(source, _merge(spec.source_params, source_overrides or {}))
+    except (TypeError, ValueError) as e:
+        raise PrepError(f"invalid {source} arguments: {e}") from e
+    try:
+        scene_ids = list(dict.fromkeys(src.scene_ids()))
+    except (ValueError, OSError) as e:
+        raise PrepError(f"cannot list the {source} scenes: {e}") from e
+    return spec, src.arguments(), scene_ids
 
 
 def prepare(
@@ -330,121 +604,198 @@ def prepare(
         executor: "local" (process pool; inline if ``workers <= 1``) or "ray".
         workers: parallel scenes.
         ray_address: Ray cluster address for ``executor="ray"`` (None starts a local Ray).
-        overwrite: replace a cache made with other arguments, or with an unreadable manifest.
+        overwrite: replace a cache made with other arguments, or with an unreadable manifest. The
+            new cache is built in ``out/.phigenesis-staging/`` and swapped in once complete, so
+            until then the old one stays readable, and a failed or killed overwrite leaves it as
+            it was (a rerun of the same overwrite resumes the staged scenes).
         on_error: "raise" stops at the first failed scene (finished scenes stay recorded);
             "skip" records the failure in the manifest and goes on.
         progress: show a progress bar per scene.
 
     Returns:
-        A :class:`PrepSummary`. Raises :class:`PrepError` when the run cannot start or a scene
-        fails with ``on_error="raise"``.
+        A :class:`PrepSummary`. Raises :class:`PrepError` when the run cannot start (another run
+        holds ``out``'s lock, the inputs are bad, ``out`` holds something else) or a scene fails
+        with ``on_error="raise"``; :class:`~phigenesis.data.shards.CacheWriteError` (whatever
+        ``on_error``) when a cache file cannot be written; :class:`PrepInterrupted` on Ctrl-C.
+        In every case the cache is left consistent and the lock released.
     """
     t0 = time.perf_counter()
     out = Path(out)
-    spec = pipeline if isinstance(pipeline, PipelineSpec) else load_pipeline(pipeline)
-    if spec.source != source:
-        raise PrepError(f"pipeline {spec.name!r} is for source {spec.source!r}, not {source!r}")
-    try:
-        src = make_source(source, _merge(spec.source_params, source_overrides or {}))
-    except (TypeError, ValueError) as e:
-        raise PrepError(f"invalid {source} arguments: {e}") from e
-    try:
-        scene_ids = src.scene_ids()  # before anything is written: a bad input leaves no trace
-    except (ValueError, OSError) as e:
-        raise PrepError(f"cannot list the {source} scenes: {e}") from e
-    arguments = src.arguments()
+    spec, arguments, scene_ids = _open_source(source, source_overrides, pipeline)
     pipeline_dict = spec.to_dict()
     fp = fingerprint(source, arguments, pipeline_dict)
     _check_out_dir(out)
+    with CacheLock(out):
+        run = _start_run(out, source, arguments, pipeline_dict, fp, overwrite)
+        summary = PrepSummary(str(out))
+        tasks = _pending_tasks(run, scene_ids, source, arguments, pipeline_dict, summary)
+        _run_scenes(run, tasks, scene_ids, summary, executor, workers, ray_address, on_error, progress)
+        if run.staged:
+            _swap_staged(run, len(scene_ids))
+    summary.seconds = time.perf_counter() - t0
+    return summary
 
-    manifest: Manifest | None = None
-    if (out / MANIFEST_NAME).exists():
-        try:
-            manifest = Manifest.load(out)
-        except CacheError as e:
-            if not overwrite:
-                raise PrepError(f"{e}. Rerun with --overwrite to rebuild the cache from scratch.") from e
-            log.warning("replacing the cache in %s: %s", out, e)
-            _remove_cache_files(out, None)
-        else:
-            if manifest.fingerprint != fp:
-                if not overwrite:
-                    raise PrepError(
-                        f"{out} holds a cache made with other arguments "
-                        f"({_describe_difference(manifest, source, arguments, pipeline_dict)}); "
-                        "use --overwrite to replace it or choose another --out"
-                    )
-                log.warning("replacing the cache in %s made with other arguments", out)
-                _remove_cache_files(out, manifest)
-                manifest = None
-    elif _is_foreign(out):
-        raise PrepError(
-            f"--out {out} is not empty and holds no phigenesis cache; choose a new or empty directory"
-        )
 
-    if manifest is None:
-        manifest = Manifest(
-            schema_version=SCHEMA_VERSION,
-            source=source,
-            arguments=arguments,
-            pipeline=pipeline_dict,
-            fingerprint=fp,
-            phigenesis_version=__version__,
-        )
-    removed = _clean_unfinished(out, manifest)
-    if removed:
-        log.info(
-            "removed %d unfinished files left by an interrupted run: %s", len(removed), ", ".join(removed)
-        )
-    manifest.save(out)
-
-    order = {sid: i for i, sid in enumerate(scene_ids)}
-    summary = PrepSummary(str(out))
-    pending = []
-    for sid in order:
-        entry = manifest.scene(sid)
+def _pending_tasks(
+    run: _Run,
+    scene_ids: list[str],
+    source: str,
+    arguments: dict[str, Any],
+    pipeline_dict: dict[str, Any],
+    summary: PrepSummary,
+) -> list[SceneTask]:
+    """The scenes left to do (those not complete in the run's manifest), as tasks writing into
+    the run's target; the complete ones go into ``summary``."""
+    tasks = []
+    for sid in scene_ids:
+        entry = run.manifest.scene(sid)
         if entry is not None and entry.status == "complete":
             summary.scenes_already_complete.append(sid)
         else:
-            pending.append(SceneTask(str(out), source, arguments, pipeline_dict, sid))
+            tasks.append(SceneTask(str(run.target), source, arguments, pipeline_dict, sid))
     if summary.scenes_already_complete:
         log.info(
             "%d of %d scenes already complete; skipping them",
             len(summary.scenes_already_complete),
-            len(order),
+            len(scene_ids),
         )
+    return tasks
 
+
+def _run_scenes(
+    run: _Run,
+    tasks: list[SceneTask],
+    scene_ids: list[str],
+    summary: PrepSummary,
+    executor: ExecutorName,
+    workers: int,
+    ray_address: str | None,
+    on_error: OnError,
+    progress: bool,
+) -> None:
+    """Runs the scene tasks and records each result in the manifest as it comes.
+
+    However the loop ends early (a failed scene under ``on_error="raise"``, a write error, an
+    interrupt), the workers are stopped before anything else, then the unfinished files are
+    removed; an interrupt comes out as :class:`PrepInterrupted`."""
+    order = {sid: i for i, sid in enumerate(scene_ids)}
     bars = _ProgressBars(enabled=progress)
+    results = run_tasks(process_scene, tasks, executor, workers, ray_address, bars.update)
     try:
-        for result in run_tasks(process_scene, pending, executor, workers, ray_address, bars.update):
-            bars.finish(result.scene_id)
-            if result.error is None:
-                entry = SceneEntry(
-                    result.scene_id, result.source, result.frames, "complete", [s.path for s in result.shards]
-                )
-                manifest.record_scene(entry, result.shards)
-                summary.scenes_written.append(result.scene_id)
-                summary.frames_written += result.frames
-                summary.bytes_written += sum(s.bytes for s in result.shards)
-            else:
-                status = "skipped" if on_error == "skip" else "failed"
-                manifest.record_scene(
-                    SceneEntry(result.scene_id, result.source, 0, status, [], result.error), []
-                )
-                summary.scenes_skipped[result.scene_id] = result.error
-            manifest.scenes.sort(key=lambda s: order.get(s.id, len(order)))
-            manifest.save(out)
-            if result.error is not None:
-                if on_error == "raise":
-                    raise PrepError(
-                        f"scene {result.scene_id} failed: {result.error} "
-                        f"(finished scenes are kept in {out}; --on-error skip converts the rest)"
-                    )
-                log.warning("skipped scene %s: %s", result.scene_id, result.error)
+        with contextlib.closing(results):  # closing stops the workers
+            for result in results:
+                bars.finish(result.scene_id)
+                _record(run, result, order, summary, on_error)
+    except KeyboardInterrupt as e:
+        raise _interrupted(run, len(scene_ids)) from e
+    except BaseException:
+        _tidy_after_stop(run)
+        raise
     finally:
         bars.close()
-    summary.seconds = time.perf_counter() - t0
-    return summary
+
+
+def _record(
+    run: _Run, result: SceneResult, order: dict[str, int], summary: PrepSummary, on_error: OnError
+) -> None:
+    """Records one scene's result in the manifest (saved at once) and applies the error policy."""
+    if result.error is not None and result.error_stops_run:
+        raise CacheWriteError(f"{result.error} ({_what_is_kept(run, 'rerun the same command to resume')})")
+    if result.error is None:
+        entry = SceneEntry(
+            result.scene_id,
+            result.source,
+            result.frames,
+            "complete",
+            [s.path for s in result.shards],
+            dropped=result.dropped,
+        )
+        run.manifest.record_scene(entry, result.shards)
+        summary.scenes_written.append(result.scene_id)
+        summary.frames_written += result.frames
+        summary.bytes_written += sum(s.bytes for s in result.shards)
+        if result.dropped_description:
+            log.warning("scene %s: the source left out %s", result.scene_id, result.dropped_description)
+    else:
+        status = "skipped" if on_error == "skip" else "failed"
+        run.manifest.record_scene(SceneEntry(result.scene_id, result.source, 0, status, [], result.error), [])
+        summary.scenes_skipped[result.scene_id] = result.error
+    run.manifest.scenes.sort(key=lambda s: order.get(s.id, len(order)))
+    run.manifest.save(run.target)
+    if result.error is None:
+        return
+    if on_error == "raise":
+        kept = _what_is_kept(run, "--on-error skip converts the rest")
+        raise PrepError(f"scene {result.scene_id} failed: {result.error} ({kept})")
+    log.warning("skipped scene %s: %s", result.scene_id, result.error)
+
+
+def _what_is_kept(run: _Run, advice: str) -> str:
+    """What a run that stops now leaves, and ``advice`` where something was kept, for its error."""
+    if not run.staged:
+        return f"finished scenes are kept in {run.out}; {advice}"
+    kept = len(run.complete_scenes())
+    if not kept:
+        return f"the cache in {run.out} is unchanged"
+    return (
+        f"the cache in {run.out} is unchanged; the {kept} finished scenes of its new version are kept "
+        f"in {run.target} for a rerun; {advice}"
+    )
+
+
+def _tidy_after_stop(run: _Run) -> None:
+    """After the workers stopped early: removes their unfinished files, and an overwrite's staging
+    folder if it holds no complete scene. Never raises (the error that stopped the run matters)."""
+    try:
+        if run.staged and not run.complete_scenes():
+            _clear_staging(run.target)
+        else:
+            _clean_unfinished(run.target, run.manifest)
+    except OSError as e:
+        log.warning("could not remove the unfinished files in %s: %s", run.target, e)
+
+
+def _interrupted(run: _Run, scenes_total: int) -> PrepInterrupted:
+    """Leaves an interrupted run's cache consistent and says what was kept."""
+    with contextlib.suppress(OSError):  # the scene recorded last may not have been saved yet
+        run.manifest.save(run.target)
+    _tidy_after_stop(run)
+    complete = run.complete_scenes()
+    frames = sum(s.frames for s in complete)
+    args = (str(run.out), len(complete), scenes_total, frames)
+    if not run.staged:
+        return PrepInterrupted(
+            f"interrupted: {len(complete)} of {scenes_total} scenes ({frames} frames) are complete in "
+            f"{run.out}; rerun the same command to resume",
+            *args,
+        )
+    if not complete:
+        return PrepInterrupted(
+            f"interrupted: the cache in {run.out} is unchanged; no scene of its new version was complete",
+            *args,
+        )
+    return PrepInterrupted(
+        f"interrupted: the cache in {run.out} is unchanged; {len(complete)} of {scenes_total} scenes of "
+        f"its new version are kept in {run.target}; rerun the same command to resume",
+        *args,
+        staging_dir=str(run.target),
+    )
+
+
+def _swap_staged(run: _Run, scenes_total: int) -> None:
+    """Swaps a complete overwrite into place; an interrupt during the swap is PrepInterrupted."""
+    try:
+        _swap_in(run.out, run.target)
+    except KeyboardInterrupt as e:
+        complete = run.complete_scenes()
+        raise PrepInterrupted(
+            f"interrupted while swapping the new version of the cache into {run.out}; rerun the same "
+            "command to finish",
+            str(run.out),
+            len(complete),
+            scenes_total,
+            sum(s.frames for s in complete),
+        ) from e
 
 
 class _ProgressBars:

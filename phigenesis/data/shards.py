@@ -4,6 +4,8 @@ Layout of a cache directory::
 
     manifest.json          what the cache holds (written last, atomically)
     shards/<scene>-00000.arrow  Arrow IPC files, one row per frame, one record batch per row
+    .phigenesis.lock       held by the one prep run writing the cache (see cache_lock.py)
+    .phigenesis-staging/   the new version an ``overwrite`` run builds before swapping it in
 
 Integrity: the manifest records each shard's size and SHA-256 and, for every record batch (row),
 where it ends, where its body starts, the CRC-32 of its metadata and the CRC-32 of each top-level
@@ -12,9 +14,16 @@ when it opens it, and a row's metadata and the columns it returns when it reads 
 byte in anything a caller reads raises an error naming the shard, row and column, and reading only
 the images of a frame never hashes its LiDAR. :func:`verify_cache` re-hashes everything.
 
+Trust: a manifest is untrusted input. :meth:`Manifest.load` checks it against the cache's schema
+once (every field's type and range, the row index's shape, scenes and shards agreeing with each
+other) and checks that every shard path resolves, symbolic links included, inside the cache's
+``shards/`` folder; whatever reads or deletes a shard goes through :func:`resolve_shard_path`.
+
 Atomicity: every file is written under a temporary name, flushed with fsync and renamed; the
 manifest is rewritten the same way after each scene completes. A killed run leaves only complete
-files under final names, and the manifest lists only scenes whose shards are all complete.
+files under final names, and the manifest lists only scenes whose shards are all complete. A write
+that fails (a full disk) removes its temporary file and raises :class:`CacheWriteError` naming the
+file and the system's reason.
 """
 
 from __future__ import annotations
@@ -27,18 +36,38 @@ import uuid
 import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import pyarrow as pa
 
-from phigenesis.errors import CacheError
+from phigenesis.errors import CacheError, PrepError
 
 MANIFEST_NAME = "manifest.json"
 SHARDS_DIR = "shards"
 CACHE_FORMAT = "phigenesis-cache"
 DEFAULT_SHARD_MAX_BYTES = 256 * 1024 * 1024
 TMP_MARKER = ".tmp-"
+#: Where an ``overwrite`` run builds the new version of a cache, inside the cache directory.
+STAGING_DIR = ".phigenesis-staging"
+#: Written into the staging folder once the new version is complete, before the old one is
+#: touched: a run that finds it finishes the swap.
+SWAP_MARKER = "swapping"
+
+
+class CacheWriteError(PrepError, OSError):
+    """A cache file could not be written (a full disk, ...): the message names the file and the
+    system's reason. Its temporary file is removed; complete files stay."""
+
+
+def os_reason(error: OSError) -> str:
+    """The system's reason for ``error`` in words ("No space left on device")."""
+    if error.strerror:
+        return error.strerror
+    code = error.args[0] if len(error.args) == 1 else None
+    if isinstance(code, int):
+        return os.strerror(code)
+    return str(error) or type(error).__name__
 
 
 # --------------------------------------------------------------------------------------------
@@ -59,14 +88,24 @@ def fsync_dir(path: Path) -> None:
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Writes ``data`` to ``path`` via a temporary file, fsync and rename."""
+    """Writes ``data`` to ``path`` via a temporary file, fsync and rename.
+
+    On failure the temporary file is removed and ``path`` is left as it was; an OSError becomes a
+    :class:`CacheWriteError` naming ``path``."""
     path = Path(path)
     tmp = path.with_name(f"{path.name}{TMP_MARKER}{uuid.uuid4().hex[:8]}")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        if isinstance(e, OSError):
+            raise CacheWriteError(f"{path}: cannot write ({os_reason(e)})") from e
+        raise
     fsync_dir(path.parent)
 
 
@@ -108,13 +147,14 @@ class ShardInfo:
     row_index: list[list[int]] = field(default_factory=list)
     footer_crc32: int = 0
 
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> ShardInfo:
-        keys = ("path", "scene_id", "rows", "bytes", "sha256", "columns", "row_index", "footer_crc32")
-        return cls(**{k: d[k] for k in keys})
-
     def row_start(self, row: int) -> int:
+        """Byte offset where ``row``'s record batch starts (row 0 starts with the file)."""
         return 0 if row == 0 else self.row_index[row - 1][0]
+
+    @property
+    def footer_start(self) -> int:
+        """Byte offset where the file footer starts: the end of the last row."""
+        return self.row_start(self.rows)
 
 
 def column_range(column: pa.Array, base_address: int) -> tuple[int, int]:
@@ -159,7 +199,11 @@ class ShardWriter:
         self._writer: pa.ipc.RecordBatchFileWriter | None = None
         self._tmp: Path | None = None
         self._ends: list[int] = []
-        (self.cache_dir / SHARDS_DIR).mkdir(parents=True, exist_ok=True)
+        shard_dir = self.cache_dir / SHARDS_DIR
+        try:
+            shard_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise CacheWriteError(f"{shard_dir}: cannot create ({os_reason(e)})") from e
 
     def __enter__(self) -> ShardWriter:
         return self
@@ -174,19 +218,29 @@ class ShardWriter:
         return self.cache_dir / SHARDS_DIR / f"{safe_name(self.scene_id)}-{index:05d}.arrow"
 
     def write(self, batch: pa.RecordBatch) -> None:
-        """Appends a one-row batch of this writer's schema."""
+        """Appends a one-row batch of this writer's schema.
+
+        Raises :class:`CacheWriteError` naming the shard if the file cannot be written (the
+        unfinished shard is removed; complete shards stay)."""
         if not batch.schema.equals(self.schema):
             raise ValueError(f"scene {self.scene_id}: batch schema differs from the cache schema")
-        if self._writer is None:
-            final = self._final_path(len(self.shards))
-            self._tmp = final.with_name(f"{final.name}{TMP_MARKER}{uuid.uuid4().hex[:8]}")
-            self._sink = pa.OSFile(str(self._tmp), "wb")
-            self._writer = pa.ipc.new_file(self._sink, self.schema)
-            self._ends = []
-        self._writer.write_batch(batch)
-        self._ends.append(self._sink.tell())
-        if self._ends[-1] >= self.max_bytes:
-            self._finish_shard()
+        try:
+            if self._writer is None:
+                self._open_shard()
+            assert self._writer is not None and self._sink is not None
+            self._writer.write_batch(batch)
+            self._ends.append(self._sink.tell())
+            if self._ends[-1] >= self.max_bytes:
+                self._finish_shard()
+        except OSError as e:
+            raise self._write_failed(e) from e
+
+    def _open_shard(self) -> None:
+        final = self._final_path(len(self.shards))
+        self._tmp = final.with_name(f"{final.name}{TMP_MARKER}{uuid.uuid4().hex[:8]}")
+        self._sink = pa.OSFile(str(self._tmp), "wb")
+        self._writer = pa.ipc.new_file(self._sink, self.schema)
+        self._ends = []
 
     def _finish_shard(self) -> None:
         assert self._writer is not None and self._sink is not None and self._tmp is not None
@@ -202,10 +256,19 @@ class ShardWriter:
         self.shards.append(info)
         self._writer = self._sink = self._tmp = None
 
+    def _write_failed(self, error: OSError) -> CacheWriteError:
+        """Drops the unfinished shard and says which file could not be written and why."""
+        final = self._final_path(len(self.shards))
+        self.abort()
+        return CacheWriteError(f"{final}: cannot write ({os_reason(error)})")
+
     def close(self) -> list[ShardInfo]:
         """Completes the open shard; returns every complete shard of this writer."""
         if self._writer is not None:
-            self._finish_shard()
+            try:
+                self._finish_shard()
+            except OSError as e:
+                raise self._write_failed(e) from e
         return self.shards
 
     def abort(self) -> None:
@@ -216,7 +279,8 @@ class ShardWriter:
             if self._sink is not None:
                 self._sink.close()
         if self._tmp is not None:
-            self._tmp.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                self._tmp.unlink(missing_ok=True)
         self._writer = self._sink = self._tmp = None
 
 
@@ -265,10 +329,16 @@ def safe_name(scene_id: str) -> str:
 # Manifest
 
 
+SCENE_STATUSES = ("complete", "skipped", "failed")
+CRC32_MAX = (1 << 32) - 1
+
+
 @dataclass
 class SceneEntry:
-    """A scene as the manifest records it: ``complete`` (all its frames are in listed shards) or
-    ``skipped`` (it failed and the run went on; ``error`` says why)."""
+    """A scene as the manifest records it: ``complete`` (all its frames are in listed shards),
+    ``skipped`` (it failed and the run went on; ``error`` says why) or ``failed`` (it stopped the
+    run). ``dropped`` counts what the source left out of it as invalid, per kind
+    (:meth:`~phigenesis.data.records.DroppedValues.totals`); manifests without it load as empty."""
 
     id: str
     source: str
@@ -276,6 +346,7 @@ class SceneEntry:
     status: str
     shards: list[str] = field(default_factory=list)
     error: str | None = None
+    dropped: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass
@@ -312,39 +383,18 @@ class Manifest:
         return json.dumps(d, indent=1, sort_keys=False)
 
     def save(self, cache_dir: Path) -> None:
+        """Writes ``cache_dir/manifest.json`` atomically (:func:`atomic_write_bytes`)."""
         atomic_write_bytes(Path(cache_dir) / MANIFEST_NAME, self.to_json().encode())
 
     @classmethod
-    def load(cls, cache_dir: Path) -> Manifest:
-        """Reads ``cache_dir/manifest.json``; raises :class:`CacheError` naming the file if it is
-        missing, truncated or malformed."""
+    def load(cls, cache_dir: str | os.PathLike[str]) -> Manifest:
+        """Reads and checks ``cache_dir/manifest.json``.
+
+        Raises one :class:`CacheError` naming the file, and the field where one is wrong, if the
+        manifest is missing, truncated or not valid JSON, does not fit the cache's schema (see
+        :func:`parse_manifest`), or names a shard outside ``cache_dir/shards/``."""
         path = Path(cache_dir) / MANIFEST_NAME
-        if not path.is_file():
-            raise CacheError(f"{path}: no manifest; {cache_dir} is not a phigenesis cache")
-        text = path.read_text(errors="replace")
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise CacheError(
-                f"{path}: manifest is truncated or not valid JSON "
-                f"({e.msg} at line {e.lineno}, column {e.colno}; {len(text)} bytes)"
-            ) from e
-        try:
-            if d.get("format") != CACHE_FORMAT:
-                raise CacheError(f"{path}: not a {CACHE_FORMAT} manifest (format={d.get('format')!r})")
-            return cls(
-                schema_version=int(d["schema_version"]),
-                source=d["source"],
-                arguments=d["arguments"],
-                pipeline=d["pipeline"],
-                fingerprint=d["fingerprint"],
-                scenes=[SceneEntry(**s) for s in d["scenes"]],
-                shards=[ShardInfo.from_dict(s) for s in d["shards"]],
-                format=d["format"],
-                phigenesis_version=d.get("phigenesis_version", ""),
-            )
-        except (KeyError, TypeError, ValueError) as e:
-            raise CacheError(f"{path}: manifest is malformed ({type(e).__name__}: {e})") from e
+        return parse_manifest(_read_json(path), path)
 
     def complete_shards(self) -> list[ShardInfo]:
         """Shards of complete scenes, in scene order then shard order."""
@@ -353,6 +403,282 @@ class Manifest:
         for sh in self.shards:
             by_scene.setdefault(sh.scene_id, []).append(sh)
         return [sh for sid in done for sh in by_scene.get(sid, [])]
+
+
+def _read_json(path: Path) -> object:
+    """The parsed JSON document of a manifest file; CacheError naming it if it cannot be."""
+    if not path.is_file():
+        hint = ""
+        if (path.parent / STAGING_DIR / SWAP_MARKER).exists():
+            hint = (
+                f" (an overwrite was swapping in a new version of the cache from {STAGING_DIR}/: "
+                "wait for it to finish, or rerun the overwrite if it was stopped)"
+            )
+        raise CacheError(f"{path}: no manifest; {path.parent} is not a phigenesis cache{hint}")
+    try:
+        text = path.read_text(errors="replace")
+    except OSError as e:
+        raise CacheError(f"{path}: cannot read the manifest ({os_reason(e)})") from e
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise CacheError(
+            f"{path}: manifest is truncated or not valid JSON "
+            f"({e.msg} at line {e.lineno}, column {e.colno}; {len(text)} bytes)"
+        ) from e
+    except (ValueError, RecursionError) as e:  # an integer too long to convert, nesting too deep
+        raise CacheError(f"{path}: manifest is not valid JSON ({e})") from e
+
+
+def resolve_shard_path(cache_dir: str | os.PathLike[str], relative: str, field: str = "shard path") -> Path:
+    """The file a manifest's shard path names, resolved (symbolic links followed).
+
+    Raises :class:`CacheError` naming the manifest and ``field`` unless ``relative`` has the form
+    ``shards/<file name>`` and resolves inside ``cache_dir/shards/`` (a ``shards`` folder that is a
+    link out of the cache does not count): nothing outside a cache's shards folder is read or
+    deleted because a manifest names it."""
+    cache_dir = Path(cache_dir)
+    where = f"{cache_dir / MANIFEST_NAME}: {field}"
+    pure = PurePosixPath(relative)
+    if pure.is_absolute():
+        raise CacheError(f"{where}: {relative!r} is an absolute path; shard paths are 'shards/<file name>'")
+    if len(pure.parts) != 2 or pure.parts[0] != SHARDS_DIR or pure.as_posix() != relative or "\0" in relative:
+        raise CacheError(f"{where}: {relative!r} is not a file directly in {SHARDS_DIR}/")
+    root = cache_dir.resolve() / SHARDS_DIR
+    try:
+        resolved = (cache_dir / relative).resolve()
+    except (OSError, RuntimeError) as e:  # a symbolic link loop
+        raise CacheError(f"{where}: {relative!r} cannot be resolved ({e})") from e
+    if resolved == root or not resolved.is_relative_to(root):
+        raise CacheError(f"{where}: {relative!r} resolves to {resolved}, outside {root}")
+    return resolved
+
+
+# --------------------------------------------------------------------------------------------
+# Manifest schema
+
+_REQUIRED = object()
+
+
+def _show(value: object) -> str:
+    """A JSON value as an error message quotes it (shortened)."""
+    text = json.dumps(value, default=str)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _integer_problem(value: object, minimum: int = 0, maximum: int | None = None) -> str | None:
+    """Why ``value`` is not an integer in ``[minimum, maximum]`` (None if it is)."""
+    is_integer = isinstance(value, int) and not isinstance(value, bool)
+    if is_integer and value >= minimum and (maximum is None or value <= maximum):
+        return None
+    if maximum is not None:
+        return f"is not an integer in [{minimum}, {maximum}]"
+    return "is not a non-negative integer" if minimum == 0 else f"is not an integer of at least {minimum}"
+
+
+class _Fields:
+    """One JSON object of a manifest, read field by field: each getter checks the field's type and
+    range and raises a CacheError naming the file and the field (``shards[3].rows``)."""
+
+    def __init__(self, file: Path, where: str, value: object):
+        self.file = file
+        self.where = where
+        if not isinstance(value, dict):
+            raise CacheError(f"{file}: {where}: {_show(value)} is not an object")
+        self.value: dict[str, Any] = value
+
+    def name(self, key: str) -> str:
+        return f"{self.where}.{key}" if self.where else key
+
+    def error(self, key: str, message: str) -> CacheError:
+        return CacheError(f"{self.file}: {self.name(key)}: {message}")
+
+    def raw(self, key: str, default: Any = _REQUIRED) -> Any:
+        if key in self.value:
+            return self.value[key]
+        if default is _REQUIRED:
+            raise self.error(key, "missing")
+        return default
+
+    def string(self, key: str, default: Any = _REQUIRED) -> str:
+        value = self.raw(key, default)
+        if not isinstance(value, str):
+            raise self.error(key, f"{_show(value)} is not a string")
+        return value
+
+    def optional_string(self, key: str) -> str | None:
+        value = self.raw(key, None)
+        if value is not None and not isinstance(value, str):
+            raise self.error(key, f"{_show(value)} is not a string or null")
+        return value
+
+    def integer(self, key: str, minimum: int = 0, maximum: int | None = None) -> int:
+        value = self.raw(key)
+        problem = _integer_problem(value, minimum, maximum)
+        if problem:
+            raise self.error(key, f"{_show(value)} {problem}")
+        return value
+
+    def mapping(self, key: str, default: Any = _REQUIRED) -> dict[str, Any]:
+        value = self.raw(key, default)
+        if not isinstance(value, dict):
+            raise self.error(key, f"{_show(value)} is not an object")
+        return value
+
+    def array(self, key: str, default: Any = _REQUIRED) -> list[Any]:
+        value = self.raw(key, default)
+        if not isinstance(value, list):
+            raise self.error(key, f"{_show(value)} is not an array")
+        return value
+
+    def strings(self, key: str, default: Any = _REQUIRED) -> list[str]:
+        values = self.array(key, default)
+        for k, v in enumerate(values):
+            if not isinstance(v, str):
+                raise CacheError(f"{self.file}: {self.name(key)}[{k}]: {_show(v)} is not a string")
+        return list(values)
+
+
+def parse_manifest(document: object, file: Path) -> Manifest:
+    """The manifest a parsed ``manifest.json`` describes, checked against the cache's schema.
+
+    Checks every field's type and range, each shard's row index (one entry per row of 3 + one
+    value per column, row ends increasing inside the file, each body inside its row, CRCs of 32
+    bits), that scene ids and shard paths are unique, that every shard belongs to a listed scene
+    and every scene lists exactly its own shards, and that every shard path stays inside the
+    cache's ``shards/`` folder (:func:`resolve_shard_path`). Raises one :class:`CacheError` naming
+    ``file`` and the first field that is wrong (``shards[3].rows: -1 is not a non-negative
+    integer``)."""
+    if not isinstance(document, dict):
+        raise CacheError(f"{file}: the manifest is {_show(document)}, not a JSON object")
+    top = _Fields(file, "", document)
+    if top.raw("format", None) != CACHE_FORMAT:
+        raise CacheError(f"{file}: not a {CACHE_FORMAT} manifest (format={top.raw('format', None)!r})")
+    shards = [_parse_shard(file, i, v) for i, v in enumerate(top.array("shards"))]
+    scenes = [_parse_scene(file, i, v) for i, v in enumerate(top.array("scenes"))]
+    _check_listing(file, scenes, shards)
+    for i, sh in enumerate(shards):
+        resolve_shard_path(file.parent, sh.path, f"shards[{i}].path")
+    return Manifest(
+        schema_version=top.integer("schema_version", minimum=1),
+        source=top.string("source"),
+        arguments=top.mapping("arguments"),
+        pipeline=top.mapping("pipeline"),
+        fingerprint=top.string("fingerprint"),
+        scenes=scenes,
+        shards=shards,
+        format=CACHE_FORMAT,
+        phigenesis_version=top.string("phigenesis_version", ""),
+    )
+
+
+def _parse_shard(file: Path, i: int, value: object) -> ShardInfo:
+    """One entry of ``shards``, checked (see :func:`parse_manifest`)."""
+    f = _Fields(file, f"shards[{i}]", value)
+    path = f.string("path")
+    scene_id = f.string("scene_id")
+    rows = f.integer("rows")
+    size = f.integer("bytes")
+    sha256 = f.string("sha256")
+    if len(sha256) != 64 or not set(sha256) <= set("0123456789abcdef"):
+        raise f.error("sha256", f"{_show(sha256)} is not a SHA-256 hex digest")
+    columns = f.strings("columns")
+    if len(set(columns)) != len(columns):
+        raise f.error("columns", f"{_show(columns)} names a column twice")
+    row_index = _parse_row_index(f, rows, len(columns), size)
+    footer_crc32 = f.integer("footer_crc32", 0, CRC32_MAX)
+    return ShardInfo(path, scene_id, rows, size, sha256, columns, row_index, footer_crc32)
+
+
+def _parse_row_index(f: _Fields, rows: int, columns: int, size: int) -> list[list[int]]:
+    """A shard's ``row_index``: ``rows`` entries of ``[end, body_start, metadata_crc32, one crc32
+    per column]``, the ends increasing and inside the file, each body start inside its row."""
+    index = f.array("row_index")
+    name = f.name("row_index")
+    if len(index) != rows:
+        raise CacheError(f"{f.file}: {name}: {len(index)} entries, but the shard has {rows} rows")
+    width = 3 + columns
+    start = 0
+    for r, entry in enumerate(index):
+        where = f"{f.file}: {name}[{r}]"
+        if not isinstance(entry, list) or len(entry) != width:
+            raise CacheError(
+                f"{where}: {_show(entry)} is not {width} integers "
+                f"(end, body start, metadata CRC-32 and a CRC-32 for each of {columns} columns)"
+            )
+        for k, v in enumerate(entry):
+            problem = _integer_problem(v, 0, CRC32_MAX if k >= 2 else None)
+            if problem:
+                raise CacheError(f"{where}[{k}]: {_show(v)} {problem}")
+        end, body_start = entry[0], entry[1]
+        if end <= start:
+            raise CacheError(f"{where}[0]: row end {end} is not after the row's start {start}")
+        if end > size:
+            raise CacheError(f"{where}[0]: row end {end} is past the end of the file ({size} bytes)")
+        if not start <= body_start <= end:
+            raise CacheError(f"{where}[1]: body start {body_start} lies outside the row ({start}..{end})")
+        start = end
+    return [list(e) for e in index]
+
+
+def _parse_scene(file: Path, i: int, value: object) -> SceneEntry:
+    """One entry of ``scenes``, checked (see :func:`parse_manifest`)."""
+    f = _Fields(file, f"scenes[{i}]", value)
+    status = f.string("status")
+    if status not in SCENE_STATUSES:
+        raise f.error("status", f"{_show(status)} is not one of {', '.join(SCENE_STATUSES)}")
+    dropped = f.mapping("dropped", {})
+    for what, count in dropped.items():
+        problem = _integer_problem(count)
+        if problem:
+            raise CacheError(f"{file}: {f.name('dropped')}[{what!r}]: {_show(count)} {problem}")
+    return SceneEntry(
+        id=f.string("id"),
+        source=f.string("source"),
+        frames=f.integer("frames"),
+        status=status,
+        shards=f.strings("shards", []),
+        error=f.optional_string("error"),
+        dropped=dict(dropped),
+    )
+
+
+def _check_listing(file: Path, scenes: list[SceneEntry], shards: list[ShardInfo]) -> None:
+    """Scenes and shards agree: scene ids and shard paths are unique, every shard belongs to a
+    listed scene, and every scene lists exactly its own shards, in order (none if not complete)."""
+    scene_at: dict[str, int] = {}
+    for i, scene in enumerate(scenes):
+        if scene.id in scene_at:
+            raise CacheError(
+                f"{file}: scenes[{i}].id: {scene.id!r} is listed twice (also scenes[{scene_at[scene.id]}])"
+            )
+        scene_at[scene.id] = i
+    shard_at: dict[str, int] = {}
+    for i, sh in enumerate(shards):
+        if sh.path in shard_at:
+            raise CacheError(
+                f"{file}: shards[{i}].path: {sh.path!r} is listed twice (also shards[{shard_at[sh.path]}])"
+            )
+        shard_at[sh.path] = i
+        if sh.scene_id not in scene_at:
+            raise CacheError(f"{file}: shards[{i}].scene_id: {sh.scene_id!r} is not a scene of the manifest")
+    paths_of: dict[str, list[str]] = {}
+    for sh in shards:
+        paths_of.setdefault(sh.scene_id, []).append(sh.path)
+    for i, scene in enumerate(scenes):
+        for k, path in enumerate(scene.shards):
+            if path not in shard_at:
+                raise CacheError(f"{file}: scenes[{i}].shards[{k}]: {path!r} is not a shard of the manifest")
+        own = paths_of.get(scene.id, [])
+        if scene.shards != own:
+            raise CacheError(
+                f"{file}: scenes[{i}].shards: {_show(scene.shards)} are not the shards of scene "
+                f"{scene.id!r} in the manifest's shard list ({_show(own)})"
+            )
+        if own and scene.status != "complete":
+            raise CacheError(
+                f"{file}: scenes[{i}].shards: a {scene.status} scene lists shards ({_show(own)})"
+            )
 
 
 # --------------------------------------------------------------------------------------------
@@ -364,6 +690,7 @@ class ShardReader:
 
     def __init__(self, cache_dir: Path, info: ShardInfo, check_crc: bool = True):
         self.info = info
+        resolve_shard_path(cache_dir, info.path)  # never read a file outside the cache's shards/
         self.path = Path(cache_dir) / info.path
         self.check_crc = check_crc
         if not self.path.is_file():
@@ -376,8 +703,8 @@ class ShardReader:
         self._mmap = pa.memory_map(str(self.path), "r")
         self._buffer = self._mmap.read_buffer()
         self._view = memoryview(self._buffer)
-        if check_crc and info.rows:
-            self._check(info.row_index[-1][0], info.bytes, info.footer_crc32, "the footer")
+        if check_crc:
+            self._check(info.footer_start, info.bytes, info.footer_crc32, "the footer")
         try:
             self._reader = pa.ipc.open_file(self._buffer)
         except (pa.ArrowInvalid, OSError) as e:
@@ -489,10 +816,20 @@ class CacheReader:
         return range(first, first + count)
 
     def frame(self, frame: int, decode_truth: bool = True):  # -> records.Frame
-        """The :class:`~phigenesis.data.records.Frame` record of a global frame index."""
+        """The :class:`~phigenesis.data.records.Frame` record of a global frame index.
+
+        The record validates what it is given, as it does for a source: a row holding an invalid
+        value (a cache written before the scene model refused it, or a crafted one) raises a
+        :class:`CacheError` naming the shard, the row and the field."""
+        from phigenesis.data.records import InvalidRecord
         from phigenesis.data.schema import row_to_frame
 
-        return row_to_frame(self.read(frame), 0, decode_truth)
+        batch = self.read(frame)
+        try:
+            return row_to_frame(batch, 0, decode_truth)
+        except InvalidRecord as e:
+            path, row = self.locate(frame)
+            raise CacheError(f"{path}: row {row}: {e}") from None
 
 
 # --------------------------------------------------------------------------------------------
@@ -514,38 +851,15 @@ class VerifyReport:
         return not self.errors
 
 
-def _locate_damage(path: Path, info: ShardInfo) -> list[str]:
-    """Which rows, columns or footer of a shard fail their CRCs (for a shard whose hash is wrong)."""
-    data = path.read_bytes()
-    view = memoryview(data)
-    buffer = pa.py_buffer(data)
-    bad = []
-    try:
-        reader = (
-            pa.ipc.open_file(buffer)
-            if zlib.crc32(view[info.row_index[-1][0] :]) == info.footer_crc32
-            else None
-        )
-    except pa.ArrowInvalid:
-        reader = None
-    if reader is None:
-        bad.append("footer")
-    for row, entry in enumerate(info.row_index):
-        if zlib.crc32(view[info.row_start(row) : entry[1]]) != entry[2]:
-            bad.append(f"row {row} (metadata)")
-            continue
-        if reader is None:
-            continue
-        ranges = column_ranges(reader.get_batch(row), buffer.address)
-        for k, (lo, hi) in enumerate(ranges):
-            if zlib.crc32(view[lo:hi]) != entry[3 + k]:
-                bad.append(f"row {row}, column {info.columns[k]!r}")
-    return bad or ["bytes between buffers"]
-
-
 def verify_cache(cache_dir: str | os.PathLike[str]) -> VerifyReport:
-    """Re-checks every shard of a cache against its manifest: presence, size, SHA-256, each row's
-    CRC, Arrow structure, row counts and the schema version. Names every bad file."""
+    """Re-checks a cache against its manifest: everything the reader relies on, and the hashes.
+
+    The manifest is checked against the schema (:meth:`Manifest.load`: field types, the row
+    index's shape, shard paths inside ``shards/``); then every shard's presence, size, SHA-256,
+    footer CRC, Arrow structure, row count, columns and schema version, and each row's metadata
+    CRC and every column's CRC, whether or not the file's SHA-256 matches (a manifest whose row
+    index is wrong fails the reader as surely as a damaged file). Each problem is reported by
+    shard, row and column. Never raises on a bad cache: problems are in the report."""
     cache_dir = Path(cache_dir)
     report = VerifyReport(str(cache_dir))
     try:
@@ -553,56 +867,137 @@ def verify_cache(cache_dir: str | os.PathLike[str]) -> VerifyReport:
     except CacheError as e:
         report.errors.append(str(e))
         return report
-    listed = set()
+    report.warnings += _schema_version_warnings(cache_dir, manifest)
     for info in manifest.shards:
-        path = cache_dir / info.path
-        listed.add(path.resolve())
         report.shards += 1
-        if not path.is_file():
-            report.errors.append(f"{path}: missing")
-            continue
-        size = path.stat().st_size
-        if size != info.bytes:
-            report.errors.append(f"{path}: {size} bytes, manifest says {info.bytes}")
-            continue
-        if sha256_file(path) != info.sha256:
-            report.errors.append(
-                f"{path}: SHA-256 mismatch (corrupt: {', '.join(_locate_damage(path, info))})"
-            )
-            continue
-        try:
-            with pa.memory_map(str(path)) as mm:
-                reader = pa.ipc.open_file(mm)
-                version = (reader.schema.metadata or {}).get(b"phigenesis.schema_version", b"").decode()
-                if reader.num_record_batches != info.rows:
-                    report.errors.append(
-                        f"{path}: {reader.num_record_batches} rows, manifest says {info.rows}"
-                    )
-                if version != str(manifest.schema_version):
-                    report.errors.append(
-                        f"{path}: schema version {version!r}, manifest says {manifest.schema_version}"
-                    )
-        except (pa.ArrowInvalid, OSError) as e:
-            report.errors.append(f"{path}: not a readable Arrow IPC file ({e})")
-            continue
-        report.frames += info.rows
+        problems = _shard_problems(cache_dir, info, manifest.schema_version)
+        report.errors += problems
+        if not problems:
+            report.frames += info.rows
+    report.errors += _scene_problems(manifest)
+    report.warnings += [
+        f"scene {scene.id}: {scene.status}" + (f" ({scene.error})" if scene.error else "")
+        for scene in manifest.scenes
+        if scene.status != "complete"
+    ]
+    report.warnings += _leftover_warnings(cache_dir, manifest)
+    return report
+
+
+def _schema_version_warnings(cache_dir: Path, manifest: Manifest) -> list[str]:
+    from phigenesis.data.schema import SCHEMA_VERSION
+
+    if manifest.schema_version == SCHEMA_VERSION:
+        return []
+    return [
+        f"{cache_dir / MANIFEST_NAME}: schema version {manifest.schema_version}; "
+        f"this toolkit writes version {SCHEMA_VERSION}"
+    ]
+
+
+def _shard_problems(cache_dir: Path, info: ShardInfo, schema_version: int) -> list[str]:
+    """Every problem of one shard, each naming the file (and the row and column)."""
+    path = cache_dir / info.path
+    if not path.is_file():
+        return [f"{path}: missing"]
+    size = path.stat().st_size
+    if size != info.bytes:
+        return [f"{path}: {size} bytes, manifest says {info.bytes}"]
+    try:
+        with pa.memory_map(str(path)) as mm:
+            buffer = mm.read_buffer()
+            sha_ok = hashlib.sha256(memoryview(buffer)).hexdigest() == info.sha256
+            damage = _content_problems(info, buffer, schema_version)
+    except (OSError, pa.ArrowException) as e:
+        return [f"{path}: cannot be read ({e})"]
+    if sha_ok:
+        why = "the file matches its SHA-256: the manifest's index of it is wrong"
+        return [f"{path}: {d} ({why})" for d in damage]
+    if not damage:
+        return [f"{path}: SHA-256 mismatch (corrupt between the checked byte ranges)"]
+    return [f"{path}: {d} (SHA-256 mismatch: the file is corrupt)" for d in damage]
+
+
+def _content_problems(info: ShardInfo, buffer: pa.Buffer, schema_version: int) -> list[str]:
+    """What in a shard's bytes disagrees with its manifest entry: the footer, the Arrow
+    structure (rows, columns, schema version), each row's metadata and each column's CRC."""
+    view = memoryview(buffer)
+    problems = []
+    if zlib.crc32(view[info.footer_start :]) != info.footer_crc32:
+        problems.append("footer: CRC-32 mismatch")
+    try:
+        reader = pa.ipc.open_file(buffer)
+    except pa.ArrowInvalid as e:
+        return [*problems, f"not a readable Arrow IPC file ({e})"]
+    version = (reader.schema.metadata or {}).get(b"phigenesis.schema_version", b"").decode(errors="replace")
+    if version != str(schema_version):
+        problems.append(f"schema version {version!r}, manifest says {schema_version}")
+    if reader.num_record_batches != info.rows:
+        problems.append(f"{reader.num_record_batches} rows, manifest says {info.rows}")
+    columns_ok = reader.schema.names == info.columns
+    if not columns_ok:
+        problems.append(f"columns {reader.schema.names}, manifest says {info.columns}")
+    for row in range(min(info.rows, reader.num_record_batches)):
+        problems += _row_problems(info, reader, buffer, row, columns_ok)
+    return problems
+
+
+def _row_problems(
+    info: ShardInfo, reader: pa.ipc.RecordBatchFileReader, buffer: pa.Buffer, row: int, columns_ok: bool
+) -> list[str]:
+    """The checks the reader makes on one row: its metadata CRC, then each column's CRC over the
+    column's bytes (which must lie inside the row)."""
+    view = memoryview(buffer)
+    start, (end, body_start, metadata_crc32) = info.row_start(row), info.row_index[row][:3]
+    if zlib.crc32(view[start:body_start]) != metadata_crc32:
+        return [f"row {row} (metadata): CRC-32 mismatch"]
+    if not columns_ok:
+        return []
+    try:
+        ranges = column_ranges(reader.get_batch(row), buffer.address)
+    except (pa.ArrowInvalid, OSError) as e:
+        return [f"row {row}: does not decode ({e})"]
+    problems = []
+    for k, (lo, hi) in enumerate(ranges):
+        where = f"row {row}, column {info.columns[k]!r}"
+        if hi > lo and not start <= lo <= hi <= end:
+            problems.append(f"{where}: bytes {lo}..{hi} lie outside the row ({start}..{end})")
+        elif zlib.crc32(view[lo:hi]) != info.row_index[row][3 + k]:
+            problems.append(f"{where}: CRC-32 mismatch")
+    return problems
+
+
+def _scene_problems(manifest: Manifest) -> list[str]:
+    """Complete scenes whose frame count disagrees with their shards' rows."""
+    rows_of: dict[str, int] = {}
+    for sh in manifest.shards:
+        rows_of[sh.scene_id] = rows_of.get(sh.scene_id, 0) + sh.rows
+    problems = []
     for scene in manifest.scenes:
-        if scene.status != "complete":
-            report.warnings.append(
-                f"scene {scene.id}: {scene.status}" + (f" ({scene.error})" if scene.error else "")
-            )
-            continue
-        rows = sum(s.rows for s in manifest.shards if s.scene_id == scene.id)
-        if rows != scene.frames:
-            report.errors.append(
+        rows = rows_of.get(scene.id, 0)
+        if scene.status == "complete" and rows != scene.frames:
+            problems.append(
                 f"scene {scene.id}: manifest lists {scene.frames} frames but its shards hold {rows}"
             )
+    return problems
+
+
+def _leftover_warnings(cache_dir: Path, manifest: Manifest) -> list[str]:
+    """Files of unfinished runs: unlisted files in ``shards/`` and an overwrite's staging folder."""
+    warnings = []
+    listed = {Path(s.path).name for s in manifest.shards}
     shard_dir = cache_dir / SHARDS_DIR
     if shard_dir.is_dir():
         for p in sorted(shard_dir.iterdir()):
-            if p.resolve() not in listed:
+            if p.name not in listed:
                 what = (
                     "unfinished temporary file" if TMP_MARKER in p.name else "file not listed in the manifest"
                 )
-                report.warnings.append(f"{p}: {what} (ignored by readers; removed by the next prep run)")
-    return report
+                warnings.append(f"{p}: {what} (ignored by readers; removed by the next prep run)")
+    staging = cache_dir / STAGING_DIR
+    if staging.is_dir():
+        warnings.append(
+            f"{staging}: the new version of an unfinished overwrite (ignored by readers; "
+            "rerunning the overwrite resumes it)"
+        )
+    return warnings
