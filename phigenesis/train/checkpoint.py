@@ -1,23 +1,42 @@
-"""Model checkpoints: the weights with the variant name and full config that made them.
+"""Checkpoint files: model weights with the variant and config that made them, and the optimiser
+state a resumed run needs. Every reader here treats its file as untrusted input: nothing is
+unpickled beyond plain tensors and containers, and a damaged file is a one-line
+:class:`CheckpointError` naming the file and what is wrong.
 
-A checkpoint is one file holding the weights, the registered variant name, the full config and
-JSON-like facts (training options, metrics, classes). Two encodings, chosen by the file's suffix:
+**Model checkpoints** hold the weights, the registered variant name, the full config and JSON-like
+facts (training options, metrics, classes). Two encodings, chosen by the file's suffix:
 
 - ``*.safetensors`` (the default of the trainers): the state dict as safetensors tensors, with
   ``format``, ``version``, ``model``, ``config`` and ``meta`` as JSON strings in the header's
   metadata; it loads without unpickling anything and memory-maps;
 - any other suffix (``*.pt``): one ``torch.save`` dict ``{"format", "version", "model", "config",
-  "state_dict", "meta"}`` (read with ``weights_only=True``).
+  "state_dict", "meta"}``, read with ``weights_only=True`` (plain tensors and containers only: a
+  file that asks for any other object is refused, not run).
 
 ``config`` is the model's config as plain values, so a checkpoint rebuilds its model without the
-code's current defaults. Files are written under a temporary name and renamed, so a killed run
-never leaves half a file.
+code's current defaults.
+
+**Trainer state** (``trainer.safetensors`` in a run's checkpoint folder, see
+:mod:`phigenesis.train.runner`): the optimiser's per-parameter tensors (AdamW's ``step``,
+``exp_avg``, ``exp_avg_sq``) as safetensors tensors named ``state/<param>/<name>``, and the
+header's JSON metadata ``format`` (``"phigenesis.trainer"``), ``version``, ``step``,
+``param_groups`` (the optimiser's hyperparameters), ``scalars`` (non-tensor per-parameter state)
+and ``extra`` (the trainer's own facts). Learning rate, random draws and data position are
+functions of the step, so the step is all the rest a resume needs. Older runs' ``trainer.pt``
+(a ``torch.save`` dict) is still read, with ``weights_only=True``.
+
+Files are written under a temporary name and renamed, so a killed or interrupted run never leaves
+half a file under a final name.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
+import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,8 +49,28 @@ from torch import nn
 from phigenesis.errors import CheckpointError
 from phigenesis.models import create_model
 
+__all__ = [
+    "Checkpoint",
+    "CheckpointError",
+    "TrainingState",
+    "atomic_path",
+    "load_checkpoint",
+    "read_safetensors_metadata",
+    "read_torch_file",
+    "read_trainer_state",
+    "restore_optimizer",
+    "save_checkpoint",
+    "trainer_state_step",
+    "write_trainer_state",
+]
+
 FORMAT = "phigenesis.checkpoint"
 VERSION = 1
+TRAINER_FORMAT = "phigenesis.trainer"
+TRAINER_VERSION = 1
+
+#: The per-parameter state tensors each optimiser of the trainers needs to take a step.
+REQUIRED_STATE = {"AdamW": ("step", "exp_avg", "exp_avg_sq"), "Adam": ("step", "exp_avg", "exp_avg_sq")}
 
 
 @dataclass
@@ -45,12 +84,54 @@ class Checkpoint:
     path: Path
 
 
+@dataclass(frozen=True)
+class TrainingState:
+    """An optimiser's state as read from a checkpoint folder.
+
+    Attributes:
+        step: optimiser steps taken when it was written.
+        optimizer: ``torch.optim.Optimizer.state_dict()`` layout (``state``: parameter index ->
+            name -> tensor or number; ``param_groups``: hyperparameters and parameter indices).
+        extra: the trainer's JSON facts (e.g. Stage 1's config).
+        path: the file it was read from (error messages name it).
+    """
+
+    step: int
+    optimizer: dict[str, Any]
+    extra: dict[str, Any]
+    path: Path
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+
+
+@contextmanager
+def atomic_path(path: Path) -> Iterator[Path]:
+    """A temporary name beside ``path`` (``.NAME.PID.tmp``) to write to; renamed to ``path`` when
+    the block ends normally, removed when it raises (an interrupt included), so ``path`` only ever
+    holds a complete file.
+
+    Example::
+
+        with atomic_path(out / "summary.json") as tmp:
+            tmp.write_text(text)
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def save_checkpoint(
     path: str | os.PathLike[str], model: nn.Module, meta: dict[str, Any] | None = None
 ) -> Path:
     """Writes ``model`` (a registered variant: it has ``name`` and ``config``) to ``path`` atomically."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "format": FORMAT,
         "version": VERSION,
@@ -59,23 +140,146 @@ def save_checkpoint(
         "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
         "meta": dict(meta or {}),
     }
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    if path.suffix == ".safetensors":
-        header = {k: json.dumps(v) for k, v in payload.items() if k != "state_dict"}
-        tensors = {k: v.contiguous() for k, v in payload["state_dict"].items()}
-        save_file(tensors, tmp, metadata=header)
-    else:
-        torch.save(payload, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        if path.suffix == ".safetensors":
+            header = {k: json.dumps(v) for k, v in payload.items() if k != "state_dict"}
+            tensors = {k: v.contiguous() for k, v in payload["state_dict"].items()}
+            save_file(tensors, tmp, metadata=header)
+        else:
+            torch.save(payload, tmp)
     return path
 
 
+def write_trainer_state(
+    path: str | os.PathLike[str], step: int, optimizer_state: dict[str, Any], extra: dict[str, Any]
+) -> Path:
+    """Writes an optimiser's ``state_dict()`` at ``step`` and the trainer's JSON ``extra`` to
+    ``path`` (safetensors + JSON, see the module docstring) atomically."""
+    path = Path(path)
+    tensors: dict[str, torch.Tensor] = {}
+    scalars: dict[str, dict[str, Any]] = {}
+    for index, entries in optimizer_state["state"].items():
+        for name, value in entries.items():
+            if isinstance(value, torch.Tensor):
+                tensors[f"state/{int(index)}/{name}"] = value.detach().cpu().contiguous().clone()
+            else:
+                scalars.setdefault(str(int(index)), {})[name] = value
+    header = {
+        "format": TRAINER_FORMAT,
+        "version": TRAINER_VERSION,
+        "step": int(step),
+        "param_groups": optimizer_state["param_groups"],
+        "scalars": scalars,
+        "extra": extra,
+    }
+    metadata = {k: json.dumps(v) for k, v in header.items()}
+    with atomic_path(path) as tmp:
+        save_file(tensors, tmp, metadata=metadata)
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# Reading files safely
+
+
+def read_safetensors_metadata(path: str | os.PathLike[str]) -> dict[str, str]:
+    """The header metadata of a safetensors file, checking that the file is complete (its header
+    parses and its data covers every tensor the header lists); tensors are not read."""
+    path = Path(path)
+    try:
+        with safe_open(path, framework="pt") as f:
+            return dict(f.metadata() or {})
+    except SafetensorError as e:
+        raise CheckpointError(f"{path}: truncated, damaged or not a safetensors file ({e})") from e
+    except OSError as e:
+        raise CheckpointError(f"{path}: cannot be read ({e.strerror or e})") from e
+
+
+def _decode_header(path: Path, metadata: dict[str, str]) -> dict[str, Any]:
+    """The JSON values of a safetensors header written by this module."""
+    try:
+        return {k: json.loads(v) for k, v in metadata.items()}
+    except json.JSONDecodeError as e:
+        raise CheckpointError(f"{path}: damaged header (a metadata value is not JSON: {e})") from e
+
+
+def _read_tensors(path: Path, map_location: str) -> dict[str, torch.Tensor]:
+    try:
+        return load_file(path, device=map_location)
+    except SafetensorError as e:
+        raise CheckpointError(f"{path}: truncated, damaged or not a safetensors file ({e})") from e
+
+
+def _one_line(error: BaseException) -> str:
+    """An error's message with its line breaks and runs of spaces folded into single spaces."""
+    return " ".join(str(error).split())
+
+
+def _torch_error_reason(error: Exception) -> str:
+    """What a failed ``torch.load(weights_only=True)`` found wrong with its file, in one line,
+    without torch's advice on ``weights_only`` (which does not apply: the file is the problem)."""
+    text = str(error)
+    if "WeightsUnpickler error:" in text:
+        text = text.split("WeightsUnpickler error:", 1)[1]
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    first = lines[0] if lines else type(error).__name__
+    for cut in (". Please use", ". This is an internal", ". Check the documentation"):
+        first = first.split(cut, 1)[0]
+    return first.rstrip(".")
+
+
+def read_torch_file(path: str | os.PathLike[str], map_location: str = "cpu") -> Any:
+    """The contents of a ``torch.save`` file, read with ``weights_only=True``: tensors, numbers,
+    strings and containers only. A file that asks for any other object (code, a class) is refused
+    without running anything; an unreadable one is a :class:`CheckpointError` naming it."""
+    path = Path(path)
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except OSError as e:
+        raise CheckpointError(f"{path}: cannot be read ({e.strerror or e})") from e
+    except Exception as e:  # any unpickling failure means "not a usable file"
+        reason = _torch_error_reason(e)
+        asked = re.search(r"GLOBAL (\S+) was not an allowed global", reason)
+        if asked is not None or reason.startswith("Unsupported global"):
+            name = asked.group(1) if asked is not None else reason.removeprefix("Unsupported global: ")
+            raise CheckpointError(
+                f"{path}: refused: the file asks for {name!r} (code or a class, which no checkpoint "
+                "holds); nothing in it was run"
+            ) from e
+        raise CheckpointError(
+            f"{path}: not a readable checkpoint (truncated, damaged or not a PyTorch file: {reason})"
+        ) from e
+
+
+# --------------------------------------------------------------------------------------------
+# Model checkpoints
+
+
 def _read_safetensors(path: Path, map_location: str) -> dict[str, Any]:
-    with safe_open(path, framework="pt") as f:
-        header = f.metadata() or {}
-    payload: dict[str, Any] = {k: json.loads(v) for k, v in header.items()}
-    payload["state_dict"] = load_file(path, device=map_location)
+    payload: dict[str, Any] = _decode_header(path, read_safetensors_metadata(path))
+    payload["state_dict"] = _read_tensors(path, map_location)
     return payload
+
+
+def _check_payload(path: Path, payload: Any) -> None:
+    """Raises unless ``payload`` has the fields of a model checkpoint, with the right types."""
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not a phigenesis checkpoint")
+    if not isinstance(payload.get("version"), int) or payload["version"] > VERSION:
+        raise CheckpointError(
+            f"{path}: checkpoint format version {payload.get('version')!r}; this phigenesis reads "
+            f"up to {VERSION}"
+        )
+    expected = {"model": str, "config": dict, "state_dict": dict}
+    for field, kind in expected.items():
+        if not isinstance(payload.get(field), kind):
+            raise CheckpointError(
+                f"{path}: damaged checkpoint ({field!r} is missing or not a {kind.__name__})"
+            )
+    if not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in payload["state_dict"].items()):
+        raise CheckpointError(f"{path}: damaged checkpoint (the state dict holds other values than tensors)")
+    if not isinstance(payload.get("meta", {}), dict):
+        raise CheckpointError(f"{path}: damaged checkpoint ('meta' is not a mapping)")
 
 
 def load_checkpoint(
@@ -85,22 +289,17 @@ def load_checkpoint(
 
     ``model_name``: the variant the caller expects; a checkpoint of another variant, or of the
     same variant with another config than the registered one, raises :class:`CheckpointError`
-    naming both and the fields that differ.
+    naming both and the fields that differ. A missing, truncated or damaged file, or one that is
+    not a phigenesis checkpoint, raises :class:`CheckpointError` naming the file.
     """
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
-    try:
-        if path.suffix == ".safetensors":
-            payload = _read_safetensors(path, map_location)
-        else:
-            payload = torch.load(path, map_location=map_location, weights_only=True)
-    except (SafetensorError, json.JSONDecodeError) as e:
-        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({e})") from e
-    except Exception as e:  # any unpickling failure means "not a checkpoint"
-        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from e
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise CheckpointError(f"{path}: not a phigenesis checkpoint")
+    if path.suffix == ".safetensors":
+        payload = _read_safetensors(path, map_location)
+    else:
+        payload = read_torch_file(path, map_location)
+    _check_payload(path, payload)
     name, config = payload["model"], payload["config"]
     if model_name is not None:
         expected = create_model(model_name).config.to_dict()
@@ -112,7 +311,197 @@ def load_checkpoint(
             )
     try:
         model = create_model(name, **config)
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(
+            f"{path}: cannot rebuild model {name!r} from its config ({_one_line(e)})"
+        ) from e
+    try:
         model.load_state_dict(payload["state_dict"])
-    except (KeyError, TypeError, RuntimeError) as e:
-        raise CheckpointError(f"{path}: weights do not fit model {name!r}: {e}") from e
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        raise CheckpointError(f"{path}: weights do not fit model {name!r}: {_one_line(e)}") from e
     return Checkpoint(model.eval(), name, config, dict(payload.get("meta") or {}), path)
+
+
+# --------------------------------------------------------------------------------------------
+# Trainer state
+
+
+def _tensor_state(path: Path, tensors: dict[str, torch.Tensor]) -> dict[int, dict[str, Any]]:
+    """Per-parameter state from the ``state/<param>/<name>`` tensors of a trainer file."""
+    state: dict[int, dict[str, Any]] = {}
+    for key, value in tensors.items():
+        parts = key.split("/", 2)
+        if len(parts) != 3 or parts[0] != "state" or not parts[1].isdigit() or not parts[2]:
+            raise CheckpointError(f"{path}: damaged trainer state (unexpected tensor {key!r})")
+        state.setdefault(int(parts[1]), {})[parts[2]] = value
+    return state
+
+
+def _add_scalars(path: Path, state: dict[int, dict[str, Any]], scalars: Any) -> None:
+    """Adds the header's non-tensor per-parameter state (``{"3": {"name": 1.0}}``) to ``state``."""
+    if not isinstance(scalars, dict):
+        raise CheckpointError(f"{path}: damaged trainer state ('scalars' is not a mapping)")
+    for index, entries in scalars.items():
+        if not str(index).isdigit() or not isinstance(entries, dict):
+            raise CheckpointError(f"{path}: damaged trainer state (scalars of {index!r})")
+        for name, value in entries.items():
+            if not isinstance(value, (bool, int, float)):
+                raise CheckpointError(f"{path}: damaged trainer state (scalar {index}/{name} is {value!r})")
+            state.setdefault(int(index), {})[name] = value
+
+
+def _check_optimizer_layout(path: Path, optimizer_state: Any) -> None:
+    """Raises unless ``optimizer_state`` has the layout of ``Optimizer.state_dict()``: parameter
+    groups with distinct integer parameter indices, and state only for those parameters."""
+    if not isinstance(optimizer_state, dict):
+        raise CheckpointError(f"{path}: damaged trainer state (the optimiser state is not a mapping)")
+    groups, state = optimizer_state.get("param_groups"), optimizer_state.get("state")
+    if not isinstance(groups, list) or not all(isinstance(g, dict) for g in groups):
+        raise CheckpointError(f"{path}: damaged trainer state ('param_groups' is not a list of mappings)")
+    lists = [g.get("params") for g in groups]
+    if not all(isinstance(p, list) for p in lists):
+        raise CheckpointError(f"{path}: damaged trainer state (a parameter group lists no parameters)")
+    indices = [i for params in lists for i in params]
+    if not all(type(i) is int for i in indices) or len(set(indices)) < len(indices):
+        raise CheckpointError(f"{path}: damaged trainer state (parameter indices are not distinct integers)")
+    if not isinstance(state, dict) or not set(state) <= set(indices):
+        raise CheckpointError(f"{path}: damaged trainer state (state of parameters no group lists)")
+    for index, entries in state.items():
+        if not isinstance(entries, dict) or not all(isinstance(n, str) for n in entries):
+            raise CheckpointError(f"{path}: damaged trainer state (state of parameter {index})")
+
+
+def _read_trainer_safetensors(path: Path) -> TrainingState:
+    header = _decode_header(path, read_safetensors_metadata(path))
+    if header.get("format") != TRAINER_FORMAT:
+        raise CheckpointError(f"{path}: not a phigenesis trainer state (format {header.get('format')!r})")
+    if not isinstance(header.get("version"), int) or header["version"] > TRAINER_VERSION:
+        raise CheckpointError(
+            f"{path}: trainer state version {header.get('version')!r}; this phigenesis reads up to "
+            f"{TRAINER_VERSION}"
+        )
+    state = _tensor_state(path, _read_tensors(path, "cpu"))
+    _add_scalars(path, state, header.get("scalars", {}))
+    optimizer = {"state": state, "param_groups": header.get("param_groups")}
+    return _trainer_state(path, header.get("step"), optimizer, header.get("extra", {}))
+
+
+def _read_trainer_pt(path: Path) -> TrainingState:
+    """An older run's ``trainer.pt`` (``{"step", "optimizer", "extra"}``), read with
+    ``weights_only=True``."""
+    payload = read_torch_file(path)
+    if not isinstance(payload, dict) or not {"step", "optimizer"} <= set(payload):
+        raise CheckpointError(f"{path}: not a phigenesis trainer state (no step and optimiser state)")
+    return _trainer_state(path, payload["step"], payload["optimizer"], payload.get("extra", {}))
+
+
+def _trainer_state(path: Path, step: Any, optimizer: Any, extra: Any) -> TrainingState:
+    """A checked :class:`TrainingState` from a trainer file's fields."""
+    if not isinstance(step, int) or isinstance(step, bool) or step < 0:
+        raise CheckpointError(f"{path}: damaged trainer state (step is {step!r})")
+    if not isinstance(extra, dict):
+        raise CheckpointError(f"{path}: damaged trainer state ('extra' is not a mapping)")
+    _check_optimizer_layout(path, optimizer)
+    return TrainingState(step, optimizer, extra, path)
+
+
+def read_trainer_state(path: str | os.PathLike[str]) -> TrainingState:
+    """Reads a trainer-state file: ``*.safetensors`` (this version's format) or an older run's
+    ``trainer.pt`` (``weights_only=True``). A truncated, damaged or foreign file raises
+    :class:`CheckpointError` naming it; use :func:`restore_optimizer` to load the state into an
+    optimiser (it checks that the state fits)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: trainer state not found")
+    if path.suffix == ".safetensors":
+        return _read_trainer_safetensors(path)
+    return _read_trainer_pt(path)
+
+
+def trainer_state_step(path: str | os.PathLike[str]) -> int | None:
+    """The step a trainer-state file was written at, from its header alone: the cheap check that
+    the file is complete (a checkpoint folder's completeness, :mod:`phigenesis.train.runner`).
+    None for an older run's ``trainer.pt``, whose step sits inside its pickled data (only its zip
+    directory is checked). Raises :class:`CheckpointError` for a truncated or foreign file."""
+    path = Path(path)
+    if path.suffix != ".safetensors":
+        _check_zip_directory(path)
+        return None
+    metadata = read_safetensors_metadata(path)
+    header = _decode_header(path, {k: v for k, v in metadata.items() if k in ("format", "step")})
+    step = header.get("step")
+    if header.get("format") != TRAINER_FORMAT or type(step) is not int:
+        raise CheckpointError(f"{path}: not a phigenesis trainer state")
+    return step
+
+
+def _check_zip_directory(path: Path) -> None:
+    """Raises unless ``path`` is a zip archive (``torch.save``'s container) whose directory reads."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            names = archive.namelist()
+    except (zipfile.BadZipFile, OSError) as e:
+        raise CheckpointError(f"{path}: truncated, damaged or not a PyTorch file ({e})") from e
+    if not any(name.endswith("data.pkl") for name in names):
+        raise CheckpointError(f"{path}: not a PyTorch file (no data.pkl in the archive)")
+
+
+def _check_fits(optimizer: torch.optim.Optimizer, trainer: TrainingState) -> None:
+    """Raises unless ``trainer``'s optimiser state fits ``optimizer``'s parameters: as many groups
+    and parameters, every parameter's state complete (for the optimisers of
+    :data:`REQUIRED_STATE`) and every non-scalar state tensor of its parameter's shape."""
+    path, saved = trainer.path, trainer.optimizer
+    unfit = f"{path}: the optimiser state does not fit the model"
+    live_groups, saved_groups = optimizer.param_groups, saved["param_groups"]
+    if len(live_groups) != len(saved_groups):
+        raise CheckpointError(
+            f"{unfit} ({len(saved_groups)} parameter groups, the optimiser has {len(live_groups)})"
+        )
+    for g, (live, kept) in enumerate(zip(live_groups, saved_groups, strict=True)):
+        if len(live["params"]) != len(kept["params"]):
+            raise CheckpointError(
+                f"{unfit} (group {g} holds {len(kept['params'])} parameters, the optimiser's "
+                f"{len(live['params'])})"
+            )
+        required = set(REQUIRED_STATE.get(type(optimizer).__name__, ()))
+        if required and kept.get("amsgrad"):
+            required.add("max_exp_avg_sq")
+        for param, index in zip(live["params"], kept["params"], strict=True):
+            entries = saved["state"].get(index)
+            if entries is None:  # a parameter that never had a gradient has no state
+                continue
+            missing = sorted(required - set(entries))
+            if missing:
+                raise CheckpointError(f"{unfit} (parameter {index} lacks {', '.join(missing)})")
+            for name, value in entries.items():
+                if isinstance(value, torch.Tensor) and value.dim() > 0 and value.shape != param.shape:
+                    raise CheckpointError(
+                        f"{unfit} ({name} of parameter {index} has shape {tuple(value.shape)}, the "
+                        f"parameter {tuple(param.shape)})"
+                    )
+
+
+def _as_live(live: dict[str, Any], saved: dict[str, Any]) -> dict[str, Any]:
+    """A saved parameter group with the live group's tuples (JSON gives lists) and with any
+    hyperparameter it lacks taken from the live group."""
+    group = {k: v for k, v in live.items() if k != "params"}
+    for key, value in saved.items():
+        group[key] = tuple(value) if isinstance(live.get(key), tuple) and isinstance(value, list) else value
+    return group
+
+
+def restore_optimizer(optimizer: torch.optim.Optimizer, trainer: TrainingState) -> None:
+    """Loads ``trainer``'s optimiser state into ``optimizer`` (built for the same model), after
+    checking it fits: state of other parameters or of other shapes raises
+    :class:`CheckpointError` naming the file, instead of failing at the next step."""
+    _check_fits(optimizer, trainer)
+    saved = trainer.optimizer
+    groups = [
+        _as_live(live, kept) for live, kept in zip(optimizer.param_groups, saved["param_groups"], strict=True)
+    ]
+    try:
+        optimizer.load_state_dict({"state": saved["state"], "param_groups": groups})
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        raise CheckpointError(
+            f"{trainer.path}: the optimiser state does not fit the model ({_one_line(e)})"
+        ) from e

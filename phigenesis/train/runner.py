@@ -6,22 +6,35 @@ A run folder ``runs/NAME`` holds::
     config.yaml                  the run's full configuration (written once, checked on resume)
     metrics.csv                  one row per logged step (the loss curve); TensorBoard events in tb/
     checkpoints/step-0000100/    model.safetensors (the model, see :mod:`phigenesis.train.checkpoint`)
-                                 trainer.pt (optimiser state, step, RNG states, data position)
+                                 trainer.safetensors (optimiser state and step: tensors + JSON)
     checkpoints/latest           the name of the newest complete checkpoint folder
     model.safetensors            the final weights (written when the run ends)
 
 Resuming loads the newest complete checkpoint and truncates ``metrics.csv`` to its step, so a run
-killed at any moment continues with the same loss curve as one never interrupted: every random draw
-of a step comes from a generator seeded by (seed, step), never from state that a restart loses.
+killed or interrupted at any moment continues with the same loss curve as one never interrupted:
+every random draw of a step comes from a generator seeded by (seed, step), never from state that a
+restart loses, and every file is written under a temporary name and renamed.
+
+A run folder is untrusted input. Nothing in it is unpickled (older runs' ``trainer.pt`` is read
+with ``weights_only=True``); a checkpoint folder counts only when it is complete (both files
+present, their headers readable, the step they record that of the folder) and resolves inside the
+run folder; ``checkpoints/latest`` is a hint that is checked, never followed outside
+``checkpoints/``: when it is missing, damaged or names another folder, the newest complete folder
+is used, with a warning naming the pointer and what it said. Resuming a folder that has logged
+steps but no usable checkpoint is refused rather than restarted from step 0 over its log.
 """
 
 from __future__ import annotations
 
 import csv
+import json
 import logging
 import math
 import os
+import re
 import shutil
+import signal
+import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -30,14 +43,60 @@ from typing import Any
 
 import torch
 import torch.distributed as dist
+import yaml
 from torch import nn
 
-from phigenesis.train.checkpoint import save_checkpoint
+from phigenesis.errors import CheckpointError
+from phigenesis.train.checkpoint import (
+    FORMAT,
+    TrainingState,
+    atomic_path,
+    read_safetensors_metadata,
+    read_trainer_state,
+    restore_optimizer,
+    save_checkpoint,
+    trainer_state_step,
+    write_trainer_state,
+)
+
+__all__ = [
+    "CHECKPOINTS",
+    "LATEST",
+    "CheckpointFolder",
+    "MetricsLog",
+    "ProcessGroup",
+    "TrainingState",
+    "checkpoint_to_resume",
+    "cosine_lr",
+    "inspect_checkpoints",
+    "kept_step",
+    "latest_checkpoint",
+    "load_training_state",
+    "process_group",
+    "read_metrics",
+    "read_run_config",
+    "restore_optimizer",
+    "run_evidence",
+    "save_training_state",
+    "step_generator",
+    "write_text_atomic",
+]
 
 log = logging.getLogger(__name__)
 
 CHECKPOINTS = "checkpoints"
 LATEST = "latest"
+MODEL_FILE = "model.safetensors"
+TRAINER_FILE = "trainer.safetensors"
+#: The trainer state of runs written before ``trainer.safetensors`` (read with ``weights_only=True``).
+LEGACY_TRAINER_FILE = "trainer.pt"
+METRICS_FILE = "metrics.csv"
+CONFIG_FILE = "config.yaml"
+
+_STEP_FOLDER = re.compile(r"step-(\d+)")
+_LEFTOVER = re.compile(r"\.[\w.-]+\.(\d+)\.tmp")
+#: Bytes of ``checkpoints/latest`` read at most (it holds one folder name).
+_POINTER_BYTES = 256
 
 
 def cosine_lr(
@@ -60,11 +119,40 @@ def step_generator(seed: int, step: int, rank: int = 0) -> torch.Generator:
     return g
 
 
+def write_text_atomic(path: str | os.PathLike[str], text: str) -> Path:
+    """Writes ``text`` to ``path`` under a temporary name and renames it, so ``path`` never holds
+    half a file (a run folder's ``config.yaml``, ``metrics.json``, ``summary.json``)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return path
+
+
+@contextmanager
+def interrupts_held() -> Iterator[None]:
+    """Holds a Ctrl-C (SIGINT) back while a run writes something that belongs together (a log row,
+    a checkpoint and its pointer), then delivers it, so an interrupt lands between steps' files.
+    Outside the main thread (where Python cannot handle signals) it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[tuple[int, Any]] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append((signum, frame)))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if received and callable(previous):  # SIG_IGN / SIG_DFL: nothing of ours to deliver
+            previous(*received[0])
+
+
 class MetricsLog:
     """The loss curve: ``metrics.csv`` (one row per logged step) and TensorBoard scalars in ``tb/``.
 
     ``resume_step``: rows after this step (written by a run that was killed before its next
-    checkpoint) are dropped, so the resumed run writes them again.
+    checkpoint) are dropped, so the resumed run writes them again; the file is rewritten under a
+    temporary name, so an interrupt never loses the rows kept. A row whose step is not a number
+    raises :class:`CheckpointError` naming the file and line.
     """
 
     def __init__(
@@ -74,13 +162,12 @@ class MetricsLog:
         resume_step: int | None = None,
         tensorboard: bool = True,
     ):
-        self.path = Path(out_dir) / "metrics.csv"
+        self.path = Path(out_dir) / METRICS_FILE
         self.columns = ["step", *columns]
         kept: list[dict[str, str]] = []
         if resume_step is not None and self.path.exists():
-            with self.path.open(newline="") as f:
-                kept = [row for row in csv.DictReader(f) if int(row["step"]) <= resume_step]
-        with self.path.open("w", newline="") as f:
+            kept = _rows_up_to(self.path, resume_step)
+        with atomic_path(self.path) as tmp, tmp.open("w", newline="") as f:
             writer = csv.DictWriter(f, self.columns, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(kept)
@@ -94,31 +181,312 @@ class MetricsLog:
                 log.warning("tensorboard is not installed; logging to %s only", self.path)
 
     def log(self, step: int, values: dict[str, float]) -> None:
+        """Appends a step's row to metrics.csv and its scalars to TensorBoard; Ctrl-C waits until
+        both are written (an interrupt inside TensorBoard's writer can hang its close)."""
         row = {"step": step, **{k: f"{float(values[k]):.8g}" for k in self.columns[1:] if k in values}}
-        with self.path.open("a", newline="") as f:
-            csv.DictWriter(f, self.columns, extrasaction="ignore").writerow(row)
-        if self._tb is not None:
-            for k, v in values.items():
-                self._tb.add_scalar(k, float(v), step)
+        with interrupts_held():
+            with self.path.open("a", newline="") as f:
+                csv.DictWriter(f, self.columns, extrasaction="ignore").writerow(row)
+            if self._tb is not None:
+                for k, v in values.items():
+                    self._tb.add_scalar(k, float(v), step)
 
     def close(self) -> None:
         if self._tb is not None:
             self._tb.close()
 
 
+def _rows_up_to(path: Path, step: int) -> list[dict[str, str]]:
+    """The rows of ``metrics.csv`` logged at or before ``step``."""
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            rows = [(reader.line_num, row) for row in reader]
+    except (UnicodeDecodeError, csv.Error) as e:
+        raise CheckpointError(f"{path}: damaged ({e})") from e
+    kept = []
+    for line, row in rows:
+        value = row.get("step")
+        if value is None or not value.strip().isdigit():
+            raise CheckpointError(f"{path}: line {line}: step {value!r} is not a step number")
+        if int(value) <= step:
+            kept.append(row)
+    return kept
+
+
+def _logged_steps(out_dir: Path) -> int:
+    """How many rows ``metrics.csv`` of a run folder holds (0 without one)."""
+    path = out_dir / METRICS_FILE
+    if not path.is_file():
+        return 0
+    with path.open("rb") as f:
+        lines = sum(1 for line in f if line.strip())
+    return max(lines - 1, 0)
+
+
 def read_metrics(out_dir: str | os.PathLike[str]) -> list[dict[str, float]]:
     """The rows of a run's ``metrics.csv`` as numbers."""
-    with (Path(out_dir) / "metrics.csv").open(newline="") as f:
+    with (Path(out_dir) / METRICS_FILE).open(newline="") as f:
         return [{k: float(v) for k, v in row.items() if v != ""} for row in csv.DictReader(f)]
 
 
+def read_run_config(out_dir: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """A run folder's ``config.yaml`` (None when there is none); a file that is not a YAML mapping
+    raises :class:`CheckpointError` naming it."""
+    path = Path(out_dir) / CONFIG_FILE
+    if not path.is_file():
+        return None
+    try:
+        values = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, yaml.YAMLError) as e:
+        raise CheckpointError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from e
+    if values is None:
+        return {}
+    if not isinstance(values, dict):
+        raise CheckpointError(f"{path}: a YAML {type(values).__name__}, not a mapping of options")
+    return values
+
+
+# --------------------------------------------------------------------------------------------
+# Checkpoint folders
+
+
 @dataclass(frozen=True)
-class TrainingState:
-    """What a resumed run needs besides the model: where it was and the optimiser's moments."""
+class CheckpointFolder:
+    """A ``checkpoints/step-N`` entry of a run folder and whether a resume can use it.
+
+    Attributes:
+        step: N, the optimiser steps done when it was written.
+        path: the folder.
+        problem: None when complete; else what is wrong ("trainer.safetensors: truncated ...").
+    """
 
     step: int
-    optimizer: dict[str, Any]
-    extra: dict[str, Any]
+    path: Path
+    problem: str | None
+
+
+def _inside(path: Path, root: Path) -> bool:
+    """Whether ``path``, with every symbolic link followed, lies in ``root`` (False for a path
+    that cannot be resolved: a NUL byte, a loop of links)."""
+    try:
+        return path.resolve().is_relative_to(root.resolve())
+    except (OSError, RuntimeError, ValueError):
+        return False
+
+
+def _trainer_file(folder: Path) -> Path | None:
+    """A checkpoint folder's trainer state: ``trainer.safetensors``, else an older run's ``trainer.pt``."""
+    for name in (TRAINER_FILE, LEGACY_TRAINER_FILE):
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
+def _header_problem(folder: Path, trainer: Path, step: int) -> str | None:
+    """What is wrong with the headers of a checkpoint folder's model and trainer state (None: both
+    read, the model is a phigenesis checkpoint and the trainer state is of the folder's step)."""
+    try:
+        if read_safetensors_metadata(folder / MODEL_FILE).get("format") != json.dumps(FORMAT):
+            return f"{MODEL_FILE} is not a phigenesis checkpoint"
+        written = trainer_state_step(trainer)
+    except CheckpointError as e:
+        return str(e).removeprefix(f"{folder}{os.sep}")
+    if written is not None and written != step:
+        return f"{trainer.name} is of step {written}"
+    return None
+
+
+def _folder_problem(folder: Path, run: Path, step: int) -> str | None:
+    """What makes a checkpoint folder unusable, or None when it is complete: inside the run
+    folder, both files present with readable headers, the trainer state of the folder's step."""
+    if not _inside(folder, run):
+        return "resolves outside the run folder"
+    if not folder.is_dir():
+        return "not a folder"
+    trainer = _trainer_file(folder)
+    if not (folder / MODEL_FILE).is_file():
+        return f"no {MODEL_FILE}"
+    if trainer is None:
+        return f"no {TRAINER_FILE}"
+    for path in (folder / MODEL_FILE, trainer):
+        if not _inside(path, run):
+            return f"{path.name} resolves outside the run folder"
+    return _header_problem(folder, trainer, step)
+
+
+def inspect_checkpoints(out_dir: str | os.PathLike[str]) -> list[CheckpointFolder]:
+    """Every ``checkpoints/step-N`` entry of a run folder, oldest first, each with what (if
+    anything) keeps a resume from using it. Reads headers only."""
+    run = Path(out_dir)
+    root = run / CHECKPOINTS
+    if not root.is_dir():
+        return []
+    found = []
+    for entry in root.iterdir():
+        match = _STEP_FOLDER.fullmatch(entry.name)
+        if match is not None:
+            step = int(match.group(1))
+            found.append(CheckpointFolder(step, entry, _folder_problem(entry, run, step)))
+    return sorted(found, key=lambda f: (f.step, f.path.name))
+
+
+def _pointer_problem(root: Path, folders: list[CheckpointFolder], newest: Path) -> str | None:
+    """What is wrong with ``checkpoints/latest`` given the newest complete folder (None: it names
+    that folder)."""
+    pointer = root / LATEST
+    if not pointer.exists():
+        return "is missing"
+    if pointer.is_symlink() or not pointer.is_file():
+        return "is not a plain file"
+    with pointer.open("rb") as f:
+        raw = f.read(_POINTER_BYTES)
+    try:
+        said = raw.decode("utf-8").strip()
+    except UnicodeDecodeError:
+        return f"holds {raw[:40]!r}, not a checkpoint folder name"
+    if not said:
+        return "is empty"
+    if _STEP_FOLDER.fullmatch(said) is None:
+        if not _inside(root / said, root):
+            return f"says {said!r}, a path outside {root}; not followed"
+        return f"says {said!r}, not a checkpoint folder name"
+    entry = next((f for f in folders if f.path.name == said), None)
+    if entry is None:
+        return f"says {said!r}, which does not exist"
+    if entry.problem is not None:
+        return f"says {said!r}, which cannot be used ({entry.problem})"
+    if entry.path != newest:
+        return f"says {said!r}, but {newest.name} is newer and complete"
+    return None
+
+
+def _newest_complete(out_dir: Path, folders: list[CheckpointFolder], check_pointer: bool) -> Path | None:
+    """The newest complete folder of ``folders``; with ``check_pointer``, a warning when
+    ``checkpoints/latest`` does not name it."""
+    complete = [f.path for f in folders if f.problem is None]
+    if not complete:
+        return None
+    newest = complete[-1]
+    if check_pointer:
+        root = out_dir / CHECKPOINTS
+        problem = _pointer_problem(root, folders, newest)
+        if problem is not None:
+            log.warning(
+                "%s: %s; using %s, the newest complete checkpoint", root / LATEST, problem, newest.name
+            )
+    return newest
+
+
+def latest_checkpoint(out_dir: str | os.PathLike[str]) -> Path | None:
+    """The newest complete checkpoint folder of a run (see the module docstring), or None.
+
+    ``checkpoints/latest`` is checked against it: when the pointer is missing, damaged, names a
+    missing or incomplete folder or a path outside ``checkpoints/``, a warning names the pointer
+    and what it said, and the newest complete folder is returned all the same."""
+    out_dir = Path(out_dir)
+    return _newest_complete(out_dir, inspect_checkpoints(out_dir), check_pointer=True)
+
+
+def kept_step(out_dir: str | os.PathLike[str]) -> int | None:
+    """The step a resume of ``out_dir`` would continue from (its newest complete checkpoint), or
+    None when nothing resumable was kept; logs nothing. For messages after an interrupt::
+
+        step = kept_step(out)
+        print(f"interrupted; {out} holds step {step}: continue with --resume" if step is not None
+              else f"interrupted before the first checkpoint of {out}")
+    """
+    out_dir = Path(out_dir)
+    folders = inspect_checkpoints(out_dir)
+    newest = _newest_complete(out_dir, folders, check_pointer=False)
+    return next(f.step for f in folders if f.path == newest) if newest is not None else None
+
+
+def run_evidence(out_dir: str | os.PathLike[str]) -> str | None:
+    """What shows that ``out_dir`` holds a run ("checkpoint step-0000100", "model.safetensors"),
+    or None: a trainer refuses to start a new run over it without resume."""
+    out_dir = Path(out_dir)
+    folders = inspect_checkpoints(out_dir)
+    if folders:
+        return f"checkpoint {folders[-1].path.name}"
+    if (out_dir / MODEL_FILE).exists():
+        return MODEL_FILE
+    return None
+
+
+def checkpoint_to_resume(out_dir: str | os.PathLike[str]) -> Path | None:
+    """The checkpoint folder a resumed run continues from: the newest complete one
+    (:func:`latest_checkpoint`). None when the folder holds no checkpoint and no logged step (the
+    run starts at step 0). Raises :class:`CheckpointError` naming the folder when it has logged
+    steps or checkpoint folders but none usable: restarting would overwrite the run's log."""
+    out_dir = Path(out_dir)
+    folders = inspect_checkpoints(out_dir)
+    newest = _newest_complete(out_dir, folders, check_pointer=True)
+    if newest is not None:
+        return newest
+    logged = _logged_steps(out_dir)
+    if not folders and not logged:
+        return None
+    held = f"{METRICS_FILE} holds {logged} logged step{'s' * (logged != 1)}"
+    if not folders:
+        raise CheckpointError(
+            f"{out_dir}: nothing to resume: there is no checkpoint in {out_dir / CHECKPOINTS}, but "
+            f"{held}; rerun without resume to start again from step 0 (overwriting that log), or use "
+            "another folder"
+        )
+    found = "; ".join(f"{f.path.name}: {f.problem}" for f in folders)
+    raise CheckpointError(
+        f"{out_dir}: no usable checkpoint to resume from in {out_dir / CHECKPOINTS} ({found})"
+        + (f", but {held}" if logged else "")
+        + "; refusing to restart the run from step 0. Repair or remove those folders, or start the run "
+        "in another folder"
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Writing and reading checkpoints
+
+
+def _remove(path: Path) -> None:
+    """Removes a file, a symbolic link (not what it points at) or a folder tree."""
+    if path.is_symlink() or path.is_file():
+        path.unlink(missing_ok=True)
+    else:
+        shutil.rmtree(path, ignore_errors=True)
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether a process of this machine has the id ``pid``."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # e.g. another user's process
+        return True
+    return True
+
+
+def _remove_leftovers(folder: Path) -> None:
+    """Removes the temporary files and folders (``.NAME.PID.tmp``) that a killed process of this
+    machine left in ``folder``; those of live processes stay."""
+    if not folder.is_dir():
+        return
+    for entry in folder.iterdir():
+        match = _LEFTOVER.fullmatch(entry.name)
+        if match is not None and int(match.group(1)) != os.getpid() and not _pid_alive(int(match.group(1))):
+            _remove(entry)
+
+
+def _prune(out_dir: Path, step: int, keep: int) -> None:
+    """After writing the checkpoint of ``step``: keeps the newest ``keep`` complete checkpoints up
+    to ``step`` and removes the other step folders up to it, and the incomplete ones past it (left
+    by a run that was resumed from before them)."""
+    folders = inspect_checkpoints(out_dir)
+    kept = {f.path for f in [f for f in folders if f.step <= step and f.problem is None][-keep:]}
+    for folder in folders:
+        ours = folder.path.is_symlink() or _inside(folder.path, out_dir)  # never what lies outside
+        if ours and folder.path not in kept and (folder.step <= step or folder.problem is not None):
+            _remove(folder.path)
 
 
 def save_training_state(
@@ -129,44 +497,58 @@ def save_training_state(
     extra: dict[str, Any] | None = None,
     keep: int = 2,
 ) -> Path:
-    """Writes ``checkpoints/step-NNNNNNN/`` (model.safetensors + trainer.pt) atomically, points
-    ``checkpoints/latest`` at it and keeps the newest ``keep`` checkpoints."""
-    root = Path(out_dir) / CHECKPOINTS
+    """Writes ``checkpoints/step-NNNNNNN/`` (model.safetensors + trainer.safetensors) atomically,
+    points ``checkpoints/latest`` at it and keeps the newest ``keep`` checkpoints. ``extra``: JSON
+    facts stored with the optimiser state. An interrupt while it writes leaves the earlier
+    checkpoints as they were and nothing under a final name. A ``checkpoints/`` that resolves
+    outside the run folder raises :class:`CheckpointError`."""
+    out_dir = Path(out_dir)
+    root = out_dir / CHECKPOINTS
     root.mkdir(parents=True, exist_ok=True)
+    if not _inside(root, out_dir):
+        raise CheckpointError(
+            f"{root}: resolves outside the run folder (to {root.resolve()}); a resume would not read "
+            "checkpoints there. Link the whole run folder instead"
+        )
+    _remove_leftovers(root)
+    _remove_leftovers(out_dir)
     name = f"step-{step:07d}"
     tmp = root / f".{name}.{os.getpid()}.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    save_checkpoint(tmp / "model.safetensors", model, {"step": step})
-    torch.save(
-        {"step": step, "optimizer": optimizer.state_dict(), "extra": dict(extra or {})}, tmp / "trainer.pt"
-    )
     final = root / name
-    shutil.rmtree(final, ignore_errors=True)
-    os.replace(tmp, final)
-    pointer = root / f".{LATEST}.tmp"
-    pointer.write_text(name + "\n")
-    os.replace(pointer, root / LATEST)
-    done = sorted(p for p in root.glob("step-*") if p.is_dir())
-    for old in done[:-keep]:
-        shutil.rmtree(old, ignore_errors=True)
+    _remove(tmp)
+    with interrupts_held():  # the folder and the pointer to it come together
+        try:
+            tmp.mkdir()
+            save_checkpoint(tmp / MODEL_FILE, model, {"step": step})
+            write_trainer_state(tmp / TRAINER_FILE, step, optimizer.state_dict(), dict(extra or {}))
+            _remove(final)  # a damaged folder of this step, from a run resumed before it
+            os.replace(tmp, final)
+        except BaseException:
+            _remove(tmp)
+            raise
+        with atomic_path(root / LATEST) as pointer:
+            pointer.write_text(name + "\n")
+    _prune(out_dir, step, keep)
     return final
 
 
-def latest_checkpoint(out_dir: str | os.PathLike[str]) -> Path | None:
-    """The newest complete checkpoint folder of a run, or None."""
-    pointer = Path(out_dir) / CHECKPOINTS / LATEST
-    if not pointer.is_file():
-        return None
-    folder = pointer.parent / pointer.read_text().strip()
-    return folder if (folder / "trainer.pt").is_file() and (folder / "model.safetensors").is_file() else None
-
-
 def load_training_state(folder: str | os.PathLike[str]) -> TrainingState:
-    """Reads ``trainer.pt`` of a checkpoint folder (the model is read with ``load_checkpoint``)."""
-    path = Path(folder) / "trainer.pt"
-    payload = torch.load(path, map_location="cpu", weights_only=False)
-    return TrainingState(step=int(payload["step"]), optimizer=payload["optimizer"], extra=payload["extra"])
+    """Reads the optimiser state and step of a checkpoint folder (``trainer.safetensors``, or an
+    older run's ``trainer.pt`` with ``weights_only=True``); the model is read with
+    ``load_checkpoint``. Load it into an optimiser with :func:`restore_optimizer`. A missing,
+    truncated or damaged file, or one of another step than its folder, raises
+    :class:`CheckpointError` naming it."""
+    folder = Path(folder)
+    path = _trainer_file(folder)
+    if path is None:
+        raise CheckpointError(f"{folder}: no {TRAINER_FILE} (the optimiser state) in the checkpoint folder")
+    if path.name == LEGACY_TRAINER_FILE:
+        log.info("%s: an older run's trainer state, read with weights_only=True", path)
+    state = read_trainer_state(path)
+    match = _STEP_FOLDER.fullmatch(folder.name)
+    if match is not None and int(match.group(1)) != state.step:
+        raise CheckpointError(f"{path}: the trainer state of step {state.step}, in the folder {folder.name}")
+    return state
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,7 @@ from phigenesis.data.shards import CacheReader
 from phigenesis.models import create_model
 from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
 from phigenesis.train.metrics import confusion_matrix, segmentation_scores
+from phigenesis.train.runner import write_text_atomic
 
 log = logging.getLogger("phigenesis.train")
 
@@ -394,8 +395,8 @@ def train_segmenter(
                 if miou > best_miou or not paths["best"].exists():
                     best_miou, best_scores = miou, record.get("val", {})
                     save_checkpoint(paths["best"], model, {**meta_base, "step": step, "scores": best_scores})
-                (out / "metrics.json").write_text(
-                    json.dumps({"config": meta_base, "history": history}, indent=1)
+                write_text_atomic(
+                    out / "metrics.json", json.dumps({"config": meta_base, "history": history}, indent=1)
                 )
                 log.info("step %d/%d: %s", step, total, {k: v for k, v in record.items() if k != "val"})
                 if progress is not None:

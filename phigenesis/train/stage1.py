@@ -48,12 +48,16 @@ from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_c
 from phigenesis.train.runner import (
     MetricsLog,
     ProcessGroup,
+    checkpoint_to_resume,
     cosine_lr,
-    latest_checkpoint,
     load_training_state,
     process_group,
+    read_run_config,
+    restore_optimizer,
+    run_evidence,
     save_training_state,
     step_generator,
+    write_text_atomic,
 )
 from phigenesis.train.stage1_data import Clip, Stage1Clips, ViewSet
 
@@ -270,21 +274,20 @@ def _draw_clips(data: Stage1Clips, cfg: Stage1TrainConfig, step: int, group: Pro
 
 
 def _check_run_folder(out: Path, cfg: Stage1TrainConfig, resume: bool) -> Path | None:
-    """The checkpoint to resume from (or None); refuses to mix runs in one folder."""
-    saved = out / "config.yaml"
-    ckpt = latest_checkpoint(out)
-    if ckpt is not None and not resume:
+    """The checkpoint to resume from (or None); refuses to mix runs in one folder, and to restart
+    one with logged steps but no usable checkpoint."""
+    if not resume:
+        evidence = run_evidence(out)
+        if evidence is not None:
+            raise ValueError(f"{out}: holds a run already ({evidence}); pass --resume or another --out")
+        return None
+    before = read_run_config(out)
+    if before is not None and before != cfg.to_dict():
+        diff = sorted(k for k in set(before) | set(cfg.to_dict()) if before.get(k) != cfg.to_dict().get(k))
         raise ValueError(
-            f"{out}: holds a run already (checkpoint {ckpt.name}); pass --resume or another --out"
+            f"{out / 'config.yaml'}: the run was started with another config (fields differ: {diff})"
         )
-    if resume and saved.exists():
-        before = yaml.safe_load(saved.read_text())
-        if before != cfg.to_dict():
-            diff = sorted(
-                k for k in set(before) | set(cfg.to_dict()) if before.get(k) != cfg.to_dict().get(k)
-            )
-            raise ValueError(f"{saved}: the run was started with another config (fields differ: {diff})")
-    return ckpt if resume else None
+    return checkpoint_to_resume(out)
 
 
 def train_stage1(
@@ -333,60 +336,63 @@ def _train(
             raise CheckpointError(f"{resume_from}: checkpoint of another model config than {cfg.model}")
         model.load_state_dict(loaded.state_dict())
         state = load_training_state(resume_from)
-        optimizer.load_state_dict(state.optimizer)
+        restore_optimizer(optimizer, state)
         start = state.step
         log.info("resuming %s at step %d", out, start)
     if group.is_main:
-        (out / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+        write_text_atomic(out / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     trainee: torch.nn.Module = model
     if group.world_size > 1:
         trainee = torch.nn.parallel.DistributedDataParallel(model)
-    metrics = MetricsLog(out, LOG_COLUMNS, resume_step=start) if group.is_main else None
+    resume_step = start if resume_from is not None else None
+    metrics = MetricsLog(out, LOG_COLUMNS, resume_step=resume_step) if group.is_main else None
     model.train()
     last: dict[str, float] = {}
     t_start = time.perf_counter()
     end = cfg.steps if stop_after is None else min(cfg.steps, stop_after)
     bar = tqdm(range(start, end), initial=start, total=cfg.steps, disable=not (progress and group.is_main))
-    for step in bar:
-        t0 = time.perf_counter()
-        lr = cosine_lr(step, cfg.steps, cfg.lr, cfg.warmup_steps, cfg.final_lr_ratio)
-        for pg in optimizer.param_groups:
-            pg["lr"] = lr
-        clips = _draw_clips(data, cfg, step, group)
-        terms, gaussians = stage1_losses(
-            trainee if group.world_size == 1 else _Forward(trainee, model), clips
-        )
-        loss = sum(cfg.weights[k] * v for k, v in terms.items())
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(model.trainable_parameters(), cfg.grad_clip)
-        optimizer.step()
-        values = torch.stack([loss.detach(), *[terms[k].detach() for k in LOSS_NAMES]])
-        values = group.mean(values)
-        last = {
-            "loss": float(values[0]),
-            **{k: float(v) for k, v in zip(LOSS_NAMES, values[1:], strict=True)},
-        }
-        last |= {
-            "lr": lr,
-            "grad_norm": float(grad_norm),
-            "gaussians": gaussians,
-            "seconds": time.perf_counter() - t0,
-        }
+    try:
+        for step in bar:
+            t0 = time.perf_counter()
+            lr = cosine_lr(step, cfg.steps, cfg.lr, cfg.warmup_steps, cfg.final_lr_ratio)
+            for pg in optimizer.param_groups:
+                pg["lr"] = lr
+            clips = _draw_clips(data, cfg, step, group)
+            terms, gaussians = stage1_losses(
+                trainee if group.world_size == 1 else _Forward(trainee, model), clips
+            )
+            loss = sum(cfg.weights[k] * v for k, v in terms.items())
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(model.trainable_parameters(), cfg.grad_clip)
+            optimizer.step()
+            values = torch.stack([loss.detach(), *[terms[k].detach() for k in LOSS_NAMES]])
+            values = group.mean(values)
+            last = {
+                "loss": float(values[0]),
+                **{k: float(v) for k, v in zip(LOSS_NAMES, values[1:], strict=True)},
+            }
+            last |= {
+                "lr": lr,
+                "grad_norm": float(grad_norm),
+                "gaussians": gaussians,
+                "seconds": time.perf_counter() - t0,
+            }
+            if metrics is not None:
+                metrics.log(step + 1, last)
+            bar.set_postfix(loss=f"{last['loss']:.4f}")
+            if group.is_main and ((step + 1) % cfg.checkpoint_every == 0 or step + 1 == cfg.steps):
+                save_training_state(out, step + 1, model, optimizer, {"config": cfg.to_dict()})
+            group.barrier()
+    finally:
         if metrics is not None:
-            metrics.log(step + 1, last)
-        bar.set_postfix(loss=f"{last['loss']:.4f}")
-        if group.is_main and ((step + 1) % cfg.checkpoint_every == 0 or step + 1 == cfg.steps):
-            save_training_state(out, step + 1, model, optimizer, {"config": cfg.to_dict()})
-        group.barrier()
+            metrics.close()
     final = None
     if group.is_main and end == cfg.steps:
         final = save_checkpoint(
             out / "model.safetensors", model, {"steps": cfg.steps, "train": cfg.to_dict()}
         )
-        (out / "summary.json").write_text(json.dumps({"steps": cfg.steps, "last": last}, indent=2))
-    if metrics is not None:
-        metrics.close()
+        write_text_atomic(out / "summary.json", json.dumps({"steps": cfg.steps, "last": last}, indent=2))
     return Stage1Run(
         out=out, checkpoint=final, steps_done=end, last=last, seconds=time.perf_counter() - t_start
     )

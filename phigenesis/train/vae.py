@@ -51,16 +51,20 @@ from phigenesis.models import create_model
 from phigenesis.models.vae import VideoVAE, vae_loss
 from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
 from phigenesis.train.runner import (
-    CHECKPOINTS,
     MetricsLog,
     ProcessGroup,
+    checkpoint_to_resume,
     cosine_lr,
     latest_checkpoint,
     load_training_state,
     process_group,
     read_metrics,
+    read_run_config,
+    restore_optimizer,
+    run_evidence,
     save_training_state,
     step_generator,
+    write_text_atomic,
 )
 from phigenesis.train.views import resize_images, scene_windows
 
@@ -376,25 +380,23 @@ def draw_batch(
     return [clips[i] for i in index], [f and flip for f in flips]
 
 
-def _check_run_folder(out: Path, cfg: dict[str, Any], resume: bool) -> int:
-    """The step to start from; refuses to overwrite a run unless ``resume``, and to resume one
-    whose configuration differs in fields that shape the loss curve."""
-    checkpoints = out / CHECKPOINTS
-    has_run = any(checkpoints.glob("step-*")) or (out / "model.safetensors").exists()
+def _check_run_folder(out: Path, cfg: dict[str, Any], resume: bool) -> Path | None:
+    """The checkpoint folder to resume from (None: start at step 0); refuses to overwrite a run
+    unless ``resume``, to resume one whose configuration differs in fields that shape the loss
+    curve, and to restart one with logged steps but no usable checkpoint."""
     if not resume:
-        if has_run:
+        if run_evidence(out) is not None:
             raise ValueError(
                 f"{out}: already holds a run (checkpoints or model.safetensors); pass resume=True "
                 "(--resume) to continue it, or choose another folder"
             )
-        return 0
-    folder = latest_checkpoint(out)
+        return None
+    folder = checkpoint_to_resume(out)
     if folder is None:
         log.info("%s: no checkpoint to resume from; starting at step 0", out)
-        return 0
-    stored_path = out / "config.yaml"
-    if stored_path.is_file():
-        stored = yaml.safe_load(stored_path.read_text()) or {}
+        return None
+    stored = read_run_config(out)
+    if stored is not None:
         differ = sorted(
             k for k in set(stored) | set(cfg) if k not in RESUMABLE_CHANGES and stored.get(k) != cfg.get(k)
         )
@@ -403,7 +405,7 @@ def _check_run_folder(out: Path, cfg: dict[str, Any], resume: bool) -> int:
                 f"{out}: cannot resume with other options than the run's config.yaml (differing: "
                 f"{', '.join(differ)}); start a new folder (--init {folder / 'model.safetensors'})"
             )
-    return load_training_state(folder).step
+    return folder
 
 
 def train_vae(
@@ -468,7 +470,9 @@ def _train(
         keep = np.linspace(0, len(val_clips) - 1, cfg.val_clips).round().astype(int)
         val_clips = [val_clips[k] for k in keep]
     recorded = {**cfg.to_dict(), "cache": str(shards.resolve())}
-    start = _check_run_folder(out, recorded, resume)
+    folder = _check_run_folder(out, recorded, resume)
+    state = load_training_state(folder) if folder is not None else None
+    start = state.step if state is not None else 0
     stop = min(cfg.steps, stop_after if stop_after is not None else cfg.steps)
 
     torch.manual_seed(cfg.seed)
@@ -477,10 +481,9 @@ def _train(
     )
     model.to(cfg.device).train()
     optimizer = make_optimizer(model, cfg)
-    folder = latest_checkpoint(out) if start > 0 else None
-    if folder is not None:
+    if folder is not None and state is not None:
         model.load_state_dict(load_checkpoint(folder / "model.safetensors", cfg.model).model.state_dict())
-        optimizer.load_state_dict(load_training_state(folder).optimizer)
+        restore_optimizer(optimizer, state)
     net: nn.Module = model
     if pg.world_size > 1:
         net = nn.parallel.DistributedDataParallel(model)
@@ -489,9 +492,11 @@ def _train(
     metrics = None
     if pg.is_main:
         out.mkdir(parents=True, exist_ok=True)
-        if start == 0:
-            (out / "config.yaml").write_text(yaml.safe_dump(recorded, sort_keys=False))
-        metrics = MetricsLog(out, STEP_COLUMNS + VAL_COLUMNS, resume_step=start if start > 0 else None)
+        if state is None:
+            write_text_atomic(out / "config.yaml", yaml.safe_dump(recorded, sort_keys=False))
+        metrics = MetricsLog(
+            out, STEP_COLUMNS + VAL_COLUMNS, resume_step=start if state is not None else None
+        )
     log.info(
         "vae %s: %d training clips (%d scenes), %d validation clips (%d scenes), steps %d..%d of %d, "
         "%d process(es)",
@@ -511,15 +516,19 @@ def _train(
             values = dict(zip(("loss", "reconstruction", "kl"), mean.tolist(), strict=True))
             values |= {"lr": lr, "grad_norm": float(terms["grad_norm"])}
             done = step + 1
-            if done % cfg.checkpoint_every == 0 or done == stop:
-                if pg.is_main:
-                    val = evaluate(model, images, val_clips, device=cfg.device)
-                    if val:
-                        values |= {f"val_{k}": val[v] for k, v in VAL_KEYS.items()}
-                    save_training_state(out, done, model, optimizer)
-                pg.barrier()
+            checkpoint = done % cfg.checkpoint_every == 0 or done == stop
+            if checkpoint and pg.is_main:
+                val = evaluate(model, images, val_clips, device=cfg.device)
+                if val:
+                    values |= {f"val_{k}": val[v] for k, v in VAL_KEYS.items()}
+            # The row goes in before the checkpoint: a run stopped between the two resumes from the
+            # checkpoint before and writes the row again, never one without it.
             if metrics is not None:
                 metrics.log(done, values)
+            if checkpoint:
+                if pg.is_main:
+                    save_training_state(out, done, model, optimizer)
+                pg.barrier()
             if done % cfg.log_every == 0 or done == stop:
                 rate = (time.perf_counter() - tic) / (done - start)
                 extra = f", val PSNR {values['val_psnr']:.2f} dB" if "val_psnr" in values else ""
@@ -536,8 +545,8 @@ def _train(
 
     done = max(start, stop)
     if done < cfg.steps:
-        folder = latest_checkpoint(out)
-        return VAERun(out, (folder or out) / "model.safetensors", done, False, {}, train_scenes, val_scenes)
+        kept = latest_checkpoint(out)
+        return VAERun(out, (kept or out) / "model.safetensors", done, False, {}, train_scenes, val_scenes)
     final = out / "model.safetensors"
     if pg.is_main:
         if not val:  # resumed after the last step: nothing trained in this call
@@ -581,6 +590,6 @@ def _write_final(
         "final_train_loss": float(np.mean(last)) if last else None,
         "history": history,
     }
-    (out / "metrics.json").write_text(json.dumps(summary, indent=1))
+    write_text_atomic(out / "metrics.json", json.dumps(summary, indent=1))
     if val:
         log.info("val PSNR %.2f dB on %d clips; wrote %s", val["psnr_db"], val["clips"], final)
