@@ -98,7 +98,7 @@ def test_boxes_wrap_yaw_and_select_by_mask_and_index():
     assert boxes.corners_world().shape == (3, 8, 3)
 
 
-def test_boxes_reject_unknown_status_codes_and_negative_sizes():
+def test_boxes_reject_unknown_status_codes_and_sizes_that_are_not_positive():
     args = dict(
         track_id=["a"],
         class_id=np.array([13]),
@@ -110,7 +110,9 @@ def test_boxes_reject_unknown_status_codes_and_negative_sizes():
     )
     with pytest.raises(ValueError, match="status codes"):
         Boxes(size_lwh=np.ones((1, 3)), status=np.array([7]), **args)
-    with pytest.raises(ValueError, match="non-negative"):
+    with pytest.raises(
+        ValueError, match=r"box 'a' size_lwh \[-1, -1, -1\] must be finite and in \(0, 1000\] m"
+    ):
         Boxes(size_lwh=-np.ones((1, 3)), status=np.array([0]), **args)
 
 

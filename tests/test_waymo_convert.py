@@ -630,10 +630,14 @@ def test_boxes_empty() -> None:
 SEM = {2: "car", 20: "road", 25: "sky", 21: "road", 9: "person", 23: "sidewalk", 15: "pole"}
 
 
+#: A real 8 x 4 JPEG: images are checked against their calibration's size.
+JPEG_8X4 = cv2.imencode(".jpg", np.zeros((4, 8, 3), np.uint8))[1].tobytes()
+
+
 def _panoptic_image(png: bytes | None, mapping: dict[int, int], divisor: int = 1000) -> RawCameraImage:
     return RawCameraImage(
         name=1,
-        jpeg=b"\xff\xd8jpeg",
+        jpeg=JPEG_8X4,
         global_from_vehicle=np.eye(4),
         velocity_linear=np.zeros(3),
         velocity_angular=np.zeros(3),
@@ -691,11 +695,15 @@ def test_camera_labels_errors() -> None:
     _, png = _panoptic()
     with pytest.raises(WaymoFormatError, match=r"seg frame 3.*shape \(4, 8\).*\(5, 8\)"):
         convert.camera_labels(_panoptic_image(png, {}), 5, 8, "seg frame 3")
-    with pytest.raises(WaymoFormatError, match=r"seg frame 3.*undecodable"):
+    with pytest.raises(
+        WaymoFormatError, match=r"seg frame 3: panoptic_label holds 9 bytes that are not a PNG"
+    ):
         convert.camera_labels(_panoptic_image(b"not a png", {}), 4, 8, "seg frame 3")
     with pytest.raises(WaymoFormatError, match="divisor 0"):
         convert.camera_labels(_panoptic_image(png, {}, divisor=0), 4, 8, "seg frame 3")
-    with pytest.raises(WaymoFormatError, match="16 bits"):
+    with pytest.raises(
+        WaymoFormatError, match=r"maps local id 1 to 70000, not an instance id in \[0, 65535\]"
+    ):
         convert.camera_labels(_panoptic_image(png, {1: 70000}), 4, 8, "seg frame 3")
 
 
@@ -779,7 +787,7 @@ def test_frame_conversion() -> None:
 
     assert [c.name for c in out.cameras] == ["FRONT", "SIDE_LEFT"]
     front, side = out.cameras
-    assert front.image_bytes == b"\xff\xd8jpeg"
+    assert front.image_bytes == JPEG_8X4
     im = raw.images[0]
     assert front.timestamp_micros == round(im.pose_timestamp * 1e6)
     assert_allclose(front.world_from_ego[:3, 3], im.global_from_vehicle[:3, 3] - origin, atol=1e-9)

@@ -9,11 +9,38 @@ Frames and units (see ../geometry.py for the conventions):
 - Boxes: upright, centre/size/yaw in the world frame, size as (length, width, height).
 - Semantic ids: the unified taxonomy in :mod:`phigenesis.data.taxonomy` (uint8, 255 = ignore).
 
-Records validate their shapes and dtypes on construction and say which field is wrong.
+Validation: nothing invalid enters a scene
+------------------------------------------
+Records check their shapes, dtypes and values on construction and raise :class:`InvalidRecord`
+(a ``ValueError``) naming the field: a transform that is not finite and rigid (rotation
+orthonormal with determinant +1 within :data:`RIGID_TOLERANCE`, translation within
+:data:`MAX_COORDINATE_M`), a box with a non-finite or out-of-range field (named by its track id),
+camera intrinsics that are not finite and positive, an encoded image whose size is not its
+calibration's, a capture time more than :data:`MAX_SENSOR_OFFSET_MICROS` from its frame's time,
+a negative frame time, frame times that do not strictly increase, LiDAR points with non-finite
+or out-of-range values. A source catches :class:`InvalidRecord` and raises its own
+:class:`~phigenesis.errors.SourceError` with the file and record in front::
+
+    try:
+        frame = Frame(...)
+    except InvalidRecord as e:
+        raise MySourceError(f"{path} (record {k}): {e}") from None
+
+For data it may leave out (``--on-error skip``), a source builds with the helpers that drop and
+count instead of raising: :meth:`LidarSweep.without_invalid_points` (returns the sweep and the
+number of points dropped, recorded as :data:`INVALID_POINTS` in :attr:`Scene.dropped`) and
+:meth:`Boxes.without_invalid` (returns the boxes and one :class:`InvalidRecord` per box left
+out, counted as :data:`INVALID_BOXES`); :func:`check_capture_time` checks one sensor's time
+before the frame is built, and :func:`check_frame_times` / :func:`increasing_frames` check a
+source's index of frame times once, before any frame is loaded. :class:`LazyFrames` checks
+each frame it loads against the index it was given (or, without one, against the frames loaded
+before it), so no source can hand a stage frames out of time order.
 """
 
 from __future__ import annotations
 
+import bisect
+import io
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any, Literal, overload
@@ -23,11 +50,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
+from phigenesis.data import image_headers
 from phigenesis.data.range_records import LidarRangeImage, RangeViewLayout
 
 BoxStatus = Literal["annotated", "interpolated", "extrapolated"]
 BOX_STATUSES: tuple[BoxStatus, ...] = ("annotated", "interpolated", "extrapolated")
 ImageFormat = Literal["jpeg", "png"]
+IMAGE_FORMATS: tuple[ImageFormat, ...] = ("jpeg", "png")
 #: How a camera reads its pixels out: all at once ("global"), or line by line in a direction.
 ReadoutDirection = Literal[
     "global", "top_to_bottom", "left_to_right", "bottom_to_top", "right_to_left", "unknown"
@@ -41,26 +70,230 @@ READOUT_DIRECTIONS: tuple[ReadoutDirection, ...] = (
     "unknown",
 )
 
+# --------------------------------------------------------------------------------------------
+# Validation limits: values beyond them are not physical and would overflow later arithmetic
+# (float32 LiDAR columns, squared distances), so the records refuse them.
+
+#: Largest ``max |R^T R - I|`` of a rigid transform's rotation block (float32-stored rotations
+#: are ~1e-7 off; a scaled or sheared one is far beyond).
+RIGID_TOLERANCE = 1e-4
+#: Largest coordinate of any position (transform translations, box centres), metres (10,000 km).
+MAX_COORDINATE_M = 1e7
+#: Largest coordinate of a LiDAR point or ray origin in the ego frame, metres.
+MAX_POINT_DISTANCE_M = 1e4
+#: Largest box side, metres.
+MAX_BOX_SIZE_M = 1e3
+#: Largest image side, pixels (bounds what decoding an image or allocating its maps can cost).
+MAX_IMAGE_SIDE = 8192
+#: Focal lengths lie in this range, pixels.
+FOCAL_RANGE_PX = (0.1, 1e6)
+#: Largest |principal point| and |skew|, pixels, and largest |distortion coefficient|.
+MAX_INTRINSIC_PX = 1e6
+MAX_DISTORTION = 1e3
+#: A capture (camera image, LiDAR sweep, trigger) lies within this of its frame's (or image's)
+#: time, and an exposure or readout lasts at most this long, microseconds.
+MAX_SENSOR_OFFSET_MICROS = 5_000_000
+#: Times are int64 microseconds.
+INT64_MAX = 2**63 - 1
+
+#: :class:`DroppedValues` kinds of the records' own helpers (sources use the same words).
+INVALID_POINTS = "LiDAR points with non-finite or out-of-range values"
+INVALID_BOXES = "boxes with invalid fields"
+
+
+class InvalidRecord(ValueError):
+    """A record was given an invalid value: the message is ``"<field> <problem>"``, e.g.
+    ``box 'abc' size_lwh [nan, 1.8, 1.5] must be finite and in (0, 1000] m``.
+
+    Attributes:
+        field: what is invalid, as the record names it (``world_from_ego``, ``box 'abc'``,
+            ``camera FRONT timestamp_micros``).
+        problem: what is wrong with it, with the offending value (a predicate of ``field``).
+        index: the position in the checked sequence (the frame of :func:`check_frame_times`,
+            the box of :meth:`Boxes.without_invalid`), None where there is none.
+
+    It is not a :class:`~phigenesis.errors.PhiGenesisError`: it names no file. A source catches
+    it and raises its ``SourceError`` naming the file and record; one that escapes a source is
+    reported as a toolkit bug.
+    """
+
+    def __init__(self, field: str, problem: str, index: int | None = None):
+        super().__init__(f"{field} {problem}")
+        self.field = field
+        self.problem = problem
+        self.index = index
+
 
 def _check_array(
     name: str, value: Any, shape: tuple[int | None, ...], dtype: type | None = None
 ) -> np.ndarray:
     """Returns ``value`` as an array after checking its shape (None = any size) and dtype."""
-    arr = np.asarray(value) if dtype is None else np.asarray(value, dtype=dtype)
+    try:
+        arr = np.asarray(value) if dtype is None else np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError, OverflowError) as e:
+        raise InvalidRecord(name, f"is not an array of {np.dtype(dtype).name} ({e})") from None
     ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape, strict=False))
     if not ok:
         want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
-        raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
+        raise InvalidRecord(name, f"must have shape {want}, got {arr.shape}")
     return arr
 
 
-def _check_transform(name: str, value: Any) -> NDArray[np.float64]:
+def _listed(values: NDArray) -> str:
+    """A short text of an array's values for messages (at most 16 shown)."""
+    flat = np.asarray(values).ravel()
+    shown = ", ".join(f"{v:.6g}" if isinstance(v, float) else str(v) for v in flat[:16].tolist())
+    return f"[{shown}{', ...' if flat.size > 16 else ''}]"
+
+
+def check_transform(name: str, value: Any) -> NDArray[np.float64]:
+    """``value`` as a (4, 4) float64 rigid transform ``target_from_source``.
+
+    Raises :class:`InvalidRecord` naming ``name`` if an entry is not finite, the last row is not
+    (0, 0, 0, 1), the rotation block is not orthonormal with determinant +1 (within
+    :data:`RIGID_TOLERANCE`: a scaled, sheared or mirrored matrix is refused), or the translation
+    exceeds :data:`MAX_COORDINATE_M` metres. Sources use it for transforms the scene model does
+    not hold (LiDAR extrinsics).
+    """
     t = _check_array(name, value, (4, 4), np.float64)
     if not np.all(np.isfinite(t)):
-        raise ValueError(f"{name} has non-finite entries")
+        raise InvalidRecord(name, f"has non-finite entries {_listed(t)}")
     if not np.allclose(t[3], [0, 0, 0, 1]):
-        raise ValueError(f"{name} is not a rigid transform: last row is {t[3]}")
+        raise InvalidRecord(name, f"is not a rigid transform: last row is {_listed(t[3])}")
+    rotation = t[:3, :3]
+    with np.errstate(over="ignore", invalid="ignore"):
+        error = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+    if not error <= RIGID_TOLERANCE:
+        raise InvalidRecord(
+            name,
+            f"is not a rigid transform: its rotation is not orthonormal (max |R^T R - I| = {error:.3g}, "
+            f"tolerance {RIGID_TOLERANCE:g}; rows {_listed(rotation)})",
+        )
+    if np.linalg.det(rotation) < 0:
+        raise InvalidRecord(name, "is not a rigid transform: its rotation is a reflection (determinant -1)")
+    if np.abs(t[:3, 3]).max() > MAX_COORDINATE_M:
+        raise InvalidRecord(name, f"has a translation {_listed(t[:3, 3])} m beyond {MAX_COORDINATE_M:g} m")
     return t
+
+
+def _check_micros(name: str, value: Any, minimum: int = -INT64_MAX) -> int:
+    """``value`` as int microseconds in [minimum, INT64_MAX]; raises naming ``name`` otherwise."""
+    if isinstance(value, (float, np.floating)) and not np.isfinite(value):
+        raise InvalidRecord(name, f"is {value}, not a time")
+    try:
+        micros = int(value)
+    except (TypeError, ValueError, OverflowError) as e:
+        raise InvalidRecord(name, f"is {value!r}, not a time in microseconds ({e})") from None
+    if not minimum <= micros <= INT64_MAX:
+        what = "negative" if micros < 0 <= minimum else "outside int64"
+        raise InvalidRecord(name, f"is {micros} us, {what}")
+    return micros
+
+
+def check_capture_time(
+    name: str, timestamp_micros: int, reference_micros: int, reference: str = "its frame's time"
+) -> None:
+    """Raises :class:`InvalidRecord` naming ``name`` if a capture at ``timestamp_micros`` lies more
+    than :data:`MAX_SENSOR_OFFSET_MICROS` from ``reference_micros`` (``reference`` says what that
+    is: the frame's time, or for a trigger the image's)."""
+    offset = int(timestamp_micros) - int(reference_micros)
+    if abs(offset) > MAX_SENSOR_OFFSET_MICROS:
+        raise InvalidRecord(
+            name,
+            f"is {int(timestamp_micros)} us, {offset / 1e6:+.6g} s from {reference} "
+            f"{int(reference_micros)} us (at most {MAX_SENSOR_OFFSET_MICROS / 1e6:g} s)",
+        )
+
+
+def check_frame_times(times_micros: Sequence[int], what: str = "frame") -> None:
+    """Raises :class:`InvalidRecord` (``index`` = the first bad position) unless the times are
+    non-negative int64 microseconds that strictly increase (no duplicates, no steps back).
+
+    ``what`` names an element in the message ("frame", "keyframe"). Sources call it once on their
+    index of frame times, before any frame is loaded.
+    """
+    previous: int | None = None
+    for i, t in enumerate(times_micros):
+        try:
+            micros = _check_micros(f"{what} {i} timestamp_micros", t, minimum=0)
+        except InvalidRecord as e:
+            raise InvalidRecord(e.field, e.problem, index=i) from None
+        if previous is not None and micros <= previous:
+            same = "the same as" if micros == previous else "before"
+            raise InvalidRecord(
+                f"{what} {i} timestamp_micros",
+                f"is {micros} us, {same} {what} {i - 1}'s {previous} us (times must strictly increase)",
+                index=i,
+            )
+        previous = micros
+
+
+def increasing_frames(times_micros: Sequence[int]) -> list[int]:
+    """The positions to keep so that the times strictly increase: the longest strictly increasing
+    subsequence of the valid (non-negative int64) times, the earliest such positions on ties.
+
+    For ``--on-error skip``: one corrupt time (a duplicate, a step back, a jump far ahead) loses
+    that frame only, not every frame after it.
+    """
+    valid = []
+    for i, t in enumerate(times_micros):
+        try:
+            valid.append((i, _check_micros("t", t, minimum=0)))
+        except InvalidRecord:
+            continue
+    # From the right: longest[j] = length of the longest increasing run that starts at valid[j].
+    longest = [0] * len(valid)
+    tails: list[int] = []  # negated first times of runs of each length, ascending
+    for j in range(len(valid) - 1, -1, -1):
+        k = bisect.bisect_left(tails, -valid[j][1])
+        if k == len(tails):
+            tails.append(-valid[j][1])
+        else:
+            tails[k] = -valid[j][1]
+        longest[j] = k + 1
+    # From the left: take the first element that can still start a run of the length needed.
+    keep: list[int] = []
+    need, previous = max(longest, default=0), -1
+    for j, (i, t) in enumerate(valid):
+        if need and longest[j] == need and t > previous:
+            keep.append(i)
+            need, previous = need - 1, t
+    return keep
+
+
+def encoded_image_size(data: bytes, image_format: ImageFormat, name: str = "image_bytes") -> tuple[int, int]:
+    """(width, height) in pixels that encoded image bytes declare, read from the header alone.
+
+    Raises :class:`InvalidRecord` naming ``name`` if the bytes are not a ``image_format`` image
+    whose header says its size. Sources compare it with the calibration before anything decodes
+    the image (a crafted header can declare gigapixels).
+    """
+    if image_format not in IMAGE_FORMATS:
+        raise InvalidRecord(name, f"has image format {image_format!r}, not one of {IMAGE_FORMATS}")
+    data = bytes(data)
+    read_size = image_headers.jpeg_size if image_format == "jpeg" else image_headers.png_size
+    try:
+        return read_size(io.BytesIO(data).read)
+    except ValueError as e:
+        what = f"a {image_format.upper()} image with a readable size"
+        raise InvalidRecord(name, f"holds {len(data)} bytes that are not {what} ({e})") from None
+
+
+def _check_intrinsics(name: str, k: NDArray[np.float64]) -> None:
+    """Raises unless ``k`` is an OpenCV K: focal lengths in :data:`FOCAL_RANGE_PX`, finite
+    principal point and skew within :data:`MAX_INTRINSIC_PX`, bottom rows (0, fy, cy), (0, 0, 1)."""
+    if not np.all(np.isfinite(k)):
+        raise InvalidRecord(name, f"has non-finite entries {_listed(k)}")
+    lo, hi = FOCAL_RANGE_PX
+    for label, f in (("fx", k[0, 0]), ("fy", k[1, 1])):
+        if not lo <= f <= hi:
+            raise InvalidRecord(name, f"has focal length {label} = {f:.6g} px, not in [{lo:g}, {hi:g}]")
+    if max(abs(k[0, 1]), abs(k[0, 2]), abs(k[1, 2])) > MAX_INTRINSIC_PX:
+        raise InvalidRecord(
+            name, f"has a principal point or skew beyond {MAX_INTRINSIC_PX:g} px: {_listed(k)}"
+        )
+    if k[1, 0] != 0 or not np.array_equal(k[2], [0.0, 0.0, 1.0]):
+        raise InvalidRecord(name, f"is not an upper-triangular K with last row (0, 0, 1): {_listed(k)}")
 
 
 @dataclass(frozen=True)
@@ -87,20 +320,33 @@ class CameraCalibration:
     readout_direction: ReadoutDirection = "global"
 
     def __post_init__(self) -> None:
-        if self.width <= 0 or self.height <= 0:
-            raise ValueError(
-                f"camera {self.name}: image size must be positive, got {self.width}x{self.height}"
-            )
+        for side in ("width", "height"):
+            value = getattr(self, side)
+            if not isinstance(value, (int, np.integer)) or not 1 <= value <= MAX_IMAGE_SIDE:
+                raise InvalidRecord(
+                    f"camera {self.name} {side}", f"is {value!r} pixels, not in [1, {MAX_IMAGE_SIDE}]"
+                )
+            object.__setattr__(self, side, int(value))
         if self.readout_direction not in READOUT_DIRECTIONS:
-            raise ValueError(
-                f"camera {self.name}: readout_direction must be one of {READOUT_DIRECTIONS}, "
-                f"got {self.readout_direction!r}"
+            raise InvalidRecord(
+                f"camera {self.name} readout_direction",
+                f"must be one of {READOUT_DIRECTIONS}, got {self.readout_direction!r}",
             )
+        intrinsics = _check_array(f"camera {self.name} intrinsics", self.intrinsics, (3, 3), np.float64)
+        _check_intrinsics(f"camera {self.name} intrinsics", intrinsics)
+        object.__setattr__(self, "intrinsics", intrinsics)
+        distortion = _check_array(f"camera {self.name} distortion", self.distortion, (5,), np.float64)
+        if not (np.all(np.isfinite(distortion)) and np.abs(distortion).max() <= MAX_DISTORTION):
+            raise InvalidRecord(
+                f"camera {self.name} distortion",
+                f"{_listed(distortion)} must be finite and at most {MAX_DISTORTION:g} in magnitude",
+            )
+        object.__setattr__(self, "distortion", distortion)
         object.__setattr__(
-            self, "intrinsics", _check_array("intrinsics", self.intrinsics, (3, 3), np.float64)
+            self,
+            "ego_from_camera",
+            check_transform(f"camera {self.name} ego_from_camera", self.ego_from_camera),
         )
-        object.__setattr__(self, "distortion", _check_array("distortion", self.distortion, (5,), np.float64))
-        object.__setattr__(self, "ego_from_camera", _check_transform("ego_from_camera", self.ego_from_camera))
 
     def key(self) -> tuple:
         """A hashable key, equal for equal calibrations (name, size and the matrices' bytes): for
@@ -193,7 +439,7 @@ class CameraDepth:
         self.sparse_confidence = _check_array("sparse_confidence", self.sparse_confidence, shape, np.float32)
         self.sparse_origin = _check_array("sparse_origin", self.sparse_origin, shape, np.uint8)
         if (self.dense_m is None) != (self.dense_confidence is None):
-            raise ValueError("dense_m and dense_confidence come together (both or neither)")
+            raise InvalidRecord("dense_m", "and dense_confidence come together (both or neither)")
         if self.dense_m is not None:
             self.dense_m = _check_array("dense_m", self.dense_m, shape, np.float32)
             self.dense_confidence = _check_array("dense_confidence", self.dense_confidence, shape, np.float32)
@@ -274,8 +520,9 @@ class CameraImage:
     _decoded: tuple[bytes, NDArray[np.uint8]] | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        self.timestamp_micros = int(self.timestamp_micros)
-        self.world_from_ego = _check_transform("world_from_ego", self.world_from_ego)
+        cam = f"camera {self.calibration.name}"
+        self.timestamp_micros = _check_micros(f"{cam} timestamp_micros", self.timestamp_micros)
+        self.world_from_ego = check_transform(f"{cam} world_from_ego", self.world_from_ego)
         size = (self.calibration.height, self.calibration.width)
         for what, shape in (
             ("truth", None if self.truth is None else self.truth.semantic.shape),
@@ -284,26 +531,36 @@ class CameraImage:
             ("pseudo", None if self.pseudo is None else self.pseudo.semantic.shape),
         ):
             if shape is not None and shape != size:
-                raise ValueError(
-                    f"camera {self.calibration.name}: {what} is {shape}, calibration says {size}"
+                raise InvalidRecord(f"{cam} {what}", f"is {shape}, calibration says {size}")
+        if self.image_bytes is not None:
+            if self.image_format not in IMAGE_FORMATS:
+                raise InvalidRecord(
+                    f"{cam} image_format", f"must be one of {IMAGE_FORMATS}, got {self.image_format!r}"
+                )
+            width, height = encoded_image_size(self.image_bytes, self.image_format, f"{cam} image_bytes")
+            if (width, height) != (self.calibration.width, self.calibration.height):
+                raise InvalidRecord(
+                    f"{cam} image_bytes",
+                    f"is a {width}x{height} {self.image_format.upper()}, the calibration says "
+                    f"{self.calibration.width}x{self.calibration.height}",
                 )
         if self.trigger_micros is not None:
-            self.trigger_micros = int(self.trigger_micros)
-        self.shutter_micros = float(self.shutter_micros)
-        self.readout_micros = float(self.readout_micros)
-        if self.shutter_micros < 0 or self.readout_micros < 0:
-            raise ValueError(
-                f"camera {self.calibration.name}: shutter and readout must be >= 0, "
-                f"got {self.shutter_micros} and {self.readout_micros}"
+            self.trigger_micros = _check_micros(f"{cam} trigger_micros", self.trigger_micros)
+            check_capture_time(
+                f"{cam} trigger_micros", self.trigger_micros, self.timestamp_micros, "the image's time"
             )
-        if self.velocity_world_mps is not None:
-            self.velocity_world_mps = _check_array(
-                "velocity_world_mps", self.velocity_world_mps, (3,), np.float64
-            )
-        if self.angular_velocity_world_radps is not None:
-            self.angular_velocity_world_radps = _check_array(
-                "angular_velocity_world_radps", self.angular_velocity_world_radps, (3,), np.float64
-            )
+        for name in ("shutter_micros", "readout_micros"):
+            value = float(getattr(self, name))
+            if not 0.0 <= value <= MAX_SENSOR_OFFSET_MICROS:
+                raise InvalidRecord(f"{cam} {name}", f"is {value} us, not in [0, {MAX_SENSOR_OFFSET_MICROS}]")
+            setattr(self, name, value)
+        for name in ("velocity_world_mps", "angular_velocity_world_radps"):
+            value = getattr(self, name)
+            if value is not None:
+                value = _check_array(f"{cam} {name}", value, (3,), np.float64)
+                if not np.all(np.isfinite(value)):
+                    raise InvalidRecord(f"{cam} {name}", f"has non-finite entries {_listed(value)}")
+                setattr(self, name, value)
 
     def pixel_time_micros(self, u: NDArray[np.floating], v: NDArray[np.floating]) -> NDArray[np.float64]:
         """Capture time (microseconds) of pixels at (u, v) (OpenCV pixel-centre coordinates).
@@ -365,6 +622,21 @@ def encode_rgb(rgb: NDArray[np.uint8], image_format: ImageFormat = "jpeg", jpeg_
     return buf.tobytes()
 
 
+#: The per-point fields of :class:`LidarSweep`: (name, shape after N, dtype, optional).
+_POINT_FIELDS: tuple[tuple[str, tuple[int, ...], type, bool], ...] = (
+    ("points_ego", (3,), np.float32, False),
+    ("intensity", (), np.float32, False),
+    ("beam_index", (), np.uint16, False),
+    ("origins_ego", (3,), np.float32, False),
+    ("time_offset_micros", (), np.int32, False),
+    ("lidar_id", (), np.uint8, False),
+    ("semantic", (), np.uint8, True),
+    ("instance", (), np.uint16, True),
+    ("elongation", (), np.float32, True),
+    ("return_index", (), np.uint8, True),
+)
+
+
 @dataclass
 class LidarSweep:
     """One sweep of the LiDAR(s), points in the ego frame at the sweep's reference time.
@@ -401,23 +673,71 @@ class LidarSweep:
     return_index: NDArray[np.uint8] | None = None
 
     def __post_init__(self) -> None:
-        self.timestamp_micros = int(self.timestamp_micros)
-        self.world_from_ego = _check_transform("world_from_ego", self.world_from_ego)
-        self.points_ego = _check_array("points_ego", self.points_ego, (None, 3), np.float32)
-        n = len(self.points_ego)
-        self.intensity = _check_array("intensity", self.intensity, (n,), np.float32)
-        self.beam_index = _check_array("beam_index", self.beam_index, (n,), np.uint16)
-        self.origins_ego = _check_array("origins_ego", self.origins_ego, (n, 3), np.float32)
-        self.time_offset_micros = _check_array("time_offset_micros", self.time_offset_micros, (n,), np.int32)
-        self.lidar_id = _check_array("lidar_id", self.lidar_id, (n,), np.uint8)
-        if self.semantic is not None:
-            self.semantic = _check_array("semantic", self.semantic, (n,), np.uint8)
-        if self.instance is not None:
-            self.instance = _check_array("instance", self.instance, (n,), np.uint16)
-        if self.elongation is not None:
-            self.elongation = _check_array("elongation", self.elongation, (n,), np.float32)
-        if self.return_index is not None:
-            self.return_index = _check_array("return_index", self.return_index, (n,), np.uint8)
+        self._convert()
+        bad = self._invalid_points()
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InvalidRecord(
+                "lidar points_ego",
+                f"has {int(bad.sum())} of {len(bad)} points with non-finite values or coordinates beyond "
+                f"{MAX_POINT_DISTANCE_M:g} m (first: point {i} at {_listed(self.points_ego[i])} from "
+                f"{_listed(self.origins_ego[i])}); build the sweep with "
+                "LidarSweep.without_invalid_points to leave them out",
+            )
+
+    def _convert(self) -> None:
+        """Checks the sweep-wide fields and every per-point array's shape, and sets the dtypes."""
+        self.timestamp_micros = _check_micros("lidar timestamp_micros", self.timestamp_micros)
+        self.world_from_ego = check_transform("lidar world_from_ego", self.world_from_ego)
+        with np.errstate(over="ignore"):  # float64 beyond float32's range becomes inf: refused below
+            self.points_ego = _check_array("lidar points_ego", self.points_ego, (None, 3), np.float32)
+            n = len(self.points_ego)
+            for name, shape, dtype, optional in _POINT_FIELDS[1:]:
+                value = getattr(self, name)
+                if value is not None or not optional:
+                    setattr(self, name, _check_array(f"lidar {name}", value, (n, *shape), dtype))
+
+    def _invalid_points(self) -> NDArray[np.bool_]:
+        """(N,) which points have a non-finite value or a coordinate beyond MAX_POINT_DISTANCE_M."""
+        bad = np.zeros(len(self.points_ego), bool)
+        for name in ("points_ego", "origins_ego"):
+            xyz = getattr(self, name)
+            bad |= ~(np.abs(xyz) <= MAX_POINT_DISTANCE_M).all(axis=1)  # NaN compares False
+        for name in ("intensity", "elongation"):
+            value = getattr(self, name)
+            if value is not None:
+                bad |= ~np.isfinite(value)
+        return bad
+
+    @classmethod
+    def without_invalid_points(cls, **values: Any) -> tuple[LidarSweep, int]:
+        """A sweep from the constructor's arguments with every point that has a non-finite value
+        (coordinates, ray origin, intensity, elongation) or a coordinate beyond
+        :data:`MAX_POINT_DISTANCE_M` left out, with all its per-point fields; and how many were
+        left out (record it as ``scene.dropped.add(INVALID_POINTS, frame_index, count)``).
+
+        Sweep-wide problems (the pose, the time, array shapes) still raise :class:`InvalidRecord`.
+        """
+        sweep = cls.__new__(cls)
+        for f in fields(cls):
+            setattr(sweep, f.name, values.get(f.name, f.default))
+        unknown = sorted(set(values) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TypeError(f"LidarSweep has no fields {unknown}")
+        sweep._convert()
+        bad = sweep._invalid_points()
+        return sweep.select(~bad), int(bad.sum())
+
+    def select(self, index: NDArray[np.bool_] | NDArray[np.integer]) -> LidarSweep:
+        """The points given by a boolean mask or an index array, with all their per-point fields."""
+        idx = np.flatnonzero(index) if np.asarray(index).dtype == bool else np.asarray(index, dtype=np.int64)
+        per_point = {
+            name: None if getattr(self, name) is None else getattr(self, name)[idx]
+            for name, *_ in _POINT_FIELDS
+        }
+        return LidarSweep(
+            timestamp_micros=self.timestamp_micros, world_from_ego=self.world_from_ego, **per_point
+        )
 
     def __len__(self) -> int:
         return len(self.points_ego)
@@ -451,7 +771,9 @@ class Boxes:
         center_world: (M, 3) float64 box centre, metres.
         size_lwh: (M, 3) float64 length (along heading), width, height, metres.
         yaw_world: (M,) float64 heading about +z, radians in [-pi, pi).
-        velocity_world: (M, 3) float64 velocity of the centre, m/s.
+        velocity_world: (M, 3) float64 velocity of the centre, m/s; NaN where unknown (keyframe
+            annotations, which ``interpolate_boxes`` fills; sources build their boxes with
+            :meth:`without_invalid`, which refuses NaN by default, so caches hold known ones).
         status: (M,) uint8 index into :data:`BOX_STATUSES` (annotated, interpolated, extrapolated).
         instance_id: (M,) uint16 id used in instance maps, 0 if the source has none.
         num_lidar_points: (M,) int32 LiDAR points inside the box in its frame's sweep, -1 if unknown.
@@ -476,30 +798,111 @@ class Boxes:
     orientation_world: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
+        self._convert()
+        problems = self._problems(velocity_known=False)
+        if problems:
+            raise problems[0]
+        self.yaw_world = geometry.wrap_angle(self.yaw_world)
+        self.orientation_world = geometry.quaternion_normalize(self.orientation_world)
+
+    def _convert(self) -> None:
+        """Checks every array's shape against the track ids, sets the dtypes, fills the defaults."""
         self.track_id = [str(t) for t in self.track_id]
         m = len(self.track_id)
-        self.class_id = _check_array("class_id", self.class_id, (m,), np.uint8)
-        self.center_world = _check_array("center_world", self.center_world, (m, 3), np.float64)
-        self.size_lwh = _check_array("size_lwh", self.size_lwh, (m, 3), np.float64)
-        self.yaw_world = geometry.wrap_angle(_check_array("yaw_world", self.yaw_world, (m,), np.float64))
-        self.velocity_world = _check_array("velocity_world", self.velocity_world, (m, 3), np.float64)
-        self.status = _check_array("status", self.status, (m,), np.uint8)
-        self.instance_id = _check_array("instance_id", self.instance_id, (m,), np.uint16)
-        self.num_lidar_points = _check_array("num_lidar_points", self.num_lidar_points, (m,), np.int32)
+        self.class_id = _check_array("boxes class_id", self.class_id, (m,), np.uint8)
+        self.center_world = _check_array("boxes center_world", self.center_world, (m, 3), np.float64)
+        self.size_lwh = _check_array("boxes size_lwh", self.size_lwh, (m, 3), np.float64)
+        self.yaw_world = _check_array("boxes yaw_world", self.yaw_world, (m,), np.float64)
+        self.velocity_world = _check_array("boxes velocity_world", self.velocity_world, (m, 3), np.float64)
+        self.status = _check_array("boxes status", self.status, (m,), np.uint8)
+        self.instance_id = _check_array("boxes instance_id", self.instance_id, (m,), np.uint16)
+        self.num_lidar_points = _check_array("boxes num_lidar_points", self.num_lidar_points, (m,), np.int32)
         if self.acceleration_world is None:
             self.acceleration_world = np.full((m, 3), np.nan)
         self.acceleration_world = _check_array(
-            "acceleration_world", self.acceleration_world, (m, 3), np.float64
+            "boxes acceleration_world", self.acceleration_world, (m, 3), np.float64
         )
         if self.orientation_world is None:
             self.orientation_world = geometry.yaw_to_quaternion(self.yaw_world).reshape(m, 4)
-        self.orientation_world = geometry.quaternion_normalize(
-            _check_array("orientation_world", self.orientation_world, (m, 4), np.float64)
+        self.orientation_world = _check_array(
+            "boxes orientation_world", self.orientation_world, (m, 4), np.float64
         )
         if np.any(self.status >= len(BOX_STATUSES)):
-            raise ValueError(f"box status codes must be < {len(BOX_STATUSES)}, got {np.unique(self.status)}")
-        if np.any(self.size_lwh < 0):
-            raise ValueError("box sizes must be non-negative")
+            raise InvalidRecord(
+                "boxes status", f"codes must be < {len(BOX_STATUSES)}, got {np.unique(self.status).tolist()}"
+            )
+
+    def _problems(self, velocity_known: bool) -> list[InvalidRecord]:
+        """One error per invalid box (its first invalid field), naming the box by its track id:
+        centre finite within MAX_COORDINATE_M, size finite in (0, MAX_BOX_SIZE_M], yaw and
+        orientation (non-zero) finite, velocity finite (or NaN = unknown unless
+        ``velocity_known``), acceleration finite or NaN (unknown)."""
+        with np.errstate(invalid="ignore", over="ignore"):
+            norms = np.linalg.norm(self.orientation_world, axis=1)
+            checks = (
+                (
+                    "center_world",
+                    ~(np.abs(self.center_world) <= MAX_COORDINATE_M).all(axis=1),
+                    f"must be finite and within {MAX_COORDINATE_M:g} m",
+                ),
+                (
+                    "size_lwh",
+                    ~((self.size_lwh > 0) & (self.size_lwh <= MAX_BOX_SIZE_M)).all(axis=1),
+                    f"must be finite and in (0, {MAX_BOX_SIZE_M:g}] m",
+                ),
+                ("yaw_world", ~np.isfinite(self.yaw_world), "must be finite"),
+                (
+                    "orientation_world",
+                    ~(np.isfinite(norms) & (norms > geometry.QUATERNION_ZERO_NORM)),
+                    "must be a finite, non-zero quaternion",
+                ),
+                (
+                    "velocity_world",
+                    ~np.isfinite(self.velocity_world).all(axis=1)
+                    if velocity_known
+                    else np.isinf(self.velocity_world).any(axis=1),
+                    "must be finite" if velocity_known else "must be finite (or NaN where unknown)",
+                ),
+                (
+                    "acceleration_world",
+                    np.isinf(self.acceleration_world).any(axis=1),
+                    "must be finite (or NaN where unknown)",
+                ),
+            )
+        problems: dict[int, InvalidRecord] = {}
+        for name, bad, rule in checks:
+            for i in np.flatnonzero(bad).tolist():
+                if i not in problems:
+                    value = getattr(self, name)[i]
+                    problems[i] = InvalidRecord(
+                        f"box {self.track_id[i]!r}", f"{name} {_listed(value)} {rule}", index=i
+                    )
+        return [problems[i] for i in sorted(problems)]
+
+    @classmethod
+    def without_invalid(
+        cls, *, velocity_known: bool = True, **values: Any
+    ) -> tuple[Boxes, list[InvalidRecord]]:
+        """Boxes from the constructor's arguments with every invalid box left out, and one
+        :class:`InvalidRecord` per box left out (naming its track id and field; ``index`` is its
+        position in the arguments). Sources raise the first under ``--on-error raise``, and
+        under ``skip`` log them and count them as :data:`INVALID_BOXES`.
+
+        ``velocity_known``: a NaN velocity is invalid (the boxes of a frame, which the cache
+        stores), or, if False, unknown (keyframe annotations that ``interpolate_boxes`` fills).
+        Problems of the arrays as a whole (shapes, status codes) still raise.
+        """
+        unknown = sorted(set(values) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TypeError(f"Boxes has no fields {unknown}")
+        boxes = cls.__new__(cls)
+        for f in fields(cls):
+            setattr(boxes, f.name, values.get(f.name, f.default))
+        boxes._convert()
+        problems = boxes._problems(velocity_known)
+        keep = np.ones(len(boxes.track_id), bool)
+        keep[[p.index for p in problems]] = False
+        return boxes.select(keep), problems
 
     def __len__(self) -> int:
         return len(self.track_id)
@@ -587,14 +990,23 @@ class Frame:
     lidar_range_image: LidarRangeImage | None = None
 
     def __post_init__(self) -> None:
-        self.timestamp_micros = int(self.timestamp_micros)
-        self.source_timestamp_micros = int(
-            self.timestamp_micros if self.source_timestamp_micros is None else self.source_timestamp_micros
+        self.timestamp_micros = _check_micros("timestamp_micros", self.timestamp_micros, minimum=0)
+        self.source_timestamp_micros = _check_micros(
+            "source_timestamp_micros",
+            self.timestamp_micros if self.source_timestamp_micros is None else self.source_timestamp_micros,
         )
-        self.world_from_ego = _check_transform("world_from_ego", self.world_from_ego)
+        self.world_from_ego = check_transform("world_from_ego", self.world_from_ego)
         names = [c.name for c in self.cameras]
         if len(set(names)) != len(names):
-            raise ValueError(f"frame {self.scene_id}/{self.frame_index}: duplicate camera names {names}")
+            raise InvalidRecord(
+                f"frame {self.scene_id}/{self.frame_index}", f"has duplicate camera names {names}"
+            )
+        for cam in self.cameras:
+            check_capture_time(
+                f"camera {cam.name} timestamp_micros", cam.timestamp_micros, self.timestamp_micros
+            )
+        if self.lidar is not None:
+            check_capture_time("lidar timestamp_micros", self.lidar.timestamp_micros, self.timestamp_micros)
 
     def camera(self, name: str) -> CameraImage:
         """The image of the camera called ``name``."""
@@ -611,14 +1023,34 @@ class LazyFrames(Sequence[Frame]):
     one lazily with :meth:`map`. A source that can produce a frame's geometry (poses, LiDAR,
     boxes, calibrations, but no image bytes or per-pixel maps) much more cheaply than the whole
     frame passes ``load_geometry``; scene-wide stages (LiDAR aggregation) read frames that way.
+
+    Frame times: a source that knows them from its index passes ``timestamps_micros`` (checked
+    once here with :func:`check_frame_times`, and each loaded frame must carry its own); without
+    them, each loaded frame is compared with the nearest frames loaded before it on either side,
+    so a sequential pass checks every neighbouring pair. Either way a frame out of time order
+    raises :class:`InvalidRecord` when it is loaded. Sources check their index themselves first,
+    so that their errors name the file and record.
     """
 
     def __init__(
-        self, count: int, load: Callable[[int], Frame], load_geometry: Callable[[int], Frame] | None = None
+        self,
+        count: int,
+        load: Callable[[int], Frame],
+        load_geometry: Callable[[int], Frame] | None = None,
+        timestamps_micros: Sequence[int] | None = None,
     ):
         self._count = int(count)
         self._load = load
         self._load_geometry = load_geometry or load
+        self._times: list[int] | None = None
+        if timestamps_micros is not None:
+            times = [int(t) for t in timestamps_micros]
+            if len(times) != self._count:
+                raise InvalidRecord("timestamps_micros", f"has {len(times)} times for {self._count} frames")
+            check_frame_times(times)
+            self._times = times
+        self._seen: dict[int, int] = {}  # frame index -> time, of the frames loaded so far
+        self._seen_order: list[int] = []  # their indices, sorted
 
     def __len__(self) -> int:
         return self._count
@@ -632,7 +1064,8 @@ class LazyFrames(Sequence[Frame]):
     def __getitem__(self, index: int | slice) -> Frame | list[Frame]:
         if isinstance(index, slice):
             return [self[i] for i in range(*index.indices(self._count))]
-        return self._load(self._check(index))
+        i = self._check(index)
+        return self._in_order(i, self._load(i))
 
     def _check(self, index: int) -> int:
         if index < 0:
@@ -641,19 +1074,60 @@ class LazyFrames(Sequence[Frame]):
             raise IndexError(f"frame index {index} out of range for {self._count} frames")
         return index
 
+    def _in_order(self, index: int, frame: Frame) -> Frame:
+        """``frame`` (loaded as ``index``) after checking its time against the index or the
+        frames loaded before it."""
+        t = frame.timestamp_micros
+        field_name = f"frame {index} timestamp_micros"
+        if self._times is not None:
+            if t != self._times[index]:
+                raise InvalidRecord(
+                    field_name,
+                    f"was loaded as {t} us, the source's index says {self._times[index]} us",
+                    index,
+                )
+            return frame
+        if index in self._seen:
+            if self._seen[index] != t:
+                raise InvalidRecord(
+                    field_name, f"was loaded as {t} us, earlier as {self._seen[index]} us", index
+                )
+            return frame
+        pos = bisect.bisect_left(self._seen_order, index)
+        if pos > 0:
+            before = self._seen_order[pos - 1]
+            if self._seen[before] >= t:
+                raise InvalidRecord(
+                    field_name, f"is {t} us, not after frame {before}'s {self._seen[before]} us", index
+                )
+        if pos < len(self._seen_order):
+            after = self._seen_order[pos]
+            if self._seen[after] <= t:
+                raise InvalidRecord(
+                    field_name, f"is {t} us, not before frame {after}'s {self._seen[after]} us", index
+                )
+        self._seen[index] = t
+        self._seen_order.insert(pos, index)
+        return frame
+
     def __iter__(self) -> Iterator[Frame]:
         for i in range(self._count):
-            yield self._load(i)
+            yield self._in_order(i, self._load(i))
 
     def geometry(self, index: int) -> Frame:
         """Frame ``index`` without image bytes or per-pixel maps where the source can skip them
         (the whole frame otherwise); stages applied with :meth:`map` apply here too."""
-        return self._load_geometry(self._check(index))
+        i = self._check(index)
+        return self._in_order(i, self._load_geometry(i))
 
     def map(self, fn: Callable[[Frame], Frame]) -> LazyFrames:
         """A lazy sequence that applies ``fn`` to each frame when it is loaded (``fn`` must
         accept geometry-only frames as well)."""
-        return LazyFrames(self._count, lambda i: fn(self._load(i)), lambda i: fn(self._load_geometry(i)))
+        return LazyFrames(
+            self._count,
+            lambda i: fn(self[i]),
+            lambda i: fn(self.geometry(i)),
+        )
 
 
 def frame_geometry(frames: Sequence[Frame], index: int) -> Frame:
@@ -673,11 +1147,17 @@ class KeyframeBoxes:
         timestamp_micros: the keyframe's time (nuScenes: the LIDAR_TOP keyframe time).
         boxes: the annotations, status "annotated"; ``track_id`` is the instance token.
         token: the source's id of the keyframe (nuScenes sample token), "" if none.
+        camera_timestamps_micros: camera name -> capture time of that camera's own image of this
+            keyframe (nuScenes: the channel's ``is_key_frame`` sample_data of the sample, taken
+            as the LiDAR revolution ending at ``timestamp_micros`` passed the camera, so 0-50 ms
+            before it); empty where the source does not say (ASAP's baseline then takes the
+            sweep nearest ``timestamp_micros``).
     """
 
     timestamp_micros: int
     boxes: Boxes
     token: str = ""
+    camera_timestamps_micros: dict[str, int] = field(default_factory=dict)
 
 
 class DroppedValues:
@@ -720,13 +1200,15 @@ class Scene:
         scene_id: unique within a cache (e.g. ``synthetic-s7-0003``, a Waymo segment name).
         source: which source produced it ("synthetic", "waymo", "nuscenes").
         calibrations: the cameras of the rig, in the rig's order.
-        frames: the frames in time order (often a :class:`LazyFrames`).
+        frames: the frames in strictly increasing time order (often a :class:`LazyFrames`, which
+            checks the order as frames load; a list is checked here).
         metadata: JSON-serialisable facts about the scene (rig name, seed, location, ...); stored
             in the cache.
         products: in-memory results of scene-wide stages for later stages (the aggregated LiDAR
             map), keyed by name; never stored.
         keyframes: annotated keyframes where annotations are sparser than frames (nuScenes), in
-            time order; empty where every frame carries its own boxes (Waymo, synthetic).
+            strictly increasing time order (checked); empty where every frame carries its own
+            boxes (Waymo, synthetic).
         dropped: what the source left out because it was invalid (see :class:`DroppedValues`).
     """
 
@@ -738,6 +1220,14 @@ class Scene:
     products: dict[str, Any] = field(default_factory=dict)
     keyframes: list[KeyframeBoxes] = field(default_factory=list)
     dropped: DroppedValues = field(default_factory=DroppedValues, compare=False)
+
+    def __post_init__(self) -> None:
+        names = [c.name for c in self.calibrations]
+        if len(set(names)) != len(names):
+            raise InvalidRecord(f"scene {self.scene_id} calibrations", f"have duplicate camera names {names}")
+        if not isinstance(self.frames, LazyFrames):  # a LazyFrames checks the frames it loads
+            check_frame_times([f.timestamp_micros for f in self.frames])
+        check_frame_times([k.timestamp_micros for k in self.keyframes], "keyframe")
 
     def __len__(self) -> int:
         return len(self.frames)

@@ -7,12 +7,23 @@ the format is detected. ``split`` picks a subfolder (``training``, ``validation`
 
 A scene is a segment (its context name); frames are read and converted lazily, one at a time
 (:mod:`.v1` / :mod:`.v2` read into :mod:`.raw` records, :mod:`.convert` builds the scene model).
+
+Invalid input: every error names the file, the record (v1: record number and byte offset; v2: the
+component file and frame timestamp) and the field. Frame-level fields (time and pose) are read for
+the whole segment first, from an index that parses no more than them (v1: each record's top-level
+fields; v2: the vehicle_pose component), so that a non-rigid pose or frame times that do not
+strictly increase are found before any frame is converted. ``on_error="raise"`` stops the segment
+at the first invalid record; ``"skip"`` leaves out the smallest part that keeps the rest correct
+(that frame, camera image, LiDAR or box), logs why and counts it in ``Scene.dropped``. A file that
+cannot be read as a whole (truncated, a corrupt record header or CRC, an unreadable Parquet file
+or column) still fails its segment.
 """
 
 from __future__ import annotations
 
 import fnmatch
 import re
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from functools import cached_property
 from pathlib import Path
@@ -20,9 +31,26 @@ from typing import Any, Literal
 
 import numpy as np
 
-from phigenesis.data.records import LazyFrames, Scene
+from phigenesis.data.ego_body import WAYMO_PACIFICA_BOXES
+from phigenesis.data.records import (
+    INT64_MAX,
+    DroppedValues,
+    Frame,
+    InvalidRecord,
+    LazyFrames,
+    Scene,
+    check_frame_times,
+    increasing_frames,
+)
 from phigenesis.data.sources.waymo import convert
-from phigenesis.data.sources.waymo.raw import RawFrame, WaymoFormatError
+from phigenesis.data.sources.waymo.raw import (
+    FRAMES_LEFT_OUT,
+    FrameKey,
+    OnError,
+    Problems,
+    RawFrame,
+    WaymoFormatError,
+)
 
 SOURCE_NAME = "waymo"
 WaymoFormat = Literal["auto", "v1", "v2"]
@@ -39,6 +67,8 @@ class WaymoConfig:
         segments: segment names or shell patterns to keep (empty: all).
         format: "auto" (detect), "v1" or "v2".
         check_crc: check both CRCs of every v1 record (a corrupt record is an error).
+        on_error: "raise" stops a segment at its first invalid record; "skip" leaves out the
+            invalid frame, camera image, LiDAR or box and counts it (``Scene.dropped``).
     """
 
     input: str
@@ -46,11 +76,14 @@ class WaymoConfig:
     segments: tuple[str, ...] = ()
     format: WaymoFormat = "auto"
     check_crc: bool = True
+    on_error: OnError = "raise"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "segments", tuple(self.segments or ()))
         if self.format not in ("auto", "v1", "v2"):
             raise ValueError(f"format must be auto, v1 or v2, got {self.format!r}")
+        if self.on_error not in ("raise", "skip"):
+            raise ValueError(f"on_error must be 'raise' or 'skip', got {self.on_error!r}")
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> WaymoConfig:
@@ -137,11 +170,14 @@ class WaymoSource:
     def load(self, scene_id: str) -> Scene:
         if scene_id not in self._all_segments:
             raise KeyError(f"{self.root} has no Waymo segment {scene_id!r}")
+        problems = Problems(self.config.on_error)
+        dropped = DroppedValues()
         if self.format == "v2":
             from phigenesis.data.sources.waymo import v2
 
             segment = v2.V2Segment(self.root, scene_id)
-            return _scene(scene_id, len(segment), segment.frame, {"format": "v2", "path": str(self.root)})
+            frames = _Frames.index(segment.frame_keys(), segment.frame, problems, dropped)
+            return _scene(scene_id, frames, {"format": "v2", "path": str(self.root)}, problems, dropped)
         from phigenesis.data.sources.waymo.v1 import V1File
 
         path = self._v1_files[scene_id]
@@ -150,38 +186,126 @@ class WaymoSource:
             raise WaymoFormatError(file.error)
         if not len(file):
             raise WaymoFormatError(f"{path}: the file holds no records")
-        return _scene(scene_id, len(file), file.frame, {"format": "v1", "path": str(path)})
+        keys = [(file.where(k), key) for k, key in enumerate(file.keys())]
+        frames = _Frames.index(keys, file.frame, problems, dropped)
+        return _scene(scene_id, frames, {"format": "v1", "path": str(path)}, problems, dropped)
 
 
-def _scene(scene_id: str, count: int, read: Any, metadata: dict[str, Any]) -> Scene:
-    """A scene over ``count`` raw frames given by ``read(index)``; frame 0 fixes the world origin."""
-    first: RawFrame = read(0)
+#: One entry of a segment's index: where the record is, and its frame key or why it is unusable.
+_IndexEntry = tuple[str, FrameKey | WaymoFormatError]
+#: Reads a segment's record by its number.
+_ReadRecord = Callable[[int], RawFrame]
+
+
+class _Frames:
+    """The records of a segment that become its frames, with their Waymo timestamps."""
+
+    def __init__(self, read: _ReadRecord, records: list[int], timestamps: list[int]):
+        self._read = read
+        self.records = records
+        self.timestamps = timestamps
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def frame(self, index: int) -> RawFrame:
+        return self._read(self.records[index])
+
+    @classmethod
+    def index(
+        cls, entries: list[_IndexEntry], read: _ReadRecord, problems: Problems, dropped: DroppedValues
+    ) -> _Frames:
+        """The usable records of ``entries`` ((where, FrameKey or WaymoFormatError) per record,
+        read by ``read(record)``): a record with an invalid pose, or a time that breaks the strict
+        order, raises, or under ``skip`` is left out (``FRAMES_LEFT_OUT``, keyed by record)."""
+        usable = []
+        for k, (where, key) in enumerate(entries):
+            if isinstance(key, WaymoFormatError):
+                _leave_out(problems, dropped, k, key)
+            elif key.timestamp_micros > INT64_MAX - convert.POSE_TIME_OFFSET_MICROS:
+                _leave_out(
+                    problems,
+                    dropped,
+                    k,
+                    WaymoFormatError(f"{where}: timestamp_micros {key.timestamp_micros} is beyond int64"),
+                )
+            else:
+                usable.append(k)
+        keys: dict[int, FrameKey] = {k: entries[k][1] for k in usable}  # type: ignore[misc]
+        times = [keys[k].timestamp_micros for k in usable]
+        if problems.skip:
+            order = increasing_frames(times)
+            for j in sorted(set(range(len(usable))) - set(order)):
+                error = WaymoFormatError(
+                    f"{entries[usable[j]][0]}: timestamp_micros {times[j]} is out of the strictly increasing "
+                    "order of the segment's other frames (a repeated, earlier or negative time)"
+                )
+                _leave_out(problems, dropped, usable[j], error)
+            usable = [usable[j] for j in order]
+        else:
+            try:
+                check_frame_times(times)
+            except InvalidRecord as e:
+                where = entries[usable[e.index if e.index is not None else 0]][0]
+                raise WaymoFormatError(f"{where}: {e}") from None
+        return cls(read, usable, [keys[k].timestamp_micros for k in usable])
+
+    def first(self, problems: Problems, dropped: DroppedValues) -> RawFrame | None:
+        """The first frame's raw record (None if there is none); under ``skip``, records that
+        cannot be parsed are left out until one can (the segment's length is not fixed yet)."""
+        while self.records:
+            try:
+                return self.frame(0)
+            except WaymoFormatError as e:
+                _leave_out(problems, dropped, self.records[0], e)
+                del self.records[0], self.timestamps[0]
+        return None
+
+
+def _leave_out(problems: Problems, dropped: DroppedValues, record: int, error: WaymoFormatError) -> None:
+    """Raises ``error``, or under ``skip`` counts record ``record`` as a frame left out."""
+    left_out: dict[str, int] = {}
+    problems.report(error, FRAMES_LEFT_OUT, left_out)
+    dropped.add(FRAMES_LEFT_OUT, record, left_out[FRAMES_LEFT_OUT])
+
+
+def _scene(
+    scene_id: str, frames: _Frames, metadata: dict[str, Any], problems: Problems, dropped: DroppedValues
+) -> Scene:
+    """A scene over the usable ``frames``; the first of them fixes the world origin and the rig."""
+    first = frames.first(problems, dropped)
+    if first is None:
+        raise WaymoFormatError(f"{metadata['path']}: segment {scene_id} has no usable frames")
     origin = first.global_from_vehicle[:3, 3].copy()
     global_from_world = np.eye(4)
     global_from_world[:3, 3] = origin
     cache = {0: first}
+    calibrations = convert.rig_calibrations(first, problems)
+    rig = frozenset(c.name for c in calibrations)
 
-    def load(index: int) -> Any:
-        raw = cache.pop(index) if index in cache else read(index)
-        converted = convert.frame(raw, index, origin)
+    def load(index: int) -> Frame:
+        raw = cache.pop(index) if index in cache else frames.frame(index)
+        converted = convert.frame(raw, index, origin, problems, dropped, rig)
         converted.scene_id = scene_id
         return converted
 
-    try:
-        calibrations = convert.rig_calibrations(first)
-    except WaymoFormatError as e:
-        raise WaymoFormatError(f"{first.where}: {e}") from None
     return Scene(
         scene_id=scene_id,
         source=SOURCE_NAME,
         calibrations=calibrations,
-        frames=LazyFrames(count, load),
+        frames=LazyFrames(
+            len(frames),
+            load,
+            timestamps_micros=[t + convert.POSE_TIME_OFFSET_MICROS for t in frames.timestamps],
+        ),
         metadata={
             **metadata,
             "context_name": first.segment,
             "global_from_world": global_from_world.reshape(-1).tolist(),
+            "ego_boxes": WAYMO_PACIFICA_BOXES,
             **{k: v for k, v in first.stats.items() if v},
         },
+        dropped=dropped,
     )
 
 

@@ -14,11 +14,24 @@ Conventions applied here (see ../../records.py for the scene model's):
 - LiDAR: every laser and both returns, in the vehicle frame of the frame pose; TOP uses its
   per-pixel poses (ego motion during the scan). Per-point times are estimated from the column
   (the scan sweeps the columns at a constant rate over 100 ms).
+
+Invalid data: every value goes through the scene model's checks (``records.InvalidRecord``),
+turned here into a :class:`WaymoFormatError` that names the file, the record and the field.
+The segment's :class:`~.raw.Problems` decides what follows: ``raise`` stops at the first, ``skip``
+leaves out the smallest part that keeps the rest correct and counts it in ``Scene.dropped``: a
+box (``INVALID_BOXES``), a camera image (``CAMERAS_LEFT_OUT``), one LiDAR's range images
+(``LIDARS_LEFT_OUT``), single LiDAR points with non-finite or out-of-range values
+(``INVALID_POINTS``, dropped under either policy: a range image marks missing returns that way).
+A frame-level problem (its pose, its time) always raises here; the source's index checks those
+before any frame is converted (see :mod:`phigenesis.data.sources.waymo`).
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -27,17 +40,28 @@ from numpy.typing import NDArray
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import (
+    INT64_MAX,
+    INVALID_BOXES,
+    INVALID_POINTS,
     Boxes,
     CameraCalibration,
     CameraImage,
     CameraLabels,
+    DroppedValues,
     Frame,
+    InvalidRecord,
     LidarSweep,
+    check_capture_time,
+    check_transform,
+    encoded_image_size,
 )
 from phigenesis.data.sources.waymo.raw import (
     CAMERA_NAMES,
+    CAMERAS_LEFT_OUT,
     LASER_NAMES,
+    LIDARS_LEFT_OUT,
     READOUT_DIRECTIONS,
+    Problems,
     RawCameraCalibration,
     RawCameraImage,
     RawFrame,
@@ -95,20 +119,46 @@ for _code, _cid in CAMERA_SEGMENTATION_CLASS_IDS.items():
 _EGO_FROM_OPENCV_CAMERA = geometry.make_transform(geometry.BODY_FROM_OPENCV, np.zeros(3))
 
 
+_T = TypeVar("_T")
+
+
+def _record(what: str, build: Callable[[], _T]) -> _T:
+    """``build()``, with a scene-model :class:`InvalidRecord` turned into a :class:`WaymoFormatError`
+    prefixed by ``what`` (the file and record; "" where the caller adds them)."""
+    try:
+        return build()
+    except InvalidRecord as e:
+        raise WaymoFormatError(f"{what}: {e}" if what else str(e)) from None
+
+
+def _camera_name(code: int) -> str:
+    return CAMERA_NAMES.get(code, f"CAMERA_{code}")
+
+
 def camera_calibration(raw: RawCameraCalibration) -> CameraCalibration:
-    """A Waymo camera calibration in the toolkit's conventions (OpenCV axes and pixel centres)."""
-    f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3 = raw.intrinsic
-    name = CAMERA_NAMES.get(raw.name, f"CAMERA_{raw.name}")
+    """A Waymo camera calibration in the toolkit's conventions (OpenCV axes and pixel centres).
+
+    Raises :class:`WaymoFormatError` naming the camera and the field if it is invalid (no image
+    size, intrinsics that are not finite and positive, an extrinsic that is not rigid).
+    """
+    name = _camera_name(raw.name)
+    intrinsic = np.asarray(raw.intrinsic, np.float64).reshape(-1)
+    if intrinsic.size != 9:
+        raise WaymoFormatError(f"camera {name}: calibration has {intrinsic.size} intrinsics, expected 9")
+    f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3 = intrinsic.tolist()
     if raw.width <= 0 or raw.height <= 0:
         raise WaymoFormatError(f"camera {name}: calibration has no image size ({raw.width}x{raw.height})")
-    return CameraCalibration(
-        name=name,
-        width=int(raw.width),
-        height=int(raw.height),
-        intrinsics=geometry.intrinsic_matrix(f_u, f_v, c_u - 0.5, c_v - 0.5),
-        distortion=np.array([k1, k2, p1, p2, k3]),
-        ego_from_camera=raw.vehicle_from_camera @ _EGO_FROM_OPENCV_CAMERA,
-        readout_direction=READOUT_DIRECTIONS.get(raw.rolling_shutter_direction, "unknown"),  # type: ignore[arg-type]
+    return _record(
+        "",
+        lambda: CameraCalibration(
+            name=name,
+            width=int(raw.width),
+            height=int(raw.height),
+            intrinsics=geometry.intrinsic_matrix(f_u, f_v, c_u - 0.5, c_v - 0.5),
+            distortion=np.array([k1, k2, p1, p2, k3]),
+            ego_from_camera=np.asarray(raw.vehicle_from_camera, np.float64) @ _EGO_FROM_OPENCV_CAMERA,
+            readout_direction=READOUT_DIRECTIONS.get(raw.rolling_shutter_direction, "unknown"),  # type: ignore[arg-type]
+        ),
     )
 
 
@@ -121,14 +171,57 @@ def _shift(
     return out
 
 
-def _micros(seconds: float) -> int:
+def _micros(seconds: float, what: str) -> int:
+    """Waymo seconds as integer microseconds; raises naming ``what`` for a value that is not a
+    time (NaN, infinite, beyond int64 microseconds)."""
+    if not math.isfinite(seconds) or abs(seconds) * 1e6 >= INT64_MAX:
+        raise WaymoFormatError(f"{what} is {seconds} s, not a time")
     return round(seconds * 1e6)
 
 
+#: Largest instance id a camera label may hold (they are stored as 16-bit PNGs).
+MAX_INSTANCE_ID = int(np.iinfo(np.uint16).max)
+
+
+def _instance_ids(local: NDArray[np.int64], mapping: dict[int, int], where: str) -> NDArray[np.int64]:
+    """Local instance ids mapped to global ones (unmapped ids -> 0; without a mapping the local
+    ids stand). The lookup table covers the ids a 16-bit label can hold, however large the ids
+    in the mapping are; a mapped id outside [0, 65535] that the image uses is an error."""
+    if not mapping:
+        return local
+    size = int(local.max(initial=0)) + 1  # <= 65536: local ids come from a 16-bit PNG
+    lut = np.zeros(size, np.int64)
+    for k, g in mapping.items():
+        if 0 <= k < size:
+            lut[k] = g
+    instance = lut[local]
+    bad = (instance < 0) | (instance > MAX_INSTANCE_ID)
+    if bad.any():
+        k = int(local[bad].flat[0])
+        raise WaymoFormatError(
+            f"{where}: instance_id_to_global_id_mapping maps local id {k} to {int(lut[k])}, "
+            f"not an instance id in [0, {MAX_INSTANCE_ID}]"
+        )
+    return instance
+
+
 def camera_labels(image: RawCameraImage, height: int, width: int, where: str) -> CameraLabels | None:
-    """The image's panoptic label as unified-taxonomy classes and cross-camera instance ids."""
+    """The image's panoptic label as unified-taxonomy classes and cross-camera instance ids.
+
+    The PNG's header is checked against the calibrated size before it is decoded, so a label
+    that declares a huge image costs nothing.
+    """
     if image.panoptic_label is None:
         return None
+    try:
+        size = encoded_image_size(image.panoptic_label, "png", "panoptic_label")
+    except InvalidRecord as e:
+        raise WaymoFormatError(f"{where}: {e}") from None
+    if size != (width, height):
+        raise WaymoFormatError(
+            f"{where}: panoptic label of the image is shape ({size[1]}, {size[0]}) by its PNG header, "
+            f"expected ({height}, {width})"
+        )
     panoptic = cv2.imdecode(np.frombuffer(image.panoptic_label, np.uint8), cv2.IMREAD_UNCHANGED)
     if panoptic is None or panoptic.shape != (height, width):
         got = "undecodable bytes" if panoptic is None else f"shape {panoptic.shape}"
@@ -138,36 +231,48 @@ def camera_labels(image: RawCameraImage, height: int, width: int, where: str) ->
         raise WaymoFormatError(f"{where}: panoptic label has divisor {divisor}")
     panoptic = panoptic.astype(np.int64)
     semantic = _SEGMENTATION_LUT[np.minimum(panoptic // divisor, 65535)]
-    local = panoptic % divisor
-    instance = local
-    if image.instance_to_global:
-        lut = np.zeros(int(max(local.max(), max(image.instance_to_global))) + 1, np.int64)
-        for k, g in image.instance_to_global.items():
-            lut[k] = g
-        instance = lut[local]
-    if instance.max(initial=0) > np.iinfo(np.uint16).max:
+    instance = _instance_ids(panoptic % divisor, image.instance_to_global, where)
+    if instance.max(initial=0) > MAX_INSTANCE_ID:
         raise WaymoFormatError(f"{where}: instance id {instance.max()} does not fit in 16 bits")
     return CameraLabels(semantic, instance.astype(np.uint16))
 
 
 def camera_image(
-    image: RawCameraImage, calibration: CameraCalibration, global_origin: NDArray[np.float64], where: str
+    image: RawCameraImage,
+    calibration: CameraCalibration,
+    global_origin: NDArray[np.float64],
+    where: str,
+    frame_time_micros: int | None = None,
 ) -> CameraImage:
+    """One raw image as a :class:`CameraImage`; raises :class:`WaymoFormatError` naming ``where``,
+    the camera and the field if any value is invalid (including a capture time more than a few
+    seconds from ``frame_time_micros``, when given)."""
+    what = f"{where}: camera {calibration.name}"
     readout_s = image.readout_done_time - image.trigger_time - image.shutter
-    return CameraImage(
-        calibration=calibration,
-        timestamp_micros=_micros(image.pose_timestamp),
-        world_from_ego=_shift(image.global_from_vehicle, global_origin),
-        image_bytes=image.jpeg,
-        image_format="jpeg",
-        labels=camera_labels(
-            image, calibration.height, calibration.width, f"{where} camera {calibration.name}"
+    timestamp = _micros(image.pose_timestamp, f"{what} pose_timestamp")
+    trigger = (
+        _micros(image.trigger_time, f"{what} camera_trigger_time")
+        if image.trigger_time > 0 and math.isfinite(image.trigger_time)
+        else None
+    )
+    if frame_time_micros is not None:
+        name = f"camera {calibration.name} pose_timestamp"
+        _record(where, lambda: check_capture_time(name, timestamp, frame_time_micros))
+    return _record(
+        where,
+        lambda: CameraImage(
+            calibration=calibration,
+            timestamp_micros=timestamp,
+            world_from_ego=_shift(image.global_from_vehicle, global_origin),
+            image_bytes=image.jpeg,
+            image_format="jpeg",
+            labels=camera_labels(image, calibration.height, calibration.width, what),
+            trigger_micros=trigger,
+            shutter_micros=max(image.shutter, 0.0) * 1e6 if math.isfinite(image.shutter) else image.shutter,
+            readout_micros=max(readout_s, 0.0) * 1e6 if math.isfinite(readout_s) else readout_s,
+            velocity_world_mps=image.velocity_linear,
+            angular_velocity_world_radps=image.velocity_angular,
         ),
-        trigger_micros=_micros(image.trigger_time) if image.trigger_time > 0 else None,
-        shutter_micros=max(image.shutter, 0.0) * 1e6,
-        readout_micros=max(readout_s, 0.0) * 1e6,
-        velocity_world_mps=image.velocity_linear,
-        angular_velocity_world_radps=image.velocity_angular,
     )
 
 
@@ -175,18 +280,35 @@ def camera_image(
 # LiDAR
 
 
+def _laser_name(code: int) -> str:
+    return LASER_NAMES.get(code, f"LIDAR_{code}")
+
+
 def beam_inclinations(cal: RawLaserCalibration, rows: int) -> NDArray[np.float64]:
-    """(rows,) elevation of each range-image row, radians, row 0 the highest beam."""
+    """(rows,) elevation of each range-image row, radians, row 0 the highest beam.
+
+    Raises :class:`WaymoFormatError` naming the LiDAR and the field unless there is one finite
+    inclination per row, each within [-pi/2, pi/2].
+    """
+    name = _laser_name(cal.name)
     if cal.beam_inclinations is not None:
         incl = np.asarray(cal.beam_inclinations, np.float64)
         if len(incl) != rows:
             raise WaymoFormatError(
-                f"LiDAR {LASER_NAMES.get(cal.name, cal.name)}: {len(incl)} beam inclinations for a range "
-                f"image of {rows} rows"
+                f"LiDAR {name}: {len(incl)} beam inclinations for a range image of {rows} rows"
             )
+        field_name = "beam_inclinations"
     else:
         lo, hi = cal.beam_inclination_min, cal.beam_inclination_max
         incl = lo + (np.arange(rows) + 0.5) / rows * (hi - lo)
+        field_name = f"beam_inclination_min/max ({lo}, {hi})"
+    bad = ~(np.abs(incl) <= np.pi / 2)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise WaymoFormatError(
+            f"LiDAR {name}: {field_name} gives row {k} the inclination {incl[k]} rad, "
+            "not a finite angle in [-pi/2, pi/2]"
+        )
     return incl[::-1]
 
 
@@ -295,7 +417,10 @@ def laser_points(
     shared = _laser_geometry(laser, cal, (h, w), vehicle_from_global)
     parts = []
     for ret_index, ri in returns:
-        rows, cols = np.nonzero(ri[..., 0] > 0)
+        # range > 0 is a return; a non-finite range is kept here so that the sweep drops and
+        # counts it (LidarSweep.without_invalid_points), while 0 and negatives mean no return.
+        rng_all = ri[..., 0]
+        rows, cols = np.nonzero((rng_all > 0) | ~np.isfinite(rng_all))
         rng = ri[rows, cols, 0]
         if shared is not None:
             points, origins = shared.points(rows, cols, rng)
@@ -323,106 +448,278 @@ def laser_points(
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
+def _checked_laser_calibration(laser: RawLaser, raw: RawFrame) -> RawLaserCalibration:
+    """The calibration of ``laser``, checked: a known LiDAR name, a rigid extrinsic. Raises
+    :class:`WaymoFormatError` naming the frame, the LiDAR and the field otherwise."""
+    where = raw.where_of("laser")
+    for part in ("laser", "laser_calibration"):
+        error = raw.invalid_sensors.get((part, laser.name))
+        if error is not None:
+            raise error
+    if laser.name not in LASER_NAMES:
+        raise WaymoFormatError(f"{where}: LiDAR name code {laser.name} is not one of {sorted(LASER_NAMES)}")
+    calibration = raw.laser_calibration(laser.name)  # raises, naming the frame, if missing
+    name = f"LiDAR {_laser_name(laser.name)} extrinsic"
+    _record(where, lambda: check_transform(name, calibration.vehicle_from_laser))
+    return calibration
+
+
+def _laser_arrays(
+    laser: RawLaser, raw: RawFrame, vehicle_from_global: NDArray[np.float64]
+) -> dict[str, NDArray]:
+    """:func:`laser_points` of one laser with its calibration checked; errors name the frame."""
+    calibration = _checked_laser_calibration(laser, raw)
+    try:
+        pts = laser_points(laser, calibration, vehicle_from_global)
+    except WaymoFormatError as e:
+        raise WaymoFormatError(f"{raw.where_of('laser')}: {e}") from None
+    if pts:
+        pts["lidar_id"] = np.full(len(pts["beam"]), laser.name - 1, np.uint8)
+    return pts
+
+
 def lidar_sweep(
-    raw: RawFrame, timestamp_micros: int, world_from_ego: NDArray[np.float64]
+    raw: RawFrame,
+    timestamp_micros: int,
+    world_from_ego: NDArray[np.float64],
+    problems: Problems | None = None,
+    left_out: dict[str, int] | None = None,
 ) -> LidarSweep | None:
-    """All lasers' returns of a frame (TOP first), or None if the frame has no range images."""
-    if not raw.lasers:
+    """All lasers' returns of a frame (TOP first), or None if the frame has no range images.
+
+    A laser whose data is invalid (no or a bad calibration, a bad range image) raises, or under
+    ``skip`` is left out (``LIDARS_LEFT_OUT`` in ``left_out``); points with non-finite or
+    out-of-range values are left out under either policy (``INVALID_POINTS``).
+    """
+    problems = problems or Problems()
+    left_out = {} if left_out is None else left_out
+    lasers = sorted(raw.lasers, key=lambda las: las.name)
+    listed = {las.name for las in lasers}
+    for (part, code), error in sorted(raw.invalid_sensors.items(), key=lambda item: item[0]):
+        if part == "laser" and code not in listed:
+            problems.report(error, LIDARS_LEFT_OUT, left_out)  # a laser the reader could not decode
+    if not lasers and not any(part == "laser" for part, _ in raw.invalid_sensors):
         return None
     vehicle_from_global = geometry.invert_transform(raw.global_from_vehicle)
-    arrays, ids = [], []
-    for laser in sorted(raw.lasers, key=lambda las: las.name):
-        calibration = raw.laser_calibration(laser.name)  # raises, naming the frame, if missing
+    arrays = []
+    for laser in lasers:
         try:
-            pts = laser_points(laser, calibration, vehicle_from_global)
+            pts = _laser_arrays(laser, raw, vehicle_from_global)
         except WaymoFormatError as e:
-            raise WaymoFormatError(f"{raw.where}: {e}") from None
+            problems.report(e, LIDARS_LEFT_OUT, left_out)
+            continue
         if pts:
             arrays.append(pts)
-            ids.append(np.full(len(pts["beam"]), laser.name - 1, np.uint8))
     if not arrays:
         return LidarSweep.empty(timestamp_micros, world_from_ego)
     cat = {k: np.concatenate([a[k] for a in arrays]) for k in arrays[0]}
-    return LidarSweep(
-        timestamp_micros=timestamp_micros,
-        world_from_ego=world_from_ego,
-        points_ego=cat["points"].astype(np.float32),
-        intensity=cat["intensity"],
-        beam_index=cat["beam"],
-        origins_ego=cat["origins"].astype(np.float32),
-        time_offset_micros=cat["time_offset"],
-        lidar_id=np.concatenate(ids),
-        elongation=cat["elongation"],
-        return_index=cat["return_index"],
-    )
+    with np.errstate(invalid="ignore", over="ignore"):
+        sweep, dropped = _record(
+            raw.where_of("laser"),
+            lambda: LidarSweep.without_invalid_points(
+                timestamp_micros=timestamp_micros,
+                world_from_ego=world_from_ego,
+                points_ego=cat["points"],
+                intensity=cat["intensity"],
+                beam_index=cat["beam"],
+                origins_ego=cat["origins"],
+                time_offset_micros=cat["time_offset"],
+                lidar_id=cat["lidar_id"],
+                elongation=cat["elongation"],
+                return_index=cat["return_index"],
+            ),
+        )
+    if dropped:
+        left_out[INVALID_POINTS] = left_out.get(INVALID_POINTS, 0) + dropped
+    return sweep
 
 
 # --------------------------------------------------------------------------------------------
 # Boxes and frames
 
 
-def boxes(labels: RawLabels, world_from_vehicle: NDArray[np.float64]) -> Boxes:
-    """Laser labels (vehicle frame of the frame pose) as world-frame boxes."""
+def _repeated_ids(ids: list[str]) -> dict[int, InvalidRecord]:
+    """Errors for the labels whose id an earlier label of the frame already has, by position."""
+    first: dict[str, int] = {}
+    out: dict[int, InvalidRecord] = {}
+    for i, track in enumerate(ids):
+        if track in first:
+            out[i] = InvalidRecord(f"box {track!r}", f"repeats the id of laser label {first[track]}", index=i)
+        else:
+            first[track] = i
+    return out
+
+
+def boxes(
+    labels: RawLabels,
+    world_from_vehicle: NDArray[np.float64],
+    where: str = "",
+    problems: Problems | None = None,
+    left_out: dict[str, int] | None = None,
+) -> Boxes:
+    """Laser labels (vehicle frame of the frame pose) as world-frame boxes.
+
+    A label with an invalid field (a non-finite centre, size, heading or speed, a size <= 0, an
+    id another label of the frame has) raises naming ``where``, the label's id and the field,
+    or under ``skip`` is left out (``INVALID_BOXES`` in ``left_out``).
+    """
+    problems = problems or Problems()
+    left_out = {} if left_out is None else left_out
     m = len(labels)
     rot = world_from_vehicle[:3, :3]
     heading = labels.box[:, 6]
-    # Waymo boxes are upright in the (pitched, rolled) vehicle frame: keep that tilt.
-    world_from_box = rot @ geometry.rotation_z(heading)
-    direction = world_from_box[:, :, 0]
-    class_lut = np.vectorize(lambda t: BOX_CLASS_IDS.get(int(t), tx.IGNORE_ID), otypes=[np.uint8])
-    return Boxes(
-        track_id=list(labels.ids),
-        class_id=class_lut(labels.types) if m else np.zeros(0, np.uint8),
-        center_world=geometry.transform_points(world_from_vehicle, labels.box[:, :3]),
-        size_lwh=labels.box[:, 3:6],
-        yaw_world=np.arctan2(direction[:, 1], direction[:, 0]),
-        velocity_world=labels.speed @ rot.T,
-        status=np.zeros(m, np.uint8),
-        instance_id=np.zeros(m, np.uint16),
-        num_lidar_points=labels.num_lidar_points,
-        acceleration_world=labels.accel @ rot.T,
-        orientation_world=geometry.matrix_to_quaternion(world_from_box).reshape(m, 4),
-    )
+    with np.errstate(invalid="ignore", over="ignore"):
+        # Waymo boxes are upright in the (pitched, rolled) vehicle frame: keep that tilt.
+        world_from_box = rot @ geometry.rotation_z(heading)
+        direction = world_from_box[:, :, 0]
+        class_lut = np.vectorize(lambda t: BOX_CLASS_IDS.get(int(t), tx.IGNORE_ID), otypes=[np.uint8])
+        fields = {
+            "track_id": list(labels.ids),
+            "class_id": class_lut(labels.types) if m else np.zeros(0, np.uint8),
+            "center_world": geometry.transform_points(world_from_vehicle, labels.box[:, :3]),
+            "size_lwh": labels.box[:, 3:6],
+            "yaw_world": np.arctan2(direction[:, 1], direction[:, 0]),
+            "velocity_world": labels.speed @ rot.T,
+            "status": np.zeros(m, np.uint8),
+            "instance_id": np.zeros(m, np.uint16),
+            "num_lidar_points": labels.num_lidar_points,
+            "acceleration_world": labels.accel @ rot.T,
+            "orientation_world": geometry.matrix_to_quaternion(world_from_box).reshape(m, 4),
+        }
+    repeated = _repeated_ids(fields["track_id"])
+    unique = np.array([i not in repeated for i in range(m)], bool)
+    kept = np.flatnonzero(unique)
+    subset = {k: [v[i] for i in kept] if k == "track_id" else v[unique] for k, v in fields.items()}
+    built, invalid = Boxes.without_invalid(**subset)
+    errors = dict(repeated)
+    errors.update({int(kept[e.index]): e for e in invalid if e.index is not None})
+    for i in sorted(errors):
+        problems.report(WaymoFormatError(f"{where}: laser label {i}: {errors[i]}"), INVALID_BOXES, left_out)
+    return built
 
 
-def rig_calibrations(raw: RawFrame) -> list[CameraCalibration]:
-    """The frame's camera calibrations in camera-code order (FRONT first), matched by name."""
-    return [camera_calibration(c) for c in sorted(raw.camera_calibrations, key=lambda c: c.name)]
+def rig_calibrations(raw: RawFrame, problems: Problems | None = None) -> list[CameraCalibration]:
+    """The frame's camera calibrations in camera-code order (FRONT first), matched by name.
+
+    An invalid calibration raises naming the frame, or under ``skip`` leaves that camera out of
+    the rig (and so out of every frame of the segment).
+    """
+    problems = problems or Problems()
+    rig = []
+    for c in sorted(raw.camera_calibrations, key=lambda c: c.name):
+        try:
+            error = raw.invalid_sensors.get(("camera_calibration", c.name))
+            if error is not None:
+                raise error
+            rig.append(_calibration_of(raw, c))
+        except WaymoFormatError as e:
+            problems.report(e, CAMERAS_LEFT_OUT, {})
+    for (part, code), error in raw.invalid_sensors.items():
+        if part == "camera_calibration" and all(c.name != code for c in raw.camera_calibrations):
+            problems.report(error, CAMERAS_LEFT_OUT, {})  # given twice, or unreadable
+    return rig
 
 
-def frame(raw: RawFrame, frame_index: int, global_origin: NDArray[np.float64]) -> Frame:
+def _calibration_of(raw: RawFrame, calibration: RawCameraCalibration) -> CameraCalibration:
+    """:func:`camera_calibration` with errors naming the frame."""
+    try:
+        return camera_calibration(calibration)
+    except WaymoFormatError as e:
+        raise WaymoFormatError(f"{raw.where}: {e}") from None
+
+
+@dataclass
+class _FrameContext:
+    """What converting one frame's cameras needs besides the raw frame."""
+
+    raw: RawFrame
+    global_origin: NDArray[np.float64]
+    time_micros: int
+    world_from_ego: NDArray[np.float64]
+    rig: frozenset[str] | None
+
+
+def _camera(ctx: _FrameContext, code: int, images: dict[int, RawCameraImage]) -> CameraImage:
+    """Camera ``code`` of the frame; raises :class:`WaymoFormatError` naming the frame, the camera
+    and the field if anything about it is invalid."""
+    raw = ctx.raw
+    for part in ("camera_calibration", "camera"):
+        error = raw.invalid_sensors.get((part, code))
+        if error is not None:
+            raise error
+    calibration = _calibration_of(raw, raw.camera_calibration(code))  # raises if not calibrated
+    if ctx.rig is not None and calibration.name not in ctx.rig:
+        raise WaymoFormatError(
+            f"{raw.where}: camera {calibration.name} is not in the segment's rig (the first frame "
+            f"calibrates {sorted(ctx.rig)})"
+        )
+    if code in images:
+        return camera_image(
+            images[code], calibration, ctx.global_origin, raw.where_of("camera"), ctx.time_micros
+        )
+    return _record(raw.where, lambda: CameraImage(calibration, ctx.time_micros, ctx.world_from_ego, None))
+
+
+def _cameras(ctx: _FrameContext, problems: Problems, left_out: dict[str, int]) -> list[CameraImage]:
+    """Every camera of the frame that has a calibration or an image, in camera-code order."""
+    raw = ctx.raw
+    images: dict[int, RawCameraImage] = {}
+    for im in raw.images:
+        if im.name in images:
+            error = WaymoFormatError(
+                f"{raw.where_of('camera')}: two images of camera {_camera_name(im.name)}"
+            )
+            raw.mark_invalid("camera", im.name, error)
+        images[im.name] = im
+    codes = {c.name for c in raw.camera_calibrations} | set(images)
+    codes |= {code for part, code in raw.invalid_sensors if part in ("camera", "camera_calibration")}
+    cameras = []
+    for code in sorted(codes):
+        try:
+            cameras.append(_camera(ctx, code, images))
+        except WaymoFormatError as e:
+            problems.report(e, CAMERAS_LEFT_OUT, left_out)
+    return cameras
+
+
+def frame(
+    raw: RawFrame,
+    frame_index: int,
+    global_origin: NDArray[np.float64],
+    problems: Problems | None = None,
+    dropped: DroppedValues | None = None,
+    rig: frozenset[str] | None = None,
+) -> Frame:
     """One raw Waymo frame as a :class:`Frame` (world frame = global shifted to ``global_origin``).
 
     Every calibrated camera gets an entry; a camera with no image in this frame (labels-only
-    data) has ``image_bytes=None`` and the frame's time and pose.
+    data) has ``image_bytes=None`` and the frame's time and pose. ``rig``: the names of the
+    segment's cameras (a camera outside it is invalid). Invalid parts raise naming the file,
+    record and field, or under ``problems`` = skip are left out and counted in ``dropped``
+    (once per frame however often it is converted).
     """
+    problems = problems or Problems()
+    left_out: dict[str, int] = {}
     world_from_ego = _shift(raw.global_from_vehicle, global_origin)
     t_micros = raw.timestamp_micros + POSE_TIME_OFFSET_MICROS
-    images = {}
-    for im in raw.images:
-        if im.name in images:
-            raise WaymoFormatError(f"{raw.where}: two images of camera {CAMERA_NAMES.get(im.name, im.name)}")
-        images[im.name] = im
-    calibrations = {c.name: c for c in raw.camera_calibrations}
-    for name in images:
-        raw.camera_calibration(name)  # raises, naming the frame, if the camera is not calibrated
-    cameras = []
-    for code in sorted(calibrations):
-        try:
-            cal = camera_calibration(calibrations[code])
-        except WaymoFormatError as e:
-            raise WaymoFormatError(f"{raw.where}: {e}") from None
-        if code in images:
-            cameras.append(camera_image(images[code], cal, global_origin, raw.where))
-        else:
-            cameras.append(CameraImage(cal, t_micros, world_from_ego, None))
-    return Frame(
-        scene_id=raw.segment,
-        frame_index=frame_index,
-        timestamp_micros=t_micros,
-        world_from_ego=world_from_ego,
-        cameras=cameras,
-        lidar=lidar_sweep(raw, t_micros, world_from_ego),
-        boxes=boxes(raw.labels, world_from_ego),
-        source_timestamp_micros=raw.timestamp_micros,
+    ctx = _FrameContext(raw, global_origin, t_micros, world_from_ego, rig)
+    cameras = _cameras(ctx, problems, left_out)
+    lidar = lidar_sweep(raw, t_micros, world_from_ego, problems, left_out)
+    frame_boxes = boxes(raw.labels, world_from_ego, raw.where_of("labels"), problems, left_out)
+    out = _record(
+        raw.where,
+        lambda: Frame(
+            scene_id=raw.segment,
+            frame_index=frame_index,
+            timestamp_micros=t_micros,
+            world_from_ego=world_from_ego,
+            cameras=cameras,
+            lidar=lidar,
+            boxes=frame_boxes,
+            source_timestamp_micros=raw.timestamp_micros,
+        ),
     )
+    if dropped is not None:
+        for kind, count in left_out.items():
+            dropped.add(kind, frame_index, count)
+    return out

@@ -14,6 +14,7 @@ parser for unusual encodings.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -174,17 +175,29 @@ Frame = _CLASSES["Frame"]
 MatrixFloat = _CLASSES["MatrixFloat"]
 MatrixInt32 = _CLASSES["MatrixInt32"]
 Label = _CLASSES["Label"]
+Transform = _CLASSES["Transform"]
 
 
-def _varint(buf: bytes, pos: int) -> tuple[int, int]:
+def read_varint(buf: bytes, pos: int) -> tuple[int, int]:
+    """(value, position after it) of the protobuf varint at ``buf[pos]``; raises ValueError for one
+    longer than 10 bytes (64 bits) and IndexError where ``buf`` ends inside it."""
     value = shift = 0
-    while True:
+    while shift < 70:
         b = buf[pos]
         pos += 1
         value |= (b & 0x7F) << shift
         if b < 0x80:
             return value, pos
         shift += 7
+    raise ValueError("varint longer than 10 bytes")
+
+
+_varint = read_varint
+
+
+def _int32(value: int) -> int:
+    """A varint as the int32 it encodes (negative int32s are sign-extended to 64 bits)."""
+    return value - (1 << 64) if value >= 1 << 63 else value
 
 
 def decode_matrix(serialized: bytes, dtype: type, what: str) -> NDArray:
@@ -216,13 +229,13 @@ def decode_matrix(serialized: bytes, dtype: type, what: str) -> NDArray:
                     k, pos = _varint(serialized, pos)
                     if k == 0x08:  # dims, unpacked varint
                         v, pos = _varint(serialized, pos)
-                        dims.append(v)
+                        dims.append(_int32(v))
                     elif k == 0x0A:  # dims, packed
                         sz, pos = _varint(serialized, pos)
                         stop = pos + sz
                         while pos < stop:
                             v, pos = _varint(serialized, pos)
-                            dims.append(v)
+                            dims.append(_int32(v))
                     else:
                         raise ValueError("unexpected field in MatrixShape")
             else:
@@ -237,7 +250,7 @@ def decode_matrix(serialized: bytes, dtype: type, what: str) -> NDArray:
             raise ValueError(f"{what}: not a valid matrix message ({e})") from e
         data = np.asarray(msg.data, dtype=dtype)
         dims = list(msg.shape.dims)
-    if not dims or any(d < 0 or d > max(data.size, 1) for d in dims) or int(np.prod(dims)) != data.size:
+    if not dims or any(d < 0 or d > max(data.size, 1) for d in dims) or math.prod(dims) != data.size:
         raise ValueError(f"{what}: matrix shape {dims} does not hold its {data.size} values")
     return data.astype(dtype, copy=False).reshape(dims)
 

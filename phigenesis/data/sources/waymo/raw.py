@@ -12,17 +12,33 @@ Waymo's own terms:
 - Times: camera times in seconds since the Unix epoch (float64), as Waymo stores them; frame
   timestamps in microseconds.
 - Enums are Waymo's integer codes (:data:`CAMERA_NAMES`, :data:`LASER_NAMES`, ...).
+
+Readers never drop data on their own: what they cannot read about one camera or one LiDAR they
+put in :attr:`RawFrame.invalid_sensors`, and :mod:`.convert` applies the segment's error policy
+(:class:`Problems`) to it, as to every invalid value it finds.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis.errors import SourceError
+
+log = logging.getLogger("phigenesis.prep")
+
+#: The error policy of a segment: "raise" stops at the first invalid record, "skip" leaves out
+#: the smallest part that keeps the rest correct (a box, a camera, a LiDAR, a frame).
+OnError = Literal["raise", "skip"]
+#: What a segment leaves out under ``skip``, as counted in ``Scene.dropped`` (besides the scene
+#: model's own ``INVALID_POINTS`` and ``INVALID_BOXES``).
+FRAMES_LEFT_OUT = "frames left out as invalid records"
+CAMERAS_LEFT_OUT = "camera images left out as invalid"
+LIDARS_LEFT_OUT = "LiDAR range images left out as invalid"
 
 #: CameraName codes (dataset.proto). Perception data has 1-5; 6-8 exist in v1 only.
 CAMERA_NAMES: dict[int, str] = {
@@ -56,6 +72,43 @@ BOX_TYPES: dict[int, str] = {0: "UNKNOWN", 1: "VEHICLE", 2: "PEDESTRIAN", 3: "SI
 
 class WaymoFormatError(SourceError):
     """Input that is not valid Waymo data; the message names the file and where in it."""
+
+
+class Problems:
+    """The error policy of one segment (``on_error``).
+
+    ``raise``: :meth:`report` raises the error. ``skip``: it logs the error (each message once),
+    counts the part left out under ``kind`` in ``left_out``, and the caller leaves it out.
+    """
+
+    def __init__(self, on_error: OnError = "raise"):
+        if on_error not in ("raise", "skip"):
+            raise ValueError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
+        self.on_error: OnError = on_error
+        self._logged: set[str] = set()
+
+    @property
+    def skip(self) -> bool:
+        return self.on_error == "skip"
+
+    def report(self, error: WaymoFormatError, kind: str, left_out: dict[str, int]) -> None:
+        """Raises ``error`` (``raise``), or records that one part of ``kind`` is left out."""
+        if not self.skip:
+            raise error
+        left_out[kind] = left_out.get(kind, 0) + 1
+        message = str(error)
+        if message not in self._logged:
+            self._logged.add(message)
+            log.warning("%s; left out (--on-error skip)", message)
+
+
+@dataclass(frozen=True)
+class FrameKey:
+    """What a segment's index knows of a frame before reading it: Waymo's frame timestamp
+    (microseconds) and the frame pose ``global_from_vehicle`` (checked to be rigid)."""
+
+    timestamp_micros: int
+    global_from_vehicle: NDArray[np.float64]
 
 
 @dataclass
@@ -188,6 +241,11 @@ class RawFrame:
             and the returned points are in this vehicle frame.
         where: the file (and record offset) the frame came from, for error messages.
         stats: time_of_day, location, weather.
+        invalid_sensors: what the reader could not read about one sensor, keyed by (part, code)
+            with part "camera" (its image), "camera_calibration", "laser" (its range images) or
+            "laser_calibration": the first error for it.
+        part_where: where a part of the frame came from when it is not ``where`` (v2: the
+            component file and frame), keyed by "camera", "laser" and "labels".
     """
 
     segment: str
@@ -201,6 +259,16 @@ class RawFrame:
     projected_boxes: RawProjectedBoxes = field(default_factory=RawProjectedBoxes.empty)
     stats: dict[str, str] = field(default_factory=dict)
     where: str = ""
+    invalid_sensors: dict[tuple[str, int], WaymoFormatError] = field(default_factory=dict)
+    part_where: dict[str, str] = field(default_factory=dict)
+
+    def where_of(self, part: str) -> str:
+        """Where ``part`` ("camera", "laser", "labels") of the frame came from, for messages."""
+        return self.part_where.get(part, self.where)
+
+    def mark_invalid(self, sensor: str, code: int, error: WaymoFormatError) -> None:
+        """Records the first problem of sensor ``(sensor, code)``; conversion applies the policy."""
+        self.invalid_sensors.setdefault((sensor, int(code)), error)
 
     def camera_calibration(self, name: int) -> RawCameraCalibration:
         """The calibration of camera ``name``, matched by name; raises naming the frame if absent."""

@@ -15,13 +15,14 @@ integer codes or as strings such as ``"FRONT"``.
 
 from __future__ import annotations
 
+import math
 import os
 import uuid
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import pyarrow as pa
@@ -29,11 +30,13 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from numpy.typing import NDArray
 
+from phigenesis.data.records import InvalidRecord, check_transform
 from phigenesis.data.sources.waymo.raw import (
     CAMERA_CODES,
     CAMERA_NAMES,
     LASER_CODES,
     LASER_NAMES,
+    FrameKey,
     RawCameraCalibration,
     RawCameraImage,
     RawFrame,
@@ -249,7 +252,8 @@ def _check_root(root: Path) -> list[str]:
         raise WaymoFormatError(
             f"{root}: no Waymo v2 component folders (expected some of {', '.join(V2_COMPONENTS)})"
         )
-    required = ["vehicle_pose", "camera_calibration"]
+    # lidar_box too: without it a segment would convert with no boxes, silently.
+    required = ["vehicle_pose", "camera_calibration", "lidar_box"]
     if "lidar" in present:
         required += ["lidar_calibration", "lidar_pose"]
     for tag in required:
@@ -269,14 +273,50 @@ def list_segments(root: Path) -> list[str]:
 # Column conversion (Arrow -> numpy)
 
 
+class _ColumnError(ValueError):
+    """A column value the reader cannot use; the message names the column and the row (and its
+    key: camera, LiDAR or object). The segment prefixes the file and frame."""
+
+
+_KEY_COLUMNS = ((_CAM, "camera"), (_LASER, "LiDAR"), (_OBJ, "object"))
+_CAST_ERRORS = (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError)
+
+
+def _row_name(table: pa.Table, row: int) -> str:
+    """``row R (camera FRONT)`` for row ``row`` of a frame's rows, with its key where it has one."""
+    keys = [
+        f"{label} {table.column(col)[row].as_py()!r}"
+        for col, label in _KEY_COLUMNS
+        if col in table.column_names and row < table.num_rows
+    ]
+    return f"row {row}" + (f" ({', '.join(keys)})" if keys else "")
+
+
 def _column(table: pa.Table, name: str) -> pa.Array:
     col = table.column(name).combine_chunks()
     return pc.dictionary_decode(col) if pa.types.is_dictionary(col.type) else col
 
 
+def _cast(table: pa.Table, name: str, type_: pa.DataType) -> pa.Array:
+    """Column ``name`` cast to ``type_``; raises :class:`_ColumnError` naming the first row whose
+    value does not convert (a string such as 'abc' in a number column)."""
+    col = _column(table, name)
+    try:
+        return pc.cast(col, type_)
+    except _CAST_ERRORS as e:
+        for row in range(len(col)):
+            try:
+                pc.cast(col.slice(row, 1), type_)
+            except _CAST_ERRORS:
+                raise _ColumnError(
+                    f"column {name} {_row_name(table, row)} holds {col[row].as_py()!r}, not a {type_} ({e})"
+                ) from None
+        raise _ColumnError(f"column {name} of type {col.type} does not convert to {type_} ({e})") from None
+
+
 def _floats(table: pa.Table, name: str, fill: float = np.nan) -> NDArray[np.float64]:
     """Column ``name`` as float64 (nulls -> ``fill``)."""
-    col = pc.fill_null(pc.cast(_column(table, name), pa.float64()), fill)
+    col = pc.fill_null(_cast(table, name, pa.float64()), fill)
     return col.to_numpy(zero_copy_only=False)
 
 
@@ -284,7 +324,7 @@ def _ints(table: pa.Table, name: str, fill: int = -1) -> NDArray[np.int64]:
     """Column ``name`` as int64 (nulls -> ``fill``); ``fill`` for every row when it is absent."""
     if name not in table.column_names:
         return np.full(table.num_rows, fill, np.int64)
-    return pc.fill_null(pc.cast(_column(table, name), pa.int64()), fill).to_numpy(zero_copy_only=False)
+    return pc.fill_null(_cast(table, name, pa.int64()), fill).to_numpy(zero_copy_only=False)
 
 
 def _name_codes(table: pa.Table, name: str, codes: dict[str, int], where: Path) -> NDArray[np.int32]:
@@ -298,14 +338,39 @@ def _name_codes(table: pa.Table, name: str, codes: dict[str, int], where: Path) 
         return np.array([codes[v] for v in values], np.int32)
     if col.null_count:
         raise WaymoFormatError(f"{where}: column {name} has null entries")
-    return col.cast(pa.int32()).to_numpy(zero_copy_only=False)
+    return _cast(table, name, pa.int32()).to_numpy(zero_copy_only=False)
 
 
-def _list_values(table: pa.Table, name: str) -> list[NDArray[Any] | None]:
-    """Each row of list column ``name`` as a 1-D array (None for null rows)."""
+def _is_list(type_: pa.DataType) -> bool:
+    return pa.types.is_list(type_) or pa.types.is_large_list(type_) or pa.types.is_fixed_size_list(type_)
+
+
+def _list_column(table: pa.Table, name: str, value_type: pa.DataType | None = None) -> pa.Array:
+    """List column ``name`` as a plain list array (of ``value_type`` if given)."""
     col = _column(table, name)
-    if not (pa.types.is_list(col.type) or pa.types.is_large_list(col.type)):
-        col = col.cast(pa.list_(col.type.value_type))
+    if not _is_list(col.type):
+        raise _ColumnError(f"column {name} is {col.type}, not a list column")
+    target = pa.list_(col.type.value_type if value_type is None else value_type)
+    if col.type == target:
+        return col
+    try:
+        return col.cast(target)
+    except _CAST_ERRORS as e:
+        for row in range(len(col)):
+            try:
+                col.slice(row, 1).cast(target)
+            except _CAST_ERRORS:
+                raise _ColumnError(
+                    f"column {name} {_row_name(table, row)} holds {col[row].as_py()!r}, not a {target} ({e})"
+                ) from None
+        raise _ColumnError(f"column {name} does not convert to {target} ({e})") from None
+
+
+def _list_values(
+    table: pa.Table, name: str, value_type: pa.DataType | None = None
+) -> list[NDArray[Any] | None]:
+    """Each row of list column ``name`` as a 1-D array (None for null rows)."""
+    col = _list_column(table, name, value_type)
     flat = pc.list_flatten(col).to_numpy(zero_copy_only=False)
     lengths = pc.fill_null(pc.list_value_length(col), 0).to_numpy(zero_copy_only=False)
     valid = col.is_valid().to_numpy(zero_copy_only=False)
@@ -315,35 +380,52 @@ def _list_values(table: pa.Table, name: str) -> list[NDArray[Any] | None]:
 
 def _transforms(table: pa.Table, name: str, where: Path) -> NDArray[np.float64]:
     """(N, 4, 4) float64 from a column of 16 row-major values (fixed-size or plain list)."""
-    col = _column(table, name)
+    col = _list_column(table, name, pa.float64())
     if col.null_count:
         raise WaymoFormatError(f"{where}: column {name} has null transforms")
+    lengths = pc.list_value_length(col).to_numpy(zero_copy_only=False)
+    bad = np.flatnonzero(lengths != 16)
+    if len(bad):
+        raise WaymoFormatError(
+            f"{where}: column {name} {_row_name(table, int(bad[0]))} holds {int(lengths[bad[0]])} values, "
+            "a transform needs 16"
+        )
     flat = pc.list_flatten(col).to_numpy(zero_copy_only=False).astype(np.float64)
-    if flat.size != 16 * len(col):
-        raise WaymoFormatError(f"{where}: column {name} must hold 16 values per row, got {flat.size}")
     return flat.reshape(len(col), 4, 4)
+
+
+def _range_image(
+    values: NDArray[Any] | None, shape_values: NDArray[Any] | None, channels: int, what: str
+) -> NDArray[np.float32] | None:
+    """One row's range image as (H, W, channels) float32 (None if null or empty); raises
+    naming ``what`` if its shape is not three positive dims holding its values."""
+    if values is None or shape_values is None or values.size == 0:
+        return None
+    shape = tuple(int(x) for x in shape_values)
+    if len(shape) != 3 or shape[2] != channels or min(shape) <= 0 or math.prod(shape) != values.size:
+        raise WaymoFormatError(f"{what} has {values.size} values for shape {list(shape)}")
+    return values.astype(np.float32, copy=False).reshape(shape)
 
 
 def _range_images(
     table: pa.Table, tag: str, ret: int, channels: int, where: Path
-) -> list[NDArray[np.float32] | None]:
-    """Range images ``range_image_return{ret}`` as (H, W, channels) float32 (None if null/absent)."""
+) -> list[NDArray[np.float32] | WaymoFormatError | None]:
+    """Range images ``range_image_return{ret}`` as (H, W, channels) float32 (None if null/absent),
+    or the error of a row whose shape does not hold its values."""
     values_col, shape_col = (
         _c(tag, f"range_image_return{ret}.values"),
         _c(tag, f"range_image_return{ret}.shape"),
     )
     if values_col not in table.column_names:
         return [None] * table.num_rows
-    values, shapes = _list_values(table, values_col), _list_values(table, shape_col)
-    out: list[NDArray[np.float32] | None] = []
-    for v, s in zip(values, shapes, strict=True):
-        if v is None or s is None or v.size == 0:
-            out.append(None)
-            continue
-        shape = tuple(int(x) for x in s)
-        if len(shape) != 3 or shape[2] != channels or int(np.prod(shape)) != v.size:
-            raise WaymoFormatError(f"{where}: {values_col} has {v.size} values for shape {list(shape)}")
-        out.append(v.astype(np.float32, copy=False).reshape(shape))
+    values = _list_values(table, values_col, pa.float32())
+    shapes = _list_values(table, shape_col, pa.int64())
+    out: list[NDArray[np.float32] | WaymoFormatError | None] = []
+    for row, (v, shape) in enumerate(zip(values, shapes, strict=True)):
+        try:
+            out.append(_range_image(v, shape, channels, f"{where}: {values_col} {_row_name(table, row)}"))
+        except WaymoFormatError as e:
+            out.append(e)
     return out
 
 
@@ -378,6 +460,8 @@ class _ComponentFile:
         column = self._read(lambda: self.file.read(columns=[_TS])).column(_TS)
         if column.null_count:
             raise WaymoFormatError(f"{self.path}: column {_TS} has null entries")
+        if not pa.types.is_integer(column.type):
+            raise WaymoFormatError(f"{self.path}: column {_TS} is {column.type}, not integer microseconds")
         ts = column.to_numpy()
         sizes = [self.file.metadata.row_group(i).num_rows for i in range(self.num_row_groups)]
         groups = np.repeat(np.arange(len(sizes)), sizes)
@@ -432,8 +516,13 @@ class V2Segment:
     """One segment of a Waymo v2 root, read frame by frame.
 
     Construction checks the root and the segment's component files (existence, Parquet footer,
-    expected columns) and indexes the frame timestamps; :meth:`frame` then reads the row groups of
-    one frame. ``row_group_reads`` counts the row groups read, keyed by (component tag, group).
+    expected columns) and indexes the frame timestamps; :meth:`frame_keys` reads every frame's
+    pose (the vehicle_pose component, once) and :meth:`frame` then reads the row groups of one
+    frame. ``row_group_reads`` counts the row groups read, keyed by (component tag, group).
+
+    Errors name the component file and the frame timestamp (and the row's camera, LiDAR or
+    object); a value that only spoils one camera's or one LiDAR's data is put in the raw frame's
+    ``invalid_sensors`` for the conversion's error policy.
     """
 
     def __init__(self, root: Path, segment: str) -> None:
@@ -446,80 +535,143 @@ class V2Segment:
                 raise WaymoFormatError(f"segment {segment}: component {tag} has no file (expected {path})")
             self.files[tag] = _ComponentFile(tag, path, self.row_group_reads)
         self.timestamps: list[int] = sorted(self.files["vehicle_pose"].index)
+        self._poses: dict[int, NDArray[np.float64]] | None = None
         self._camera_calibrations: list[RawCameraCalibration] | None = None
         self._laser_calibrations: list[RawLaserCalibration] | None = None
 
     def __len__(self) -> int:
         return len(self.timestamps)
 
+    def frame_keys(self) -> list[tuple[str, FrameKey | WaymoFormatError]]:
+        """(where, :class:`~.raw.FrameKey` or the error that makes the frame unusable) for every
+        frame timestamp in order: a timestamp with two vehicle_pose rows, or a pose that is not a
+        rigid transform, is unusable. Raises if vehicle_pose has no rows."""
+        file = self.files["vehicle_pose"]
+        if not self.timestamps:
+            raise WaymoFormatError(f"{file.path}: vehicle_pose has no rows: the segment has no frames")
+        table = file.all_rows()
+        ts = table.column(_TS).to_numpy().astype(np.int64)
+        poses = _transforms(table, _c("vehicle_pose", "world_from_vehicle.transform"), file.path)
+        rows: dict[int, list[int]] = {}
+        for row, t in enumerate(ts.tolist()):
+            rows.setdefault(t, []).append(row)
+        out: list[tuple[str, FrameKey | WaymoFormatError]] = []
+        self._poses = {}
+        for t in self.timestamps:
+            where = f"{file.path} frame {t}"
+            if len(rows[t]) > 1:
+                out.append(
+                    (where, WaymoFormatError(f"{where}: rows {rows[t]} are all this frame's vehicle pose"))
+                )
+                continue
+            try:
+                pose = check_transform("world_from_vehicle", poses[rows[t][0]])
+            except InvalidRecord as e:
+                out.append((where, WaymoFormatError(f"{where} (row {rows[t][0]}): {e}")))
+                continue
+            self._poses[t] = pose
+            out.append((where, FrameKey(t, pose)))
+        return out
+
     def frame(self, index: int) -> RawFrame:
         """Frame ``index`` (in timestamp order) with every component of the root joined on its key."""
         ts = self.timestamps[index]
-        pose = self.files["vehicle_pose"]
-        return RawFrame(
+        if self._poses is None:
+            self.frame_keys()
+        assert self._poses is not None
+        if ts not in self._poses:
+            raise WaymoFormatError(
+                f"{self.files['vehicle_pose'].path} frame {ts}: the frame's vehicle pose is invalid"
+            )
+        raw = RawFrame(
             segment=self.segment,
             timestamp_micros=ts,
-            global_from_vehicle=_transforms(
-                pose.rows(ts), _c("vehicle_pose", "world_from_vehicle.transform"), pose.path
-            )[0],
+            global_from_vehicle=self._poses[ts],
             camera_calibrations=self.camera_calibrations(),
             laser_calibrations=self.laser_calibrations(),
-            images=self._images(ts),
-            lasers=self._lasers(ts),
-            labels=self._labels(ts),
-            projected_boxes=self._projected_boxes(ts),
-            stats=self._stats(ts),
+            images=[],
+            lasers=[],
+            labels=RawLabels.empty(),
             where=f"{self.root} segment {self.segment} frame {ts}",
+            part_where={
+                part: f"{self.files[tag].path} frame {ts}"
+                for part, tag in (("camera", "camera_image"), ("laser", "lidar"), ("labels", "lidar_box"))
+                if tag in self.files
+            },
         )
+        _mark_repeated(
+            raw, raw.camera_calibrations, "camera_calibration", self.files["camera_calibration"].path
+        )
+        if "lidar_calibration" in self.files:
+            _mark_repeated(
+                raw, raw.laser_calibrations, "laser_calibration", self.files["lidar_calibration"].path
+            )
+        raw.images = self._images(ts, raw)
+        raw.lasers = self._lasers(ts, raw)
+        raw.labels = self._labels(ts)
+        raw.projected_boxes = self._projected_boxes(ts)
+        raw.stats = self._stats(ts)
+        return raw
 
     def camera_calibrations(self) -> list[RawCameraCalibration]:
         """The segment's camera calibrations, sorted by camera code (read once)."""
         if self._camera_calibrations is None:
-            self._camera_calibrations = _read_camera_calibrations(self.files["camera_calibration"])
+            file = self.files["camera_calibration"]
+            self._camera_calibrations = _naming(file, None, lambda: _read_camera_calibrations(file))
         return self._camera_calibrations
 
     def laser_calibrations(self) -> list[RawLaserCalibration]:
         """The segment's LiDAR calibrations, sorted by laser code (read once; [] if absent)."""
         if self._laser_calibrations is None:
             cal = self.files.get("lidar_calibration")
-            self._laser_calibrations = [] if cal is None else _read_laser_calibrations(cal)
+            self._laser_calibrations = (
+                [] if cal is None else _naming(cal, None, lambda: _read_laser_calibrations(cal))
+            )
         return self._laser_calibrations
 
-    def _images(self, ts: int) -> list[RawCameraImage]:
+    def _images(self, ts: int, raw: RawFrame) -> list[RawCameraImage]:
         file = self.files.get("camera_image")
         if file is None:
             return []
-        images = _read_images(file, file.rows(ts))
+        images = _naming(file, ts, lambda: _read_images(file, file.rows(ts)))
         calibrated = {c.name for c in self.camera_calibrations()}
         for image in images:
             if image.name not in calibrated:
-                raise WaymoFormatError(
-                    f"{file.path}: camera {CAMERA_NAMES.get(image.name, image.name)} of segment "
-                    f"{self.segment} has an image but no camera_calibration row"
+                raw.mark_invalid(
+                    "camera",
+                    image.name,
+                    WaymoFormatError(
+                        f"{file.path} frame {ts}: camera {CAMERA_NAMES.get(image.name, image.name)} of "
+                        f"segment {self.segment} has an image but no camera_calibration row"
+                    ),
                 )
         seg = self.files.get("camera_segmentation")
         if seg is not None:
-            _attach_panoptic(images, seg, seg.rows(ts))
+            _naming(
+                seg, ts, lambda: _attach_panoptic(images, seg, seg.rows(ts), f"{seg.path} frame {ts}", raw)
+            )
         return sorted(images, key=lambda im: im.name)
 
-    def _lasers(self, ts: int) -> list[RawLaser]:
+    def _lasers(self, ts: int, raw: RawFrame) -> list[RawLaser]:
         file = self.files.get("lidar")
         if file is None:
             return []
-        lasers = _read_lasers(file, file.rows(ts))
+        lasers = _naming(file, ts, lambda: _read_lasers(file, file.rows(ts), raw))
         pose_file = self.files["lidar_pose"]
-        poses = _read_pixel_poses(pose_file, pose_file.rows(ts))
+        poses = _naming(pose_file, ts, lambda: _read_pixel_poses(pose_file, pose_file.rows(ts), raw))
         for laser in lasers:
             laser.pixel_pose = poses.get(laser.name)
         return sorted(lasers, key=lambda la: la.name)
 
     def _labels(self, ts: int) -> RawLabels:
         file = self.files.get("lidar_box")
-        return RawLabels.empty() if file is None else _read_labels(file.rows(ts))
+        return RawLabels.empty() if file is None else _naming(file, ts, lambda: _read_labels(file.rows(ts)))
 
     def _projected_boxes(self, ts: int) -> RawProjectedBoxes:
         file = self.files.get("projected_lidar_box")
-        return RawProjectedBoxes.empty() if file is None else _read_projected(file, file.rows(ts))
+        if file is None:
+            return RawProjectedBoxes.empty()
+        return _naming(file, ts, lambda: _read_projected(file, file.rows(ts)))
 
     def _stats(self, ts: int) -> dict[str, str]:
         file = self.files.get("stats")
@@ -533,8 +685,32 @@ class V2Segment:
             name = _c("stats", key)
             value = table.column(name)[0].as_py() if name in table.column_names else None
             if value is not None:
-                stats[key] = value
+                stats[key] = str(value)
         return stats
+
+
+def _mark_repeated(raw: RawFrame, calibrations: list[Any], part: str, path: Path) -> None:
+    """Marks every sensor with more than one calibration row invalid in ``raw``."""
+    seen: set[int] = set()
+    for c in calibrations:
+        if c.name in seen:
+            raw.mark_invalid(
+                part, c.name, WaymoFormatError(f"{path}: sensor code {c.name} has two {part} rows")
+            )
+        seen.add(c.name)
+
+
+_R = TypeVar("_R")
+
+
+def _naming(file: _ComponentFile, ts: int | None, read: Callable[[], _R]) -> _R:
+    """``read()``, with a column value it cannot use reported as a :class:`WaymoFormatError`
+    naming the component file and the frame (``ts``; None for the per-segment components)."""
+    try:
+        return read()
+    except _ColumnError as e:
+        where = f"{file.path}" if ts is None else f"{file.path} frame {ts}"
+        raise WaymoFormatError(f"{where}: {e}") from None
 
 
 def _read_camera_calibrations(file: _ComponentFile) -> list[RawCameraCalibration]:
@@ -558,7 +734,7 @@ def _read_laser_calibrations(file: _ComponentFile) -> list[RawLaserCalibration]:
     names = _name_codes(t, _LASER, LASER_CODES, file.path)
     extrinsics = _transforms(t, _c(tag, "extrinsic.transform"), file.path)
     lo, hi = _floats(t, _c(tag, "beam_inclination.min")), _floats(t, _c(tag, "beam_inclination.max"))
-    values = _list_values(t, _c(tag, "beam_inclination.values"))
+    values = _list_values(t, _c(tag, "beam_inclination.values"), pa.float64())
     cals = [
         RawLaserCalibration(
             int(names[i]),
@@ -572,10 +748,18 @@ def _read_laser_calibrations(file: _ComponentFile) -> list[RawLaserCalibration]:
     return sorted(cals, key=lambda c: c.name)
 
 
+def _bytes_column(table: pa.Table, name: str) -> list[bytes | None]:
+    """Binary column ``name`` as bytes per row (None for nulls)."""
+    col = _column(table, name)
+    if not (pa.types.is_binary(col.type) or pa.types.is_large_binary(col.type)):
+        raise _ColumnError(f"column {name} is {col.type}, not binary")
+    return col.to_pylist()
+
+
 def _read_images(file: _ComponentFile, t: pa.Table) -> list[RawCameraImage]:
     tag = "camera_image"
     names = _name_codes(t, _CAM, CAMERA_CODES, file.path)
-    jpegs = _column(t, _c(tag, "image")).to_pylist()
+    jpegs = _bytes_column(t, _c(tag, "image"))
     poses = _transforms(t, _c(tag, "pose.transform"), file.path)
     lin = np.stack([_floats(t, _c(tag, f"velocity.linear_velocity.{a}")) for a in _XYZ], axis=1)
     ang = np.stack([_floats(t, _c(tag, f"velocity.angular_velocity.{a}")) for a in _XYZ], axis=1)
@@ -600,41 +784,76 @@ def _read_images(file: _ComponentFile, t: pa.Table) -> list[RawCameraImage]:
     ]
 
 
-def _attach_panoptic(images: list[RawCameraImage], file: _ComponentFile, t: pa.Table) -> None:
-    """Sets the panoptic label fields of ``images`` from the camera_segmentation rows ``t``."""
+def _attach_panoptic(
+    images: list[RawCameraImage], file: _ComponentFile, t: pa.Table, where: str, raw: RawFrame
+) -> None:
+    """Sets the panoptic label fields of ``images`` from the camera_segmentation rows ``t``; a
+    camera whose label rows are inconsistent is marked invalid in ``raw``."""
     tag = "camera_segmentation"
     names = _name_codes(t, _CAM, CAMERA_CODES, file.path)
-    labels = _column(t, _c(tag, "panoptic_label")).to_pylist()
+    labels = _bytes_column(t, _c(tag, "panoptic_label"))
     divisors = _ints(t, _c(tag, "panoptic_label_divisor"), 0)
-    local = _list_values(t, _c(tag, f"{_MAPPING}.local_instance_ids"))
-    glob = _list_values(t, _c(tag, f"{_MAPPING}.global_instance_ids"))
-    by_camera = {int(n): i for i, n in enumerate(names)}
+    local = _list_values(t, _c(tag, f"{_MAPPING}.local_instance_ids"), pa.int64())
+    glob = _list_values(t, _c(tag, f"{_MAPPING}.global_instance_ids"), pa.int64())
+    rows: dict[int, list[int]] = {}
+    for i, n in enumerate(names.tolist()):
+        rows.setdefault(int(n), []).append(i)
     for image in images:
-        i = by_camera.get(image.name)
-        if i is None:
+        found = rows.get(image.name, [])
+        camera = f"{where}: camera {CAMERA_NAMES.get(image.name, image.name)} panoptic label"
+        if len(found) > 1:
+            raw.mark_invalid("camera", image.name, WaymoFormatError(f"{camera}: rows {found} all label it"))
             continue
+        if not found:
+            continue
+        i = found[0]
         image.panoptic_label = labels[i]
         image.panoptic_label_divisor = int(divisors[i])
         ids_local = [] if local[i] is None else local[i].tolist()
         ids_global = [] if glob[i] is None else glob[i].tolist()
         if len(ids_local) != len(ids_global):
-            raise WaymoFormatError(
-                f"{file.path}: {_MAPPING} has {len(ids_local)} local, {len(ids_global)} global ids"
+            error = WaymoFormatError(
+                f"{camera}: {_MAPPING} has {len(ids_local)} local, {len(ids_global)} global ids"
             )
+            raw.mark_invalid("camera", image.name, error)
+            continue
         image.instance_to_global = dict(zip(ids_local, ids_global, strict=True))
 
 
-def _read_lasers(file: _ComponentFile, t: pa.Table) -> list[RawLaser]:
+def _by_laser(
+    file: _ComponentFile, t: pa.Table, columns: list[list[Any]], raw: RawFrame
+) -> dict[int, list[Any]]:
+    """Per laser code, its row's values of ``columns`` (one list per column, one value per row);
+    a laser with two rows, or a value that is an error, marks that laser invalid in ``raw``."""
     names = _name_codes(t, _LASER, LASER_CODES, file.path)
+    out: dict[int, list[Any]] = {}
+    for row, code in enumerate(names.tolist()):
+        values = [col[row] for col in columns]
+        if code in out:
+            error = WaymoFormatError(
+                f"{file.path} frame {raw.timestamp_micros}: LiDAR {LASER_NAMES.get(code, code)} has two rows"
+            )
+            raw.mark_invalid("laser", code, error)
+            continue
+        errors = [v for v in values if isinstance(v, WaymoFormatError)]
+        if errors:
+            raw.mark_invalid("laser", code, errors[0])
+            values = [None if isinstance(v, WaymoFormatError) else v for v in values]
+        out[code] = values
+    return out
+
+
+def _read_lasers(file: _ComponentFile, t: pa.Table, raw: RawFrame) -> list[RawLaser]:
     r1 = _range_images(t, "lidar", 1, 4, file.path)
     r2 = _range_images(t, "lidar", 2, 4, file.path)
-    return [RawLaser(int(n), a, b) for n, a, b in zip(names, r1, r2, strict=True)]
+    return [RawLaser(code, a, b) for code, (a, b) in _by_laser(file, t, [r1, r2], raw).items()]
 
 
-def _read_pixel_poses(file: _ComponentFile, t: pa.Table) -> dict[int, NDArray[np.float32] | None]:
-    names = _name_codes(t, _LASER, LASER_CODES, file.path)
+def _read_pixel_poses(
+    file: _ComponentFile, t: pa.Table, raw: RawFrame
+) -> dict[int, NDArray[np.float32] | None]:
     poses = _range_images(t, "lidar_pose", 1, 6, file.path)
-    return {int(n): p for n, p in zip(names, poses, strict=True)}
+    return {code: p for code, (p,) in _by_laser(file, t, [poses], raw).items()}
 
 
 def _read_labels(t: pa.Table) -> RawLabels:
