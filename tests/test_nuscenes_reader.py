@@ -22,6 +22,7 @@ from phigenesis.data.sources.synthetic import SyntheticScene
 from phigenesis.data.sources.synthetic.nuscenes_export import (
     GLOBAL_OFFSET_M,
     UNIFIED_TO_NUSCENES_CATEGORY,
+    camera_timestamp,
     export_nuscenes,
     lidar_timestamp,
     nuscenes_scene_config,
@@ -84,7 +85,7 @@ def test_frames_poses_calibrations_and_camera_times_are_the_truth(
         )
         for cam in frame.cameras:
             i = [c.name for c in truth.calibrations].index(cam.name)
-            assert cam.timestamp_micros == truth.camera_time_micros(truth.frame_micros[s], i)
+            assert cam.timestamp_micros == camera_timestamp(truth, s, i)
             np.testing.assert_allclose(
                 cam.world_from_ego, _shifted(truth.world_from_ego(cam.timestamp_micros), shift), atol=1e-9
             )
@@ -93,6 +94,20 @@ def test_frames_poses_calibrations_and_camera_times_are_the_truth(
     # Keyframe frames sit exactly at their sample's (LiDAR keyframe's) time.
     for k in range(KEYFRAMES):
         assert times[6 * k] == lidar_timestamp(truth, 10 * k) == scene.keyframes[k].timestamp_micros
+    # Each camera's own keyframe image (its is_key_frame sample_data) is on the keyframe, taken
+    # as the LiDAR revolution ending at the sample passed the camera: 1-43 ms before it.
+    for k, kf in enumerate(scene.keyframes):
+        images = {c.name: c.timestamp_micros for c in scene.frames[6 * k].cameras}
+        assert kf.camera_timestamps_micros == images and len(images) == 6
+        offsets = {name: t - kf.timestamp_micros for name, t in images.items()}
+        assert offsets == {
+            "CAM_FRONT_LEFT": -43_056,
+            "CAM_FRONT": -35_417,
+            "CAM_FRONT_RIGHT": -27_778,
+            "CAM_BACK_RIGHT": -20_139,
+            "CAM_BACK": -10_417,
+            "CAM_BACK_LEFT": -694,
+        }
 
 
 def test_lidar_points_in_the_ego_frame_are_the_truth_within_float32(
@@ -210,7 +225,9 @@ def test_a_dangling_token_is_named_and_skip_leaves_out_that_sweep(dataroot: Path
     i, sd = _sample_data(root, "sweeps/CAM_FRONT_LEFT", key=False)
     _edit(root, "sample_data", i, ego_pose_token="f" * 32)
     with pytest.raises(
-        NuScenesError, match=rf"'ego_pose' has no record with token '{'f' * 32}'.*{sd['token']}"
+        NuScenesError,
+        match=rf"sample_data.json: sample_data '{sd['token']}': 'ego_pose_token': "
+        rf"table 'ego_pose' has no record with token '{'f' * 32}'",
     ):
         _scene(root)
     scene = _scene(root, "skip")
@@ -243,7 +260,10 @@ def test_an_unknown_category_is_named_and_skip_drops_its_boxes(dataroot: Path, t
     rows = json.loads((root / "v1.0-mini" / "category.json").read_text())
     i = next(i for i, c in enumerate(rows) if c["name"] == "vehicle.car")
     _edit(root, "category", i, name="vehicle.hovercraft")
-    with pytest.raises(NuScenesError, match=r"unknown name 'vehicle.hovercraft'"):
+    with pytest.raises(
+        NuScenesError,
+        match=r"category.json: category '[0-9a-f]+': 'name' is the unknown category 'vehicle.hovercraft'",
+    ):
         _scene(root)
     full, scene = _scene(dataroot), _scene(root, "skip")
     cars = sum(int(np.sum(kf.boxes.class_id == tx.CAR)) for kf in full.keyframes)
