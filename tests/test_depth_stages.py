@@ -16,8 +16,10 @@ from phigenesis.data.records import (
     DEPTH_ORIGINS,
     Boxes,
     CameraCalibration,
+    CameraDepth,
     CameraImage,
     Frame,
+    LazyFrames,
     LidarSweep,
     Scene,
 )
@@ -457,3 +459,41 @@ def test_depth_columns_round_trip_through_the_cache_schema(waymo_frame):
         assert np.array_equal(b.depth.sparse_m > 0, b.depth.sparse_confidence > 0)
     without = frame_schema(CacheContents(camera_truth=()))
     assert "depth_dense_png" not in {f.name for f in without.field("cameras").type.value_type}
+
+
+def _depth_frame(index: int, sparse_share_rows: int) -> Frame:
+    """A frame of one 64 x 48 camera whose first ``sparse_share_rows`` of every 4 rows have a
+    sparse depth of 10 m (so a share of ``sparse_share_rows / 4`` of the pixels)."""
+    cam = _camera()
+    sparse = np.zeros((48, 64), np.float32)
+    for r in range(sparse_share_rows):
+        sparse[r::4] = 10.0
+    cam.depth = CameraDepth(sparse, (sparse > 0).astype(np.float32), (sparse > 0).astype(np.uint8))
+    return Frame("s", index, 100_000 * index, np.eye(4), [cam], None, Boxes.empty())
+
+
+def test_coverage_is_logged_once_per_scene_counting_each_lazy_frame_once(caplog):
+    frames = LazyFrames(3, lambda i: _depth_frame(i, 1))
+    scene = get_stage("densify_depth")(Scene("s", "synthetic", [], frames), {"method": "ipbasic"})
+    with caplog.at_level(logging.INFO, logger="phigenesis.prep"):
+        for _ in range(2):  # the writer, then a later reader of the same lazy frames
+            list(scene.frames)
+    lines = [r.getMessage() for r in caplog.records if "depth coverage" in r.getMessage()]
+    assert len(lines) == 1
+    assert "scene s: depth coverage over 3 frames" in lines[0] and "CAM 25.0 % / " in lines[0]
+    assert not [
+        r for r in caplog.records if r.levelno >= logging.WARNING and "sparse depth" in r.getMessage()
+    ]
+
+
+def test_a_camera_below_the_coverage_threshold_is_warned_about_by_name(caplog):
+    frames = [_depth_frame(i, 1) for i in range(2)]
+    with caplog.at_level(logging.WARNING, logger="phigenesis.prep"):
+        get_stage("densify_depth")(
+            Scene("s", "synthetic", [], frames), {"method": "ipbasic", "min_sparse_coverage": 0.3}
+        )
+    (warning,) = [r.getMessage() for r in caplog.records if "sparse depth" in r.getMessage()]
+    assert "scene s camera CAM: only 25.00 % of its pixels have a sparse depth" in warning
+    assert "min_sparse_coverage 30.00 %" in warning
+    with pytest.raises(ValueError, match="min_sparse_coverage must be in"):
+        get_stage("densify_depth")(Scene("s", "synthetic", [], frames), {"min_sparse_coverage": 5})

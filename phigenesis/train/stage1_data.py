@@ -30,6 +30,13 @@ from phigenesis.train.views import resize_images, resize_intrinsics, resize_near
 MOVING_MPS = 0.5
 #: Boxes are enlarged by this (metres per side) when testing which pixels they hold.
 BOX_MARGIN_M = 0.1
+#: A cache whose dense depth covers less than this share of the pixels of the frames sampled
+#: (:func:`dense_depth_coverage`) is refused: its depth loss would train on nothing. The synthetic
+#: test caches (16- to 64-beam LiDARs) measure 7-35 %; nuScenes caches whose ego body hid every
+#: camera had 0 %.
+MIN_DENSE_DEPTH_COVERAGE = 0.01
+#: Frames, spread evenly over the cache, on which that coverage is measured.
+COVERAGE_SAMPLE_FRAMES = 8
 
 SemanticTarget = Literal["auto", "pseudo", "truth"]
 
@@ -154,11 +161,37 @@ def _moving_pixels(
     return moving, velocity
 
 
+def dense_depth_coverage(
+    dataset: FrameDataset, frames: int = COVERAGE_SAMPLE_FRAMES
+) -> tuple[float, dict[str, float], int]:
+    """The share of pixels with a dense depth (> 0) on up to ``frames`` frames spread evenly over
+    a cache opened with the "depth" field group.
+
+    Returns ``(share over all pixels, share per camera name, frames measured)``; frames without
+    dense depth are left out (a cache without any has share 0)."""
+    rows = np.unique(np.linspace(0, len(dataset) - 1, min(frames, len(dataset))).round().astype(np.int64))
+    known: dict[str, int] = {}
+    pixels: dict[str, int] = {}
+    measured = 0
+    for row in rows.tolist():
+        sample = dataset[row]
+        if "depth_dense" not in sample:
+            continue
+        measured += 1
+        for name, depth in zip(sample["camera_names"], sample["depth_dense"], strict=True):
+            known[name] = known.get(name, 0) + int(torch.count_nonzero(depth > 0))
+            pixels[name] = pixels.get(name, 0) + depth.numel()
+    per_camera = {name: known[name] / max(pixels[name], 1) for name in pixels}
+    total = sum(known.values()) / max(sum(pixels.values()), 1)
+    return total, per_camera, measured
+
+
 class Stage1Clips:
     """Clips of a cache: ``clip(window, offsets)`` loads one; :meth:`windows` lists the context windows.
 
-    Raises ValueError naming the cache when it is empty, lacks dense depth (run the depth stages)
-    or has scenes too short for one clip.
+    Raises ValueError naming the cache when it is empty, lacks dense depth (run the depth stages),
+    has a dense depth that is (nearly) empty (below :data:`MIN_DENSE_DEPTH_COVERAGE` of the pixels
+    of :data:`COVERAGE_SAMPLE_FRAMES` frames) or has scenes too short for one clip.
     """
 
     def __init__(
@@ -185,10 +218,27 @@ class Stage1Clips:
                 f"{cache_dir}: the cache has no dense depth (cameras.depth_dense_png); build it with the "
                 "depth stages (aggregate_lidar, project_depth, densify_depth) in the pipeline spec"
             )
+        self._refuse_empty_depth(check_crc)
         self.scenes = {s: list(self.reader.frames_of(s)) for s in self.reader.scene_ids()}
         self._windows = [(s, i) for s, rows in self.scenes.items() for i in range(len(rows) - frames + 1)]
         if not self._windows:
             raise ValueError(f"{cache_dir}: no scene has the {frames} frames one clip needs")
+
+    def _refuse_empty_depth(self, check_crc: bool) -> None:
+        """Raises ValueError naming the cache and the measured coverage when its dense depth is
+        (nearly) empty (:func:`dense_depth_coverage` below :data:`MIN_DENSE_DEPTH_COVERAGE`)."""
+        depth_only = FrameDataset(self.cache_dir, fields=["depth"], check_crc=check_crc)
+        total, per_camera, measured = dense_depth_coverage(depth_only)
+        if total >= MIN_DENSE_DEPTH_COVERAGE:
+            return
+        cameras = ", ".join(f"{name} {100 * share:.2f} %" for name, share in per_camera.items())
+        raise ValueError(
+            f"{self.cache_dir}: the cache's dense depth is (nearly) empty: {100 * total:.2f} % of the "
+            f"pixels of {measured} frames sampled evenly over it have a depth ({cameras or 'no camera'}); "
+            f"at least {100 * MIN_DENSE_DEPTH_COVERAGE:.0f} % is needed to train on it. Rebuild the cache: "
+            "phigenesis-prep logs each scene's depth coverage per camera and warns where it is low (an "
+            "ego body over the cameras, a missing LiDAR)"
+        )
 
     def windows(self) -> list[tuple[str, int]]:
         """Every (scene id, first context frame index within the scene)."""

@@ -7,7 +7,9 @@ in ``scene.products["lidar_map"]``).
 - **Moving or not** is decided from each track's motion over the scene (its box centres spread
   more than ``moving_threshold_m`` around their median), never from its class: a parked car is
   static scenery, a walking person is not.
-- **Static map**: the points outside the boxes of moving objects and outside the ego car's body,
+- **Static map**: the points outside the boxes of moving objects and outside the ego car's body
+  (the source's own vehicle, :mod:`phigenesis.data.ego_body`; a box holding a camera centre or a
+  LiDAR origin is an error naming the scene, the sensor and the box: :func:`checked_ego_boxes`),
   voxel down-sampled (``voxel_m``, the speed/accuracy knob; each voxel's centroid, by sorted
   voxel keys or Open3D: ``voxel_backend``) and, where real LiDAR needs it, cleaned by Open3D's
   statistical outlier removal. Boxes are tested at each point's own
@@ -38,14 +40,18 @@ from numpy.typing import NDArray
 from phigenesis import geometry
 from phigenesis._open3d import open3d
 from phigenesis.data import taxonomy as tx
+from phigenesis.data.ego_body import camera_centres, check_sensors_outside, lidar_name, lidar_origins
 from phigenesis.data.records import Boxes, LidarSweep, Scene, frame_geometry
 from phigenesis.data.stages import params_from_dict, register_stage
 
 log = logging.getLogger("phigenesis.prep")
 
-#: The ego body where a source gives none: a mid-size car around the rear axle, ego frame.
+#: The ego body where a source gives none (ego frame): a mid-size car's lower body around the rear
+#: axle, up to 1 m, below any roof or windscreen sensor. (Its earlier 1.8 m top held every
+#: nuScenes camera, which then saw nothing but the body; sources give their own vehicle's body,
+#: :mod:`phigenesis.data.ego_body`.)
 DEFAULT_EGO_BOXES: list[dict[str, list[float]]] = [
-    {"center_ego": [1.4, 0.0, 0.9], "size_lwh": [5.0, 2.1, 1.8]}
+    {"center_ego": [1.4, 0.0, 0.5], "size_lwh": [5.0, 2.1, 1.0]}
 ]
 #: How the static map is voxel down-sampled (:func:`voxel_downsample`).
 VOXEL_BACKENDS = ("numpy", "open3d")
@@ -214,6 +220,53 @@ def ego_boxes_of(scene: Scene, override: list[dict[str, list[float]]] | None = N
                 f"scene {scene.scene_id}: an ego box needs center_ego and size_lwh (3 values): {b}"
             )
     return list(boxes)
+
+
+def ego_boxes_from(scene: Scene) -> str:
+    """Where :func:`ego_boxes_of` takes the scene's boxes from, for messages."""
+    if "ego_boxes" in scene.metadata:
+        return f"the {scene.source} source's body (scene metadata ego_boxes)"
+    return "the default body (DEFAULT_EGO_BOXES; the source gives none)"
+
+
+def checked_ego_boxes(scene: Scene) -> list[dict]:
+    """The scene's ego body (:func:`ego_boxes_of`), checked against its cameras' centres.
+
+    Raises :class:`~phigenesis.errors.PrepError` naming the scene, the camera and the box when a
+    box holds a camera centre (the camera would see nothing but the body); logs a warning when the
+    scene gives no body of its own and the default one is used."""
+    boxes = ego_boxes_of(scene)
+    check_sensors_outside(scene.scene_id, boxes, camera_centres(scene.calibrations), ego_boxes_from(scene))
+    if "ego_boxes" not in scene.metadata:
+        log.warning(
+            "scene %s: the source gives no ego body (metadata ego_boxes); using the default %s",
+            scene.scene_id,
+            DEFAULT_EGO_BOXES,
+        )
+    return boxes
+
+
+class LidarOriginCheck:
+    """Checks each LiDAR's origin against the ego body, on the first sweep that LiDAR appears in
+    (the origins are its mount position; every later sweep would repeat the same test)."""
+
+    def __init__(self, scene: Scene, ego_boxes: list[dict]):
+        self.scene_id = scene.scene_id
+        self.ego_boxes = ego_boxes
+        self.boxes_from = ego_boxes_from(scene)
+        self.checked: set[int] = set()
+
+    def __call__(self, sweep: LidarSweep) -> None:
+        """Raises :class:`~phigenesis.errors.PrepError` naming the scene, the LiDAR and the box
+        if a box holds the median ray origin of a LiDAR of ``sweep`` not checked before."""
+        present = np.flatnonzero(np.bincount(sweep.lidar_id, minlength=1))
+        new = [int(k) for k in present if int(k) not in self.checked]
+        if not new:
+            return
+        origins = lidar_origins(sweep.origins_ego, sweep.lidar_id)
+        sensors = {lidar_name(k): origins[lidar_name(k)] for k in new}
+        check_sensors_outside(self.scene_id, self.ego_boxes, sensors, self.boxes_from)
+        self.checked.update(new)
 
 
 def in_ego_body(
@@ -413,7 +466,8 @@ def aggregate_scene(scene: Scene, params: AggregateParams | None = None) -> Lida
     """
     p = params or AggregateParams()
     t0 = time.perf_counter()
-    ego_boxes = ego_boxes_of(scene)
+    ego_boxes = checked_ego_boxes(scene)
+    check_lidar = LidarOriginCheck(scene, ego_boxes)
     acc = _Accumulator(p)
     counts = {"sweeps": 0, "points": 0, "ego_body_points": 0, "boxed_points": 0}
     for i in range(len(scene.frames)):
@@ -425,6 +479,7 @@ def aggregate_scene(scene: Scene, params: AggregateParams | None = None) -> Lida
         sweep = frame.lidar
         if sweep is None or len(sweep) == 0:
             continue
+        check_lidar(sweep)
         counts["sweeps"] += 1
         counts["points"] += len(sweep)
         if counts["sweeps"] % 10 == 1:  # the sensor's geometry needs a sample, not every sweep

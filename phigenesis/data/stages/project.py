@@ -23,7 +23,9 @@ them; ``visibility`` picks one of:
 - ``none``: the z-buffer only.
 
 The ego car's body (boxes in the ego frame, :func:`aggregate.ego_boxes_of`) is an occluder too:
-pixels whose ray meets it get no depth (confidence 0), and nothing behind it is projected.
+pixels whose ray meets it get no depth (confidence 0), and nothing behind it is projected. A box
+holding a camera centre or a LiDAR origin is an error naming the scene, the sensor and the box
+(:func:`phigenesis.data.ego_body.check_sensors_outside`): it would blank the camera's depth.
 
 Confidence of a sparse pixel: the origin's weight (static map or own sweep 1.0, non-rigid own
 points 0.9, rigid object models 0.8: their pose is extrapolated to the image time) times 0.75 if
@@ -43,14 +45,17 @@ from numpy.typing import NDArray
 
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
+from phigenesis.data.ego_body import camera_centres, check_sensors_outside
 from phigenesis.data.rangeview import undistorted_pixel_rays
 from phigenesis.data.records import DEPTH_ORIGINS, CameraDepth, CameraImage, Frame, LazyFrames, Scene
 from phigenesis.data.stages import params_from_dict, register_stage
 from phigenesis.data.stages.aggregate import (
     TILE_M,
     LidarMap,
+    LidarOriginCheck,
     box_points_at_times,
-    ego_boxes_of,
+    checked_ego_boxes,
+    ego_boxes_from,
     lidar_angular_step,
     sweep_dt_s,
 )
@@ -945,13 +950,20 @@ class _Projector:
         self.scene_id = scene.scene_id
         self.params = params
         self.lidar_map: LidarMap | None = scene.products.get("lidar_map") if params.use_map else None
-        self.ego_boxes = self.lidar_map.ego_boxes if self.lidar_map is not None else ego_boxes_of(scene)
+        # The aggregation checked the body against the cameras and LiDARs already.
+        self.ego_boxes = self.lidar_map.ego_boxes if self.lidar_map is not None else checked_ego_boxes(scene)
+        self.boxes_from = ego_boxes_from(scene)
+        self.check_lidar = None if self.lidar_map is not None else LidarOriginCheck(scene, self.ego_boxes)
         self._rays: dict[tuple, tuple[NDArray[np.float64], NDArray[np.float32]]] = {}
         self._warned = False
 
     def rays_and_ego_depth(self, camera: CameraImage) -> tuple[NDArray[np.float64], NDArray[np.float32]]:
+        """The camera's pixel rays and ego body depth, computed once per calibration (a new
+        calibration is checked against the body first: PrepError if a box holds its centre)."""
         key = camera.calibration.key()
         if key not in self._rays:
+            sensors = camera_centres([camera.calibration])
+            check_sensors_outside(self.scene_id, self.ego_boxes, sensors, self.boxes_from)
             rays = pixel_rays(camera)
             self._rays[key] = (rays, ego_body_depth(camera, self.ego_boxes, rays))
         return self._rays[key]
@@ -965,6 +977,8 @@ class _Projector:
 
     def __call__(self, frame: Frame) -> Frame:
         has_sweep = frame.lidar is not None and len(frame.lidar) > 0
+        if self.check_lidar is not None and has_sweep:
+            self.check_lidar(frame.lidar)
         if self.lidar_map is None and not has_sweep and not self._warned:
             log.warning(
                 "scene %s frame %d: no LiDAR; its depth maps are empty", self.scene_id, frame.frame_index
