@@ -17,7 +17,11 @@ import pytest
 from phigenesis.cli import synth as synth_cli
 from phigenesis.data.sources.nuscenes.tables import TABLE_NAMES
 from phigenesis.data.sources.synthetic import SyntheticScene
-from phigenesis.data.sources.synthetic.nuscenes_export import nuscenes_scene_config
+from phigenesis.data.sources.synthetic.nuscenes_export import (
+    camera_timestamp,
+    camera_trigger_micros,
+    nuscenes_scene_config,
+)
 from tests.conftest import NUSCENES_CONFIG, NUSCENES_DROPPED, NUSCENES_KEYFRAMES
 
 CONFIG, KEYFRAMES, DROPPED = NUSCENES_CONFIG, NUSCENES_KEYFRAMES, NUSCENES_DROPPED
@@ -138,21 +142,42 @@ def test_samples_sit_at_the_lidar_keyframes_and_sweeps_point_to_the_next_sample(
                 assert t == times[np.searchsorted(times, r["timestamp"])]  # the next keyframe
 
 
-def test_cameras_fire_staggered_at_the_synthetic_rig_times(tables: dict) -> None:
+def test_cameras_fire_as_the_lidar_passes_them_as_in_nuscenes(tables: dict) -> None:
     scene = SyntheticScene(nuscenes_scene_config(CONFIG, KEYFRAMES), 0)
     by_channel = _by_channel(tables)
     for i, cal in enumerate(scene.calibrations):
         want = [
-            scene.camera_time_micros(t, i)
-            for s, t in enumerate(scene.frame_micros)
-            if (cal.name, s) != DROPPED
+            camera_timestamp(scene, s, i) for s in range(len(scene.frame_micros)) if (cal.name, s) != DROPPED
         ]
         assert [r["timestamp"] for r in by_channel[cal.name]] == want
-    offsets = {
-        c.name: scene.camera_time_micros(scene.frame_micros[0], i) for i, c in enumerate(scene.calibrations)
+    # Each camera's keyframe image against its sample's time: the revolution ending at the sample
+    # passes CAM_FRONT_LEFT first and CAM_BACK_LEFT last. Real nuScenes, scene-0061's first
+    # sample: -43.107, -35.491, -27.612, -20.058, -10.426 and -0.528 ms in this order.
+    real = {
+        "CAM_FRONT_LEFT": -43_107,
+        "CAM_FRONT": -35_491,
+        "CAM_FRONT_RIGHT": -27_612,
+        "CAM_BACK_RIGHT": -20_058,
+        "CAM_BACK": -10_426,
+        "CAM_BACK_LEFT": -528,
     }
-    assert len(set(offsets.values())) >= 5  # staggered, not one shared time
-    assert offsets["CAM_FRONT"] == scene.frame_micros[0]
+    sample_time = {s["token"]: s["timestamp"] for s in tables["sample"]}
+    for channel, want in real.items():
+        keys = [r for r in by_channel[channel] if r["is_key_frame"]]
+        assert len(keys) == KEYFRAMES
+        for r in keys:
+            assert abs(r["timestamp"] - sample_time[r["sample_token"]] - want) <= 200, (
+                channel,
+                r["timestamp"],
+            )
+    assert [camera_trigger_micros(y) for y in (55.0, 0.0, -55.0, -110.0, 180.0, 110.0)] == [
+        6_944,
+        14_583,
+        22_222,
+        29_861,
+        39_583,
+        49_306,
+    ]  # after the revolution's start; devkit issue #1100 measured 7, 15, 22, 31, 40 and 49 ms
 
 
 def test_files_match_their_records(dataroot: Path, tables: dict) -> None:

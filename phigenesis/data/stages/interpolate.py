@@ -1,15 +1,37 @@
 """Boxes at any time from sparse annotated keyframes (nuScenes' 2 Hz samples): the stage
 ``interpolate_boxes`` and the library function :func:`interpolate_boxes_at` under it.
 
-nuScenes annotates boxes at 2 Hz keyframes while its six cameras run at 12 Hz, each firing at its
-own time (7 to 49 ms after the LiDAR). The stage gives every frame its boxes at the frame's time and
-every image its boxes at the image's own capture time (``CameraImage.boxes``).
+nuScenes annotates boxes at 2 Hz keyframes while its six cameras run at 12 Hz, each firing as the
+LiDAR's 50 ms revolution passes it: 7 to 49 ms after the revolution starts, so a keyframe's own
+images are 1 to 43 ms before its sample's time (the LIDAR_TOP timestamp marks the revolution's
+end). The stage gives every frame its boxes at the frame's time and every image its boxes at the
+image's own capture time (``CameraImage.boxes``).
 
 Model (``method``; all in the world frame, metres, seconds, radians):
 
 - Annotations are matched by ``track_id`` (the instance token). A track's annotations further apart
   than ``max_gap_s`` are split into pieces that are not interpolated across.
-- ``hermite`` (default): cubic Hermite on the centre with tangents from the neighbouring
+- ``ctra`` (default): a motion model fitted over windows of neighbouring annotations
+  (:mod:`phigenesis.data.stages.ctra`): the centre moves along the annotated heading with
+  constant turn rate and acceleration (``ctra``) or the simpler ``ctrv`` (constant speed),
+  ``ca`` (straight, accelerating) or ``cv`` (straight, constant speed). Every window of 3 to
+  ``2 * half_window + 1`` annotations of a piece is fitted by weighted least squares to the
+  centres and yaws with every model; a window keeps its lowest-BIC model if the residuals are
+  consistent with the annotation noise (chi-square test at 99 % for the centres and for the
+  yaws), and each annotation takes the accepted fit whose centre there has the least variance:
+  the widest window the motion allows with the simplest model that explains it, so a least-
+  squares fit smooths the annotation noise that an interpolant through the keyframes copies.
+  The noise (centre per coordinate, yaw) is estimated per class from the scene's keyframes
+  (residuals of constant-turn fits to every three consecutive ones) unless ``noise_m`` /
+  ``yaw_noise_deg`` give it. Between two annotations whose fits both span the interval the two
+  fits are blended (smoothstep weights: exact where the motion is one model's); where a
+  manoeuvre changes inside the interval (neither fit spans it) a cubic Hermite joins the two
+  annotations' fitted states (centre, velocity, yaw, yaw rate). An annotation no window explains
+  (manoeuvres on both sides within one interval), and every annotation of a piece of fewer than
+  three, uses the ``hermite`` state (the annotation and three-point derivatives). Yaw is the
+  fitted heading, unwrapped along the shortest arc between neighbouring annotations and kept
+  within the arc between its values at the interval's two annotations; tilt is slerped.
+- ``hermite``: cubic Hermite on the centre with tangents from the neighbouring
   annotations (the three-point derivative, exact for constant acceleration: non-uniform central
   differences inside a piece, one-sided at its ends), so velocity and acceleration are continuous
   and turning or accelerating objects follow curves instead of chords. Yaw is a monotone cubic
@@ -20,15 +42,19 @@ Model (``method``; all in the world frame, metres, seconds, radians):
   ``get_boxes``), with the same track handling as ``hermite``.
 - ``asap``: ASAP's ``interp`` strategy, the baseline MagicDrive used (see :func:`asap_boxes`).
 
-For ``hermite`` and ``linear``:
+For ``ctra``, ``hermite`` and ``linear``:
 
 - Size is interpolated linearly (constant per instance in nuScenes, so in practice held).
-- A timestamp equal to an annotation's returns that annotation exactly, status "annotated".
-- Between annotations: status "interpolated", velocity (and for ``hermite`` acceleration) from
+- A timestamp equal to an annotation's gives status "annotated" and the annotation's LiDAR point
+  count. ``hermite`` and ``linear`` return the annotation exactly. ``ctra`` returns the model's
+  pose there (``keyframe_pose="model"``, the default): the fit is a better estimate of the truth
+  than one noisy annotation, and the boxes then have no jump at every keyframe (the images next
+  to it come from the same fit); ``keyframe_pose="annotation"`` returns the annotation exactly.
+- Between annotations: status "interpolated", velocity and (not ``linear``) acceleration from
   the model.
 - Before a piece's first or after its last annotation (objects entering or leaving, an object
   seen in one keyframe only, the scene's last keyframe with no successor) boxes continue for
-  ``extrapolation_s`` at the end velocity (and, for ``hermite``, yaw rate), status
+  ``extrapolation_s`` at the end velocity (and, for ``ctra`` and ``hermite``, yaw rate), status
   "extrapolated"; further away there is no box.
 - Stationary objects: a piece whose centres all lie within ``stationary_m`` of their median,
   whose least-squares velocity moves it less than ``stationary_m / 2`` over the piece (so a slow
@@ -58,12 +84,15 @@ from phigenesis.data.records import (
     Scene,
     frame_geometry,
 )
-from phigenesis.data.stages import params_from_dict, register_stage
+from phigenesis.data.stages import ctra, params_from_dict, register_stage
 
 log = logging.getLogger("phigenesis.prep")
 
-InterpolationMethod = Literal["hermite", "linear", "asap"]
-INTERPOLATION_METHODS: tuple[InterpolationMethod, ...] = ("hermite", "linear", "asap")
+InterpolationMethod = Literal["ctra", "hermite", "linear", "asap"]
+INTERPOLATION_METHODS: tuple[InterpolationMethod, ...] = ("ctra", "hermite", "linear", "asap")
+#: What ``ctra`` returns at an annotation's own time (see the module docstring).
+KeyframePose = Literal["model", "annotation"]
+KEYFRAME_POSES: tuple[KeyframePose, ...] = ("model", "annotation")
 ANNOTATED, INTERPOLATED, EXTRAPOLATED = (BOX_STATUSES.index(s) for s in BOX_STATUSES)
 #: Bits of a search key given to the time (microseconds); the piece index takes the bits above.
 _TIME_BITS = 40
@@ -75,7 +104,7 @@ class InterpolateParams:
     """Parameters of :func:`interpolate_boxes_at` and the ``interpolate_boxes`` stage.
 
     Attributes:
-        method: "hermite" (default), "linear" or "asap" (see the module docstring).
+        method: "ctra" (default), "hermite", "linear" or "asap" (see the module docstring).
         extrapolation_s: boxes continue this long (seconds) before a track's first and after its
             last annotation, status "extrapolated" (not used by "asap").
         max_gap_s: annotations of a track further apart (seconds) are not interpolated across;
@@ -86,14 +115,25 @@ class InterpolateParams:
             at its mean pose; 0 m turns holding off.
         asap_steps: ASAP's sub-frames per keyframe interval, keyframe included (``hz_factor``:
             6 for 12 Hz cameras over 2 Hz keyframes).
+        half_window: ``ctra``: a fit window reaches at most this many annotations to either
+            side of the one it serves (windows of 3 to 2 x this + 1 annotations).
+        noise_m: ``ctra``: the annotations' centre noise per coordinate, metres; None: estimated
+            per class from the scene's keyframes.
+        yaw_noise_deg: ``ctra``: the annotations' yaw noise, degrees; None: estimated likewise.
+        keyframe_pose: ``ctra`` at an annotation's own time: "model" (the fitted pose) or
+            "annotation" (the annotation exactly).
     """
 
-    method: InterpolationMethod = "hermite"
+    method: InterpolationMethod = "ctra"
     extrapolation_s: float = 0.5
     max_gap_s: float = 1.5
     stationary_m: float = 0.3
     stationary_yaw_deg: float = 10.0
     asap_steps: int = 6
+    half_window: int = 3
+    noise_m: float | None = None
+    yaw_noise_deg: float | None = None
+    keyframe_pose: KeyframePose = "model"
 
     def __post_init__(self) -> None:
         if self.method not in INTERPOLATION_METHODS:
@@ -109,6 +149,14 @@ class InterpolateParams:
             )
         if self.asap_steps < 1:
             raise ValueError(f"asap_steps must be >= 1, got {self.asap_steps}")
+        if self.half_window < 1:
+            raise ValueError(f"half_window must be >= 1, got {self.half_window}")
+        for name in ("noise_m", "yaw_noise_deg"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"{name} must be > 0 or None (estimated), got {value}")
+        if self.keyframe_pose not in KEYFRAME_POSES:
+            raise ValueError(f"keyframe_pose must be one of {KEYFRAME_POSES}, got {self.keyframe_pose!r}")
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> InterpolateParams:
@@ -116,7 +164,10 @@ class InterpolateParams:
 
 
 def interpolate_boxes_at(
-    keyframes: Sequence[KeyframeBoxes], timestamps_micros: ArrayLike, params: InterpolateParams | None = None
+    keyframes: Sequence[KeyframeBoxes],
+    timestamps_micros: ArrayLike,
+    params: InterpolateParams | None = None,
+    channel: str | None = None,
 ) -> list[Boxes]:
     """The boxes at each of ``timestamps_micros``, interpolated from annotated keyframes.
 
@@ -127,10 +178,12 @@ def interpolate_boxes_at(
             ONE sensor in time order (ASAP counts sweeps after each keyframe); for the other
             methods any times in any order.
         params: the method and its parameters (defaults: :class:`InterpolateParams`).
+        channel: "asap" only: the camera whose sweeps these are, so each keyframe's annotations
+            go to that camera's own keyframe image (``KeyframeBoxes.camera_timestamps_micros``).
 
     Returns:
         T :class:`Boxes`, world frame, each box with its status (annotated, interpolated or
-        extrapolated), velocity and (``hermite`` between annotations) acceleration.
+        extrapolated), velocity and (``ctra`` and ``hermite``) acceleration.
 
     Example::
 
@@ -139,7 +192,7 @@ def interpolate_boxes_at(
     p = params or InterpolateParams()
     times = np.asarray(timestamps_micros, np.int64).reshape(-1)
     if p.method == "asap":
-        return asap_boxes(keyframes, times, p.asap_steps)
+        return asap_boxes(keyframes, times, p.asap_steps, channel)
     tracks = BoxTracks(keyframes, p)
     return [tracks.at(int(t)) for t in times]
 
@@ -206,17 +259,30 @@ def _monotone_tangents(
     return m0, m1
 
 
+@dataclass(frozen=True)
+class _State:
+    """Motion states of M boxes: centre (m), velocity (m/s), acceleration (m/s^2), all (M, 3)
+    world frame; yaw (M,) rad, unwrapped along the track piece; yaw rate (M,) rad/s."""
+
+    center: NDArray[np.float64]
+    velocity: NDArray[np.float64]
+    acceleration: NDArray[np.float64]
+    yaw: NDArray[np.float64]
+    yaw_rate: NDArray[np.float64]
+
+
 class BoxTracks:
     """A scene's keyframe annotations grouped into track pieces, ready to evaluate at any time.
 
-    Build once per scene (``O(N log N)`` in the N annotations); :meth:`at` costs one vectorised
-    pass over the P pieces. Methods "hermite" and "linear" only (ASAP is :func:`asap_boxes`).
+    Build once per scene (``O(N log N)`` in the N annotations, plus the ``ctra`` window fits,
+    about 20 per annotation); :meth:`at` costs one vectorised pass over the P pieces. Methods
+    "ctra", "hermite" and "linear" (ASAP is :func:`asap_boxes`).
     """
 
     def __init__(self, keyframes: Sequence[KeyframeBoxes], params: InterpolateParams | None = None):
         self.params = p = params or InterpolateParams()
         if p.method == "asap":
-            raise ValueError("BoxTracks evaluates 'hermite' and 'linear'; use asap_boxes for 'asap'")
+            raise ValueError("BoxTracks evaluates 'ctra', 'hermite' and 'linear'; use asap_boxes for 'asap'")
         ann, times = _stack_keyframes(keyframes)
         _, track_index = np.unique(np.array(ann.track_id, dtype=object), return_inverse=True)
         order = np.lexsort((times, track_index))
@@ -260,6 +326,64 @@ class BoxTracks:
             self.yaw, self.yaw[nxt], t_s[nxt] - t_s, self.yaw_rate, self.yaw_rate[nxt]
         )
         self._find_stationary()
+        self.fits: ctra.TrackFits | None = None
+        if p.method == "ctra":
+            self._fit_motion(t_s)
+
+    def _fit_motion(self, t_s: NDArray[np.float64]) -> None:
+        """``ctra``: fits the motion models over every piece's windows (:func:`ctra.fit_tracks`)
+        and sets each annotation's state: its fit's at its time, or the ``hermite`` state (the
+        annotation, three-point velocity and yaw rate, unknown acceleration) where it has none."""
+        p = self.params
+        n = len(t_s)
+        sigma_m, sigma_rad = np.full(n, ctra.DEFAULT_SIGMA_M), np.full(n, ctra.DEFAULT_SIGMA_RAD)
+        if p.noise_m is None or p.yaw_noise_deg is None:
+            ground = self.ann.center_world[:, 0] + 1j * self.ann.center_world[:, 1]
+            sigma_m, sigma_rad = ctra.estimate_noise(
+                t_s, ground, self.yaw, self.first, self.last, self.ann.class_id
+            )
+        if p.noise_m is not None:
+            sigma_m = np.full(n, max(p.noise_m, ctra.MIN_SIGMA_M))
+        if p.yaw_noise_deg is not None:
+            sigma_rad = np.full(n, max(np.radians(p.yaw_noise_deg), ctra.MIN_SIGMA_RAD))
+        self.fits = ctra.fit_tracks(
+            t_s, self.ann.center_world, self.yaw, self.first, self.last, sigma_m, sigma_rad, p.half_window
+        )
+        state = self._fit_state(np.arange(n), t_s)
+        fitted = self.fits.fitted
+        self.state = _State(
+            center=np.where(fitted[:, None], state.center, self.ann.center_world),
+            velocity=np.where(fitted[:, None], state.velocity, self.center_rate),
+            acceleration=np.where(fitted[:, None], state.acceleration, np.nan),
+            yaw=np.where(fitted, state.yaw, self.yaw),
+            yaw_rate=np.where(fitted, state.yaw_rate, self.yaw_rate),
+        )
+
+    def _fit_state(self, anchors: NDArray[np.int64], t_s: ArrayLike) -> _State:
+        """The fits of annotations ``anchors`` (M,) evaluated at ``t_s`` (seconds from the
+        tracks' first annotation; scalar or (M,))."""
+        fits = self.fits
+        assert fits is not None
+        tau = np.asarray(t_s, np.float64) - fits.reference_s[anchors]
+        tau = np.broadcast_to(tau, anchors.shape)
+        m = ctra.motion_state(fits.params[anchors], tau)
+        z0, z_rate = fits.height[anchors, 0], fits.height[anchors, 1]
+        return _State(
+            center=np.stack([m.center.real, m.center.imag, z0 + z_rate * tau], axis=1),
+            velocity=np.stack([m.velocity.real, m.velocity.imag, z_rate], axis=1),
+            acceleration=np.stack([m.acceleration.real, m.acceleration.imag, np.zeros_like(tau)], axis=1),
+            yaw=m.yaw,
+            yaw_rate=m.yaw_rate,
+        )
+
+    def model_counts(self) -> dict[str, int]:
+        """``ctra``: how many annotations took each motion model, and the "interpolant" (the
+        ``hermite`` state: no window explained them, or their piece is shorter than 3)."""
+        if self.fits is None:
+            return {}
+        counts = {name: int(np.sum(self.fits.model == k)) for k, name in enumerate(ctra.MOTION_MODELS)}
+        counts["interpolant"] = int(np.sum(~self.fits.fitted))
+        return counts
 
     def _find_stationary(self) -> None:
         p = self.params
@@ -322,6 +446,8 @@ class BoxTracks:
         out.velocity_world = np.where(
             np.isfinite(out.velocity_world), out.velocity_world, self.center_rate[i]
         )
+        if self.fits is not None and p.keyframe_pose == "model":
+            self._set_state(out, exact[sel], i[exact[sel]])
         mid = inside[sel]
         self._interpolate(out, mid, i[mid], t)
         self._extrapolate(out, ~mid & ~exact[sel], i[~mid & ~exact[sel]], dt_s[sel][~mid & ~exact[sel]])
@@ -338,6 +464,18 @@ class BoxTracks:
             )
         out.yaw_world = geometry.wrap_angle(out.yaw_world)
         return out
+
+    def _set_state(self, out: Boxes, mask: NDArray[np.bool_], i: NDArray[np.int64]) -> None:
+        """Fills ``out[mask]`` with the ``ctra`` states of annotations ``i`` (at their times)."""
+        if not np.any(mask):
+            return
+        out.center_world[mask] = self.state.center[i]
+        out.velocity_world[mask] = self.state.velocity[i]
+        out.acceleration_world[mask] = self.state.acceleration[i]
+        out.yaw_world[mask] = self.state.yaw[i]
+        out.orientation_world[mask] = geometry.quaternion_multiply(
+            geometry.yaw_to_quaternion(self.state.yaw[i]), self.tilt[i]
+        )
 
     def _interpolate(self, out: Boxes, mask: NDArray[np.bool_], i: NDArray[np.int64], t: int) -> None:
         """Fills ``out[mask]`` between annotations ``i`` and ``i + 1`` at time ``t``."""
@@ -377,10 +515,65 @@ class BoxTracks:
             out.orientation_world[mask] = geometry.quaternion_multiply(
                 geometry.yaw_to_quaternion(yaw[:, 0]), tilt
             )
+        elif method == "ctra":
+            self._interpolate_motion(out, mask, i, (t - self.t0) * 1e-6, h, s)
         elif method == "asap":
             raise ValueError("asap is evaluated by asap_boxes")
         else:
             assert_never(method)
+
+    def _interpolate_motion(
+        self,
+        out: Boxes,
+        mask: NDArray[np.bool_],
+        i: NDArray[np.int64],
+        t_s: float,
+        h: NDArray[np.float64],
+        s: NDArray[np.float64],
+    ) -> None:
+        """``ctra`` between annotations ``i`` and ``i + 1`` (interval ``h`` s, fraction ``s``
+        (M, 1)) at ``t_s``: the blend of their two fits where both span the interval, else a
+        cubic Hermite between their states; yaw kept within the arc between the two states'."""
+        fits, state = self.fits, self.state
+        assert fits is not None
+        j = i + 1
+        hh = h[:, None]
+        center, rate, accel = _hermite(
+            state.center[i], state.velocity[i] * hh, state.center[j], state.velocity[j] * hh, s
+        )
+        velocity, acceleration = rate / hh, accel / hh**2
+        yaw = _hermite(
+            state.yaw[i, None],
+            (state.yaw_rate[i] * h)[:, None],
+            state.yaw[j, None],
+            (state.yaw_rate[j] * h)[:, None],
+            s,
+        )[0][:, 0]
+        spans = fits.fitted[i] & fits.fitted[j] & (fits.window[i, 1] >= j) & (fits.window[j, 0] <= i)
+        c = np.flatnonzero(spans)
+        if len(c):
+            a, b = self._fit_state(i[c], t_s), self._fit_state(j[c], t_s)
+            u, hc = s[c], hh[c]
+            w = u * u * (3.0 - 2.0 * u)  # smoothstep: (M, 1)
+            dw = 6.0 * u * (1.0 - u) / hc
+            ddw = (6.0 - 12.0 * u) / hc**2
+            gap = b.center - a.center
+            center[c] = (1.0 - w) * a.center + w * b.center
+            velocity[c] = (1.0 - w) * a.velocity + w * b.velocity + dw * gap
+            acceleration[c] = (
+                (1.0 - w) * a.acceleration
+                + w * b.acceleration
+                + 2.0 * dw * (b.velocity - a.velocity)
+                + ddw * gap
+            )
+            yaw[c] = (1.0 - w[:, 0]) * a.yaw + w[:, 0] * b.yaw
+        yaw = np.clip(yaw, np.minimum(state.yaw[i], state.yaw[j]), np.maximum(state.yaw[i], state.yaw[j]))
+        tilt = geometry.quaternion_slerp(self.tilt[i], self.tilt[j], s[:, 0])
+        out.center_world[mask] = center
+        out.velocity_world[mask] = velocity
+        out.acceleration_world[mask] = acceleration
+        out.yaw_world[mask] = yaw
+        out.orientation_world[mask] = geometry.quaternion_multiply(geometry.yaw_to_quaternion(yaw), tilt)
 
     def _extrapolate(
         self, out: Boxes, mask: NDArray[np.bool_], i: NDArray[np.int64], dt_s: NDArray[np.float64]
@@ -388,20 +581,26 @@ class BoxTracks:
         """Fills ``out[mask]``: annotation ``i`` (a piece's first or last) moved by ``dt_s``."""
         if not np.any(mask):
             return
-        hermite = self.params.method == "hermite"
-        velocity = self.center_rate[i] if hermite else self.center_secant[i]
-        yaw_rate = self.yaw_rate[i] if hermite else np.zeros(len(i))
+        method = self.params.method
+        center, yaw0 = self.ann.center_world[i], self.yaw[i]
+        if method == "ctra":
+            center, velocity = self.state.center[i], self.state.velocity[i]
+            yaw0, yaw_rate = self.state.yaw[i], self.state.yaw_rate[i]
+        elif method == "hermite":
+            velocity, yaw_rate = self.center_rate[i], self.yaw_rate[i]
+        else:
+            velocity, yaw_rate = self.center_secant[i], np.zeros(len(i))
         turn = yaw_rate * dt_s
         # Constant turn rate: the velocity turns with the heading (straight where it does not).
         with np.errstate(invalid="ignore", divide="ignore"):
             along = np.where(np.abs(turn) > 1e-9, np.sin(turn) / yaw_rate, dt_s)
             across = np.where(np.abs(turn) > 1e-9, (1.0 - np.cos(turn)) / yaw_rate, 0.5 * yaw_rate * dt_s**2)
         left = np.stack([-velocity[:, 1], velocity[:, 0], np.zeros(len(i))], axis=1)
-        out.center_world[mask] = self.ann.center_world[i] + along[:, None] * velocity + across[:, None] * left
+        out.center_world[mask] = center + along[:, None] * velocity + across[:, None] * left
         out.velocity_world[mask] = np.cos(turn)[:, None] * velocity + np.sin(turn)[:, None] * left
         out.velocity_world[mask, 2] = velocity[:, 2]
         out.acceleration_world[mask] = np.nan
-        yaw = self.yaw[i] + yaw_rate * dt_s
+        yaw = yaw0 + yaw_rate * dt_s
         out.yaw_world[mask] = yaw
         out.orientation_world[mask] = geometry.quaternion_multiply(
             geometry.yaw_to_quaternion(yaw), self.tilt[i]
@@ -429,22 +628,30 @@ def _hermite(
 
 
 def asap_boxes(
-    keyframes: Sequence[KeyframeBoxes], sweep_times_micros: ArrayLike, steps: int = 6
+    keyframes: Sequence[KeyframeBoxes],
+    sweep_times_micros: ArrayLike,
+    steps: int = 6,
+    channel: str | None = None,
 ) -> list[Boxes]:
     """ASAP's ``interp`` annotations (JeffWang987/ASAP, used by MagicDrive) for one sensor's sweeps.
 
-    Each keyframe K's sweep is the sweep nearest its time (within half the keyframe interval); it
-    gets K's annotations as they are. The k-th sweep after it (k = 1 .. steps - 1, counted in
-    the sequence, so a dropped sweep shifts the rest) gets the boxes at the uniform subdivision
-    time ``t_K + k / steps * (t_{K+1} - t_K)``, NOT its own timestamp: linear centre,
-    full-quaternion slerp, size (and class, ids) copied from K, velocity the secant, only the
-    objects annotated in both K and K + 1. Sweeps before the first keyframe's, after the last
-    keyframe's (its interval has no successor) or beyond ``steps - 1`` get no boxes.
+    Each keyframe K's sweep gets K's annotations as they are. As in ASAP, that is the sensor's own
+    keyframe sample_data: for a camera ``channel`` the sweep at
+    ``K.camera_timestamps_micros[channel]`` (none if that image is not among the sweeps); where
+    K does not give the channel's time (no channel, a source without camera times), the sweep
+    nearest K's time within half the keyframe interval. The k-th sweep after it
+    (k = 1 .. steps - 1, counted in the sequence, so a dropped sweep shifts the rest) gets the
+    boxes at the uniform subdivision time ``t_K + k / steps * (t_{K+1} - t_K)``, NOT its own
+    timestamp: linear centre, full-quaternion slerp, size (and class, ids) copied from K,
+    velocity the secant, only the objects annotated in both K and K + 1. Sweeps before the
+    first keyframe's, after the last keyframe's (its interval has no successor) or beyond
+    ``steps - 1`` get no boxes.
 
     Args:
         keyframes: annotated keyframes in time order.
         sweep_times_micros: (T,) the sensor's sweep times in time order.
         steps: sub-frames per keyframe interval, keyframe included (6 for 12 Hz over 2 Hz).
+        channel: the camera whose sweeps these are (None: the LiDAR or frame times).
 
     Returns:
         T :class:`Boxes` in the world frame.
@@ -455,13 +662,7 @@ def asap_boxes(
     out = [Boxes.empty() for _ in times]
     if len(times) == 0 or not keyframes:
         return out
-    kf_times = np.array([k.timestamp_micros for k in keyframes], np.int64)
-    interval = np.diff(kf_times)
-    half = 0.5 * np.concatenate([interval[:1], interval]) if len(interval) else np.array([np.inf])
-    key_sweep = []
-    for t_k, limit in zip(kf_times, half, strict=True):
-        j = int(np.argmin(np.abs(times - t_k)))
-        key_sweep.append(j if abs(times[j] - t_k) <= limit else None)
+    key_sweep = _asap_keyframe_sweeps(keyframes, times, channel)
     for k_index, j in enumerate(key_sweep):
         if j is None:
             continue
@@ -471,6 +672,25 @@ def asap_boxes(
             continue
         for k, sweep in enumerate(range(j + 1, min(nxt, j + steps)), start=1):
             out[sweep] = _asap_between(keyframes[k_index], keyframes[k_index + 1], k / steps)
+    return out
+
+
+def _asap_keyframe_sweeps(
+    keyframes: Sequence[KeyframeBoxes], times: NDArray[np.int64], channel: str | None
+) -> list[int | None]:
+    """Index into ``times`` of each keyframe's own sweep (see :func:`asap_boxes`), or None."""
+    kf_times = np.array([k.timestamp_micros for k in keyframes], np.int64)
+    interval = np.diff(kf_times)
+    half = 0.5 * np.concatenate([interval[:1], interval]) if len(interval) else np.array([np.inf])
+    out: list[int | None] = []
+    for kf, t_k, limit in zip(keyframes, kf_times, half, strict=True):
+        own = kf.camera_timestamps_micros.get(channel) if channel is not None else None
+        if own is not None:
+            hits = np.flatnonzero(times == own)
+            out.append(int(hits[0]) if len(hits) else None)
+            continue
+        j = int(np.argmin(np.abs(times - t_k)))
+        out.append(j if abs(times[j] - t_k) <= limit else None)
     return out
 
 
@@ -518,7 +738,7 @@ class _FrameBoxes:
                 sequences.setdefault(cam.name, []).append((cam.timestamp_micros, index))
         for name, seq in sequences.items():
             seq.sort()
-            boxes = asap_boxes(scene.keyframes, [t for t, _ in seq], self.params.asap_steps)
+            boxes = asap_boxes(scene.keyframes, [t for t, _ in seq], self.params.asap_steps, name)
             for (_, index), b in zip(seq, boxes, strict=True):
                 self.asap[(index, name)] = b
 
@@ -552,6 +772,15 @@ def interpolate_boxes(scene: Scene, params: dict[str, Any]) -> Scene:
             "track_pieces": fill.tracks.pieces,
             "stationary_pieces": int(fill.tracks.stationary.sum()),
         }
+        fits = fill.tracks.fits
+        if fits is not None:
+            stats |= {
+                "motion_models": fill.tracks.model_counts(),
+                "noise_m": round(float(np.median(fits.sigma_m)), 4) if len(fits.sigma_m) else None,
+                "yaw_noise_deg": (
+                    round(float(np.degrees(np.median(fits.sigma_rad))), 3) if len(fits.sigma_rad) else None
+                ),
+            }
     scene.metadata["interpolate_boxes"] = stats
     log.info("scene %s: interpolate_boxes %s", scene.scene_id, stats)
     scene.frames = (

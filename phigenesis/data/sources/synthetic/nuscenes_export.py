@@ -9,9 +9,17 @@ Timing of one scene with K keyframes (``start`` = the synthetic scene's first fr
   nuScenes, its timestamp is the end of the revolution (``+ 25 ms``). Every 10th sweep is a
   keyframe: sample k's timestamp is LiDAR sweep 10k's.
 - Cameras run at 12 Hz: step s fires each camera as a revolution centred on ``start + s / 12 s``
-  passes its optical axis (the nuscenes6 rig's own synthetic frame timing, so the truth is
-  ``SyntheticScene`` at 12 Hz). Every 6th step is a keyframe; its images are taken during the
-  revolution that ends at the sample's LiDAR time (0-50 ms before it).
+  (the frame times of ``SyntheticScene`` at 12 Hz) passes the camera's optical axis, with
+  nuScenes' phase: the revolution turns clockwise (seen from above) from azimuth
+  :data:`REVOLUTION_START_AZIMUTH_DEG` (rear left), so the cameras fire 7 (CAM_FRONT_LEFT), 15
+  (CAM_FRONT), 22 (CAM_FRONT_RIGHT), 30 (CAM_BACK_RIGHT), 40 (CAM_BACK) and 49 ms
+  (CAM_BACK_LEFT) after it starts (:func:`camera_timestamp`). Every 6th step is a keyframe: its
+  revolution is LiDAR sweep 10k's, so each camera's keyframe image (its ``is_key_frame``
+  sample_data) is 1-43 ms before the sample's time, as in nuScenes (scene-0061's first sample:
+  43.1, 35.5, 27.6, 20.1, 10.4 and 0.5 ms before it, in that camera order; devkit issue #1100
+  counts the same offsets from the previous LiDAR sweep, the revolution's start). The LiDAR
+  points themselves are rendered with the renderer's phase (its revolution starts at the rear),
+  which only moves when a moving object was seen, not where the points are.
 - Points are written in the LIDAR_TOP frame (x right, y forward, z up) at the ego pose of the
   sweep's timestamp (motion-compensated: each return keeps its true world position), as float32
   x, y, z, intensity (the synthetic [0, 1] reflectance x 255) and ring (the beam row, 0 = top).
@@ -48,6 +56,10 @@ LIDAR_MICROS = 50_000
 CAMERA_STEPS_PER_KEYFRAME = 6
 LIDAR_SWEEPS_PER_KEYFRAME = 10
 LIDAR_CHANNEL = "LIDAR_TOP"
+#: Azimuth (degrees, ego frame, 0 = forward, +90 = left) where nuScenes' LIDAR_TOP revolution
+#: starts and ends; it turns clockwise. Fitted to the keyframe images of real samples (the six
+#: cameras then fire within 0.3 ms of scene-0061's first sample's offsets).
+REVOLUTION_START_AZIMUTH_DEG = 105.0
 #: ego <- LIDAR_TOP rotation: the sensor's x is the ego's right (-y), its y the ego's forward.
 EGO_FROM_LIDAR_ROTATION = geometry.rotation_z(-np.pi / 2)
 #: Unified class -> the nuScenes category written for it.
@@ -89,6 +101,21 @@ def nuscenes_scene_config(config: SyntheticConfig, keyframes: int) -> SyntheticC
     return replace(
         config, rig="nuscenes6", frame_rate_hz=12.0, frames=CAMERA_STEPS_PER_KEYFRAME * (keyframes - 1) + 1
     )
+
+
+def camera_trigger_micros(yaw_deg: float) -> int:
+    """When a camera whose optical axis points at azimuth ``yaw_deg`` (ego frame, 0 = forward,
+    +90 = left) fires: microseconds after the start of the LiDAR revolution, which turns
+    clockwise from :data:`REVOLUTION_START_AZIMUTH_DEG` in :data:`LIDAR_MICROS`."""
+    behind = np.mod(REVOLUTION_START_AZIMUTH_DEG - yaw_deg, 360.0)
+    return round(behind / 360.0 * LIDAR_MICROS)
+
+
+def camera_timestamp(scene: SyntheticScene, step: int, camera_index: int) -> int:
+    """The nuScenes timestamp of camera ``camera_index``'s image of 12 Hz step ``step``: its
+    trigger time in the revolution centred on the step's frame time."""
+    start = scene.frame_micros[step] - LIDAR_MICROS // 2
+    return start + camera_trigger_micros(scene.specs[camera_index].yaw_deg)
 
 
 def lidar_timestamp(scene: SyntheticScene, sweep: int) -> int:
@@ -256,11 +283,11 @@ class _SceneWriter:
         for i, cal in enumerate(scene.calibrations):
             cs = self._calibrated_sensor(cal.name, cal.ego_from_camera, cal.intrinsics)
             cam_records = []
-            for step, centre in enumerate(scene.frame_micros):
+            for step in range(len(scene.frame_micros)):
                 key = step % CAMERA_STEPS_PER_KEYFRAME == 0
                 if (cal.name, step) in dropped:
                     continue
-                stamp = scene.camera_time_micros(centre, i)
+                stamp = camera_timestamp(scene, step, i)
                 rgb, _ = scene.renderer.render_camera(cal, scene.world_from_ego(stamp), scene.seconds(stamp))
                 jpeg = encode_rgb(rgb, "jpeg", scene.config.jpeg_quality)
                 size = (cal.height, cal.width)
