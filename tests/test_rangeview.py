@@ -424,8 +424,9 @@ def test_a_row_without_the_layout_column_still_gives_a_range_view(tiny_cache: Pa
 def test_preview_draws_one_row_per_map_and_the_boxes(waymo_frame: Frame) -> None:
     layout = waymo_frame.range_view
     image = draw_frame(waymo_frame, scale=1)
-    rows = 3  # RGB, truth depth, truth semantics
-    assert image.shape == (rows * layout.height, layout.width + rows * layout.height, 3)
+    rows = 3  # RGB, truth depth, truth semantics; below them the depth colour bar and class legend
+    assert image.shape[1:] == (layout.width + rows * layout.height, 3)
+    assert image.shape[0] > rows * layout.height
     plain = draw_frame(dataclasses.replace(waymo_frame, boxes=Boxes.empty()), scale=1)
     changed = np.any(image[: layout.height, : layout.width] != plain[: layout.height, : layout.width], axis=2)
     # Every box corner in front of the FRONT camera and inside its image has a drawn edge within 2 px.
@@ -464,5 +465,6 @@ def test_preview_command_writes_the_range_view_png(range_cache: Path, tmp_path: 
     assert main(["preview", str(range_cache), "--frame", "1", "--out", str(out), "--scale", "1"]) == 0
     image = cv2.imread(str(out), cv2.IMREAD_COLOR)
     layout = CacheReader(range_cache).frame(1).range_view
-    rows = 3  # RGB, depth (no depth stage ran: exact truth depth), truth semantics
-    assert image.shape == (rows * layout.height, layout.width + rows * layout.height, 3)
+    rows = 3  # RGB, depth (no depth stage ran: exact truth depth), truth semantics; then bar and legend
+    assert image.shape[1:] == (layout.width + rows * layout.height, 3)
+    assert image.shape[0] > rows * layout.height

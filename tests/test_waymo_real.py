@@ -1,4 +1,4 @@
-"""The Waymo v1 reader on the two real frames in ../shared/data/waymo (read in place, never copied)."""
+"""The Waymo v1 reader on the two real frames (read in place, never copied; see SAMPLES_ENV below)."""
 
 from __future__ import annotations
 
@@ -14,24 +14,32 @@ from phigenesis.data.sources.waymo import WaymoConfig, WaymoSource
 from phigenesis.data.sources.waymo.raw import CAMERA_NAMES
 from phigenesis.data.sources.waymo.v1 import V1File
 
-
-def _sample_dir() -> Path:
-    """Where the real samples are: $PHIGENESIS_WAYMO_SAMPLES, the checkout's ../shared, or /work/shared."""
-    candidates = [
-        os.environ.get("PHIGENESIS_WAYMO_SAMPLES", ""),
-        Path(__file__).resolve().parents[2] / "shared" / "data" / "waymo",
-        "/work/shared/data/waymo",
-    ]
-    for c in candidates:
-        if c and (Path(c) / "one_frame_five_cameras_panoptic.tfrecord").exists():
-            return Path(c)
-    return Path(candidates[1])
+#: Where the real samples are looked for, in order: $PHIGENESIS_WAYMO_SAMPLES (when set), the
+#: checkout's ../shared/data/waymo, then /work/shared/data/waymo.
+SAMPLES_ENV = "PHIGENESIS_WAYMO_SAMPLES"
+CHECKOUT_SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "waymo"
+MACHINE_SHARED = Path("/work/shared/data/waymo")
+PANOPTIC_NAME = "one_frame_five_cameras_panoptic.tfrecord"
 
 
-DATA = _sample_dir()
-PANOPTIC = DATA / "one_frame_five_cameras_panoptic.tfrecord"
+def _sample_places() -> list[Path]:
+    env = os.environ.get(SAMPLES_ENV)
+    return [*([Path(env)] if env else []), CHECKOUT_SHARED, MACHINE_SHARED]
+
+
+def _skip_reason() -> str:
+    """Why the tests are skipped: the file they need and every place they looked for it."""
+    env = os.environ.get(SAMPLES_ENV)
+    return (
+        f"real Waymo samples ({PANOPTIC_NAME}) not found in ${SAMPLES_ENV} ({env or 'unset'}), "
+        f"in {CHECKOUT_SHARED} (../shared/data/waymo next to the checkout) or in {MACHINE_SHARED}"
+    )
+
+
+DATA = next((p for p in _sample_places() if (p / PANOPTIC_NAME).exists()), CHECKOUT_SHARED)
+PANOPTIC = DATA / PANOPTIC_NAME
 LABELS_ONLY = DATA / "one_frame_labels_only.tfrecord"
-pytestmark = pytest.mark.skipif(not PANOPTIC.exists(), reason=f"real Waymo samples not found in {DATA}")
+pytestmark = pytest.mark.skipif(not PANOPTIC.exists(), reason=_skip_reason())
 
 
 def _frame(path: Path):

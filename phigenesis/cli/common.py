@@ -1,17 +1,74 @@
-"""What every command-line front end shares: argument types, logging, and turning errors into exit 2."""
+"""What every command-line front end shares: the parser (help text without Sphinx markup), argument
+types, logging, and how a command ends.
+
+Exit status: 0 done, 1 an unexpected error (a bug: one line, ``-v`` shows the traceback), 2 an input
+the toolkit cannot use (:data:`USER_ERRORS`: one line, the error's own message), 130 interrupted
+(Ctrl-C: one line saying what was kept and how to resume, as a shell reports 128 + SIGINT).
+"""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from typing import Any
 
-from phigenesis.data.shards import CacheError
-from phigenesis.train.checkpoint import CheckpointError
+from phigenesis.errors import PhiGenesisError, describe
 
-#: Errors a command reports as ``PROG: error: ...`` on stderr with exit status 2 (bad input, not bugs).
-USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, CacheError, CheckpointError, OSError)
+#: Errors a command reports as ``PROG: error: ...`` on stderr with exit status 2 (bad input, not bugs):
+#: the toolkit's own (PrepError, SourceError, CacheError, CheckpointError), and the ValueError and
+#: OSError that argument checks and file access raise.
+USER_ERRORS: tuple[type[BaseException], ...] = (PhiGenesisError, ValueError, OSError)
+
+EXIT_BUG = 1
+EXIT_USER_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+#: A command: runs the parsed arguments, returns the exit status.
+Command = Callable[[argparse.Namespace], int]
+#: What a command says when Ctrl-C stops it (after ``PROG: ``), or None to say nothing (e.g. a
+#: torchrun process other than rank 0).
+Interrupted = Callable[[argparse.Namespace], str | None]
+
+_ROLE = re.compile(r":(?:[a-z]+:)?[a-z]+:`([^`]+)`")
+_LITERAL = re.compile(r"``(.+?)``", re.S)
+
+
+def _role_text(match: re.Match[str]) -> str:
+    """What Sphinx shows for a role: ``title <target>`` -> title, ``~a.b.C`` -> C, else the target."""
+    content = match.group(1).strip()
+    titled = re.fullmatch(r"(.+?)\s*<[^>]+>", content, re.S)
+    if titled:
+        return titled.group(1)
+    if content.startswith("~"):
+        return content[1:].rsplit(".", 1)[-1]
+    return content
+
+
+def plain_text(text: str) -> str:
+    """``text`` (a docstring or help text) without reStructuredText inline markup, as a terminal
+    should show it: double-backquoted literals and Sphinx roles (``:func:``, ``:class:``, ``:meth:``,
+    ``:mod:``, ``:data:``, ...) become their plain text."""
+    return _LITERAL.sub(r"\1", _ROLE.sub(_role_text, text))
+
+
+class Parser(argparse.ArgumentParser):
+    """The parser of every command: its description may be a module docstring, and no help or
+    usage text shows Sphinx markup. Subcommand parsers (``add_subparsers``) are of this class too."""
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        for key in ("description", "epilog"):
+            if kwargs.get(key):
+                kwargs[key] = plain_text(kwargs[key])
+        super().__init__(*args, **kwargs)
+
+    def format_help(self) -> str:
+        return plain_text(super().format_help())
+
+    def format_usage(self) -> str:
+        return plain_text(super().format_usage())
 
 
 def positive(value: str) -> int:
@@ -32,22 +89,89 @@ def size_hw(value: str) -> tuple[int, int]:
 
 
 def setup_logging(verbose: bool) -> None:
+    """INFO logging to stderr (DEBUG with ``-v``)."""
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
     )
 
 
+def user_message(error: BaseException) -> str:
+    """The one-line message of an error a user caused: the error's own message (a file error as
+    ``PATH: reason``), never a class path."""
+    if isinstance(error, OSError) and error.filename and error.strerror:
+        return f"{error.filename}: {error.strerror}"
+    if isinstance(error, PhiGenesisError | ValueError | OSError):
+        return str(error) or describe(error)
+    return describe(error)
+
+
+def _say(prog: str, message: str) -> None:
+    print(f"{prog}: {message}", file=sys.stderr, flush=True)
+
+
+def _interrupted_message(interrupted: Interrupted | None, args: argparse.Namespace | None) -> str | None:
+    """What to print on Ctrl-C; plain ``interrupted`` when the command's own account fails (it
+    reads run folders and manifests that a killed run may have left in any state)."""
+    if interrupted is None or args is None:
+        return "interrupted"
+    # The account reads what a stopped writer left (a checkpoint pointer one step behind, say): the
+    # library's warnings about that are for the next run, and the answer to Ctrl-C stays one line.
+    logging.disable(logging.WARNING)
+    try:
+        return interrupted(args)
+    except Exception:  # the account must never turn Ctrl-C into a traceback
+        return "interrupted"
+    finally:
+        logging.disable(logging.NOTSET)
+
+
 def dispatch(
     prog: str,
     args: argparse.Namespace,
-    commands: dict[str, Callable[[argparse.Namespace], int]],
+    commands: dict[str, Command],
     errors: tuple[type[BaseException], ...] = USER_ERRORS,
+    interrupted: Interrupted | None = None,
 ) -> int:
-    """Runs ``commands[args.command]``; an error of ``errors`` is printed as ``PROG: error: ...`` on
-    stderr and gives exit status 2."""
-    setup_logging(getattr(args, "verbose", False))
+    """Runs ``commands[args.command]`` and turns how it ends into an exit status (see the module
+    docstring): an error of ``errors`` is printed as ``PROG: error: MESSAGE``; Ctrl-C prints
+    ``PROG: `` and what the interrupt itself says (a library that stops cleanly may raise a
+    KeyboardInterrupt whose message says what it kept), else ``interrupted(args)``; any other
+    exception is a bug, printed as one line unless ``args.verbose`` (then re-raised with its
+    traceback)."""
+    verbose = bool(getattr(args, "verbose", False))
+    setup_logging(verbose)
     try:
         return commands[args.command](args)
+    except KeyboardInterrupt as e:
+        message = _interrupted_message(interrupted, args)
+        if message:
+            if sys.stderr.isatty():  # off the line the terminal's "^C" and any progress bar are on
+                print(file=sys.stderr)
+            _say(prog, str(e) or message)
+        return EXIT_INTERRUPTED
     except errors as e:
-        print(f"{prog}: error: {e}", file=sys.stderr)
-        return 2
+        _say(prog, f"error: {user_message(e)}")
+        return EXIT_USER_ERROR
+    except Exception as e:
+        if verbose:
+            raise
+        _say(prog, f"error: {describe(e)} (unexpected: a bug in phigenesis? rerun with -v for the traceback)")
+        return EXIT_BUG
+
+
+def run(
+    prog: str,
+    build_parser: Callable[[], argparse.ArgumentParser],
+    argv: Sequence[str] | None,
+    commands: dict[str, Command],
+    interrupted: Interrupted | None = None,
+) -> int:
+    """The whole of a command's ``main``: builds the parser, parses ``argv`` and runs the command
+    with :func:`dispatch`; Ctrl-C while the parser is built (it may import torch) also ends with one
+    line and status 130."""
+    try:
+        args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:
+        _say(prog, "interrupted")
+        return EXIT_INTERRUPTED
+    return dispatch(prog, args, commands, interrupted=interrupted)

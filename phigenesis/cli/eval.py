@@ -12,7 +12,7 @@ import math
 import sys
 from typing import Any
 
-from phigenesis.cli.common import dispatch, positive
+from phigenesis.cli.common import Parser, positive, run
 
 #: Table columns: (metric key, header, format).
 COLUMNS = (
@@ -33,7 +33,7 @@ def _shift(value: str) -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="phigenesis-eval", description=__doc__)
+    parser = Parser(prog="phigenesis-eval", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
     s = sub.add_parser("stage1", help="evaluate a Stage 1 model (a run's model.safetensors) on a cache")
@@ -106,8 +106,13 @@ def _stage1(args: argparse.Namespace) -> int:
     return 0
 
 
+def interrupted(args: argparse.Namespace) -> str:
+    """Ctrl-C: the JSON and the picture are written only when every clip is scored."""
+    return "interrupted before every clip was scored; no results were written (rerun the same command)"
+
+
 def main(argv: list[str] | None = None) -> int:
-    return dispatch("phigenesis-eval", build_parser().parse_args(argv), {"stage1": _stage1})
+    return run("phigenesis-eval", build_parser, argv, {"stage1": _stage1}, interrupted)
 
 
 if __name__ == "__main__":

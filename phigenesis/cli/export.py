@@ -5,12 +5,11 @@ from __future__ import annotations
 import argparse
 import sys
 
-from phigenesis.cli.common import dispatch
-from phigenesis.export.stage1 import export_ply
+from phigenesis.cli.common import Parser, run
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="phigenesis-export", description=__doc__)
+    parser = Parser(prog="phigenesis-export", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("ply", help="a Stage 1 model's Gaussians of one frame as a 3DGS PLY")
@@ -29,6 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _ply(args: argparse.Namespace) -> int:
+    from phigenesis.export.stage1 import export_ply
+
     path = export_ply(
         args.ckpt,
         args.shards,
@@ -42,8 +43,13 @@ def _ply(args: argparse.Namespace) -> int:
     return 0
 
 
+def interrupted(args: argparse.Namespace) -> str:
+    """Ctrl-C: the PLY is written under a temporary name and renamed when complete."""
+    return f"interrupted; nothing was written to {args.out} (rerun the same command)"
+
+
 def main(argv: list[str] | None = None) -> int:
-    return dispatch("phigenesis-export", build_parser().parse_args(argv), {"ply": _ply})
+    return run("phigenesis-export", build_parser, argv, {"ply": _ply}, interrupted)
 
 
 if __name__ == "__main__":

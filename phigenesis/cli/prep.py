@@ -3,28 +3,22 @@
 from __future__ import annotations
 
 import argparse
-import logging
+import os
 import sys
+from pathlib import Path
 from typing import Any
 
 from phigenesis import prep
+from phigenesis.cli.common import Command, Parser, positive, run
 from phigenesis.data.executors import EXECUTORS
-from phigenesis.data.pipeline import PrepError
-from phigenesis.data.shards import CacheError
+from phigenesis.data.shards import CacheReader, Manifest
 from phigenesis.data.sources.synthetic.rigs import RIG_NAMES
-
-
-def _positive(value: str) -> int:
-    n = int(value)
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
-    return n
 
 
 def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="cache directory (created if missing)")
     p.add_argument("--pipeline", help="pipeline spec: a bundled name or a YAML path")
-    p.add_argument("--workers", type=_positive, default=1, help="scenes processed in parallel (default 1)")
+    p.add_argument("--workers", type=positive, default=1, help="scenes processed in parallel (default 1)")
     p.add_argument("--executor", choices=EXECUTORS, default="local", help="local process pool or Ray")
     p.add_argument(
         "--ray-address", help="Ray cluster address for --executor ray (default: start a local Ray)"
@@ -50,17 +44,17 @@ def _run_arguments(args: argparse.Namespace, pipeline: str) -> dict[str, Any]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="phigenesis-prep", description=__doc__)
+    parser = Parser(prog="phigenesis-prep", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("synthetic", help="render synthetic driving scenes with exact truth into a cache")
-    s.add_argument("--scenes", type=_positive, default=2, help="number of scenes (default 2)")
-    s.add_argument("--frames", type=_positive, default=40, help="frames per scene (default 40)")
+    s.add_argument("--scenes", type=positive, default=2, help="number of scenes (default 2)")
+    s.add_argument("--frames", type=positive, default=40, help="frames per scene (default 40)")
     s.add_argument("--seed", type=int, default=0, help="base random seed (default 0)")
     s.add_argument("--rig", choices=RIG_NAMES, help="camera rig (default from the pipeline: waymo5)")
-    s.add_argument("--height", type=_positive, help="image height in pixels (default 160)")
-    s.add_argument("--width", type=_positive, help="image width in pixels (default 240)")
+    s.add_argument("--height", type=positive, help="image height in pixels (default 160)")
+    s.add_argument("--width", type=positive, help="image width in pixels (default 240)")
     _run_options(s)
 
     w = sub.add_parser("waymo", help="convert Waymo Open Dataset segments (v1 TFRecord or v2 Parquet)")
@@ -101,68 +95,107 @@ def build_parser() -> argparse.ArgumentParser:
     pv.add_argument("cache", help="cache directory")
     pv.add_argument("--frame", type=int, default=0, help="global frame index (default 0)")
     pv.add_argument("--out", required=True, help="PNG file to write")
-    pv.add_argument("--scale", type=_positive, default=2, help="image magnification (default 2)")
+    pv.add_argument("--scale", type=positive, default=2, help="image magnification (default 2)")
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
+def _synthetic(args: argparse.Namespace) -> int:
+    summary = prep.synthetic(
+        args.out,
+        scenes=args.scenes,
+        frames=args.frames,
+        seed=args.seed,
+        rig=args.rig,
+        height=args.height,
+        width=args.width,
+        **_run_arguments(args, "synthetic"),
     )
+    print(summary.describe())
+    return 0
+
+
+def _waymo(args: argparse.Namespace) -> int:
+    summary = prep.waymo(
+        args.out,
+        input=args.input,
+        split=args.split,
+        segments=args.segments,
+        format=args.format,
+        check_crc=not args.no_crc,
+        **_run_arguments(args, "waymo"),
+    )
+    print(summary.describe())
+    return 0
+
+
+def _nuscenes(args: argparse.Namespace) -> int:
+    summary = prep.nuscenes(
+        args.out,
+        dataroot=args.dataroot,
+        version=args.version,
+        scenes=args.scenes,
+        **_run_arguments(args, "nuscenes"),
+    )
+    print(summary.describe())
+    return 0
+
+
+def _verify(args: argparse.Namespace) -> int:
+    report = prep.verify(args.cache)
+    for w in report.warnings:
+        print(f"warning: {w}")
+    for e in report.errors:
+        print(f"BAD: {e}")
+    status = "OK" if report.ok else f"{len(report.errors)} problems"
+    print(f"{args.cache}: {report.shards} shards, {report.frames} frames verified: {status}")
+    return 0 if report.ok else 1
+
+
+def _preview(args: argparse.Namespace) -> int:
+    frames = len(CacheReader(args.cache))
+    if not -frames <= args.frame < frames:
+        raise ValueError(f"--frame {args.frame} is out of range: {args.cache} holds {frames} frames")
+    prep.preview(args.cache, frame=args.frame, out=args.out, scale=args.scale)
+    print(f"wrote {args.out}")
+    return 0
+
+
+COMMANDS: dict[str, Command] = {
+    "synthetic": _synthetic,
+    "waymo": _waymo,
+    "nuscenes": _nuscenes,
+    "verify": _verify,
+    "preview": _preview,
+}
+
+
+def complete_scenes(cache_dir: str | os.PathLike[str]) -> int:
+    """How many scenes the manifest in ``cache_dir`` records as complete; 0 when a run was stopped
+    before writing one (or left one that cannot be read)."""
     try:
-        if args.command == "synthetic":
-            summary = prep.synthetic(
-                args.out,
-                scenes=args.scenes,
-                frames=args.frames,
-                seed=args.seed,
-                rig=args.rig,
-                height=args.height,
-                width=args.width,
-                **_run_arguments(args, "synthetic"),
-            )
-            print(summary.describe())
-            return 0
-        if args.command == "waymo":
-            summary = prep.waymo(
-                args.out,
-                input=args.input,
-                split=args.split,
-                segments=args.segments,
-                format=args.format,
-                check_crc=not args.no_crc,
-                **_run_arguments(args, "waymo"),
-            )
-            print(summary.describe())
-            return 0
-        if args.command == "nuscenes":
-            summary = prep.nuscenes(
-                args.out,
-                dataroot=args.dataroot,
-                version=args.version,
-                scenes=args.scenes,
-                **_run_arguments(args, "nuscenes"),
-            )
-            print(summary.describe())
-            return 0
-        if args.command == "verify":
-            report = prep.verify(args.cache)
-            for w in report.warnings:
-                print(f"warning: {w}")
-            for e in report.errors:
-                print(f"BAD: {e}")
-            status = "OK" if report.ok else f"{len(report.errors)} problems"
-            print(f"{args.cache}: {report.shards} shards, {report.frames} frames verified: {status}")
-            return 0 if report.ok else 1
-        if args.command == "preview":
-            prep.preview(args.cache, frame=args.frame, out=args.out, scale=args.scale)
-            print(f"wrote {args.out}")
-            return 0
-    except (PrepError, CacheError, IndexError, OSError) as e:
-        print(f"phigenesis-prep: error: {e}", file=sys.stderr)
-        return 2
-    return 2
+        manifest = Manifest.load(Path(cache_dir))
+    except Exception:  # no manifest yet, or one the run never finished writing: nothing is kept
+        return 0
+    return sum(s.status == "complete" for s in manifest.scenes)
+
+
+def interrupted(args: argparse.Namespace) -> str:
+    """What Ctrl-C leaves: a conversion keeps its complete scenes (counted from the manifest, which
+    is rewritten after each scene) and resumes when rerun; verify and preview change nothing."""
+    if args.command == "verify":
+        return "interrupted; nothing was changed"
+    if args.command == "preview":
+        return f"interrupted; {args.out} was not written"
+    done = complete_scenes(args.out)
+    if args.command == "synthetic":
+        kept = f"{done} of {args.scenes} scenes are complete"
+    else:
+        kept = f"{done} scene is complete" if done == 1 else f"{done} scenes are complete"
+    return f"interrupted; {kept} in {args.out} (rerun the same command to resume)"
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run("phigenesis-prep", build_parser, argv, COMMANDS, interrupted)
 
 
 if __name__ == "__main__":

@@ -5,21 +5,22 @@ from __future__ import annotations
 import argparse
 import sys
 
-from phigenesis.cli.prep import _positive
+from phigenesis.cli.common import Parser, positive, run
 from phigenesis.synth import SYNTH_FORMATS, synth
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="phigenesis-synth", description=__doc__)
+    p = Parser(prog="phigenesis-synth", description=__doc__)
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.add_argument("--format", required=True, choices=SYNTH_FORMATS, help="the dataset format to write")
     p.add_argument("--out", required=True, help="output directory (created if missing)")
-    p.add_argument("--scenes", type=_positive, default=1, help="number of scenes (default 1)")
-    p.add_argument("--frames", type=_positive, default=10, help="frames per scene (default 10)")
+    p.add_argument("--scenes", type=positive, default=1, help="number of scenes (default 1)")
+    p.add_argument("--frames", type=positive, default=10, help="frames per scene (default 10)")
     p.add_argument("--seed", type=int, default=0, help="base random seed (default 0)")
-    p.add_argument("--height", type=_positive, default=160, help="image height in pixels (default 160)")
-    p.add_argument("--width", type=_positive, default=240, help="image width in pixels (default 240)")
+    p.add_argument("--height", type=positive, default=160, help="image height in pixels (default 160)")
+    p.add_argument("--width", type=positive, default=240, help="image width in pixels (default 240)")
     p.add_argument(
-        "--keyframes", type=_positive, default=3, help="nuscenes: 2 Hz keyframes per scene (default 3)"
+        "--keyframes", type=positive, default=3, help="nuscenes: 2 Hz keyframes per scene (default 3)"
     )
     p.add_argument("--version", default="v1.0-mini", help="nuscenes: the tables' folder (default v1.0-mini)")
     p.add_argument(
@@ -30,6 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="CAMERA:STEP",
         help="nuscenes: leave out this camera's sweep at this 12 Hz step (a non-keyframe); repeatable",
     )
+    p.set_defaults(command="synth")  # one command: dispatch runs it
     return p
 
 
@@ -40,31 +42,35 @@ def _camera_step(value: str) -> tuple[str, int]:
     return camera, int(step)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        paths = synth(
-            args.format,
-            args.out,
-            scenes=args.scenes,
-            frames=args.frames,
-            seed=args.seed,
-            height=args.height,
-            width=args.width,
-            **(
-                {"keyframes": args.keyframes, "version": args.version, "dropped": args.drop}
-                if args.format == "nuscenes"
-                else {}
-            ),
-        )
-    except (ValueError, OSError) as e:
-        print(f"phigenesis-synth: error: {e}", file=sys.stderr)
-        return 2
+def _synth(args: argparse.Namespace) -> int:
+    paths = synth(
+        args.format,
+        args.out,
+        scenes=args.scenes,
+        frames=args.frames,
+        seed=args.seed,
+        height=args.height,
+        width=args.width,
+        **(
+            {"keyframes": args.keyframes, "version": args.version, "dropped": args.drop}
+            if args.format == "nuscenes"
+            else {}
+        ),
+    )
     files = sorted({p.parent if args.format in ("waymo-v2", "nuscenes") else p for p in paths})
     print(
         f"wrote {len(paths)} files ({args.format}) under {args.out}: " + ", ".join(str(f) for f in files[:6])
     )
     return 0
+
+
+def interrupted(args: argparse.Namespace) -> str:
+    """Ctrl-C: the dataset under ``--out`` is incomplete; a rerun writes every file again."""
+    return f"interrupted; the files under {args.out} are incomplete (rerun the same command to write them)"
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run("phigenesis-synth", build_parser, argv, {"synth": _synth}, interrupted)
 
 
 if __name__ == "__main__":

@@ -7,19 +7,19 @@ Subcommands: ``segmenter`` (:func:`phigenesis.train.segmenter.train_segmenter`),
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
+from pathlib import Path
 
-from phigenesis.cli.common import dispatch, positive, size_hw
-from phigenesis.models import list_models
-from phigenesis.train.segmenter import train_segmenter
-from phigenesis.train.stage1 import Stage1TrainConfig, train_stage1
-from phigenesis.train.vae import train_vae
+from phigenesis.cli.common import Command, Parser, positive, run, size_hw
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="phigenesis-train", description=__doc__)
+    from phigenesis.models import list_models
+
+    parser = Parser(prog="phigenesis-train", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -79,10 +79,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _train_stage1(args: argparse.Namespace) -> int:
+    from phigenesis.train.stage1 import Stage1TrainConfig, train_stage1
+
     config = Stage1TrainConfig.load(
         args.config, vae_checkpoint=args.vae, steps=args.steps, threads=args.threads
     )
-    run = train_stage1(
+    result = train_stage1(
         args.shards,
         args.out,
         config,
@@ -92,19 +94,21 @@ def _train_stage1(args: argparse.Namespace) -> int:
     )
     if os.environ.get("RANK", "0") != "0":  # torchrun: rank 0 reports
         return 0
-    if run.checkpoint is None:
-        print(f"stopped at step {run.steps_done}; continue with --resume")
+    if result.checkpoint is None:
+        print(f"stopped at step {result.steps_done}; continue with --resume")
         return 0
     losses = ", ".join(
-        f"{k} {run.last[k]:.4f}" for k in ("loss", "rgb", "depth", "semantic") if k in run.last
+        f"{k} {result.last[k]:.4f}" for k in ("loss", "rgb", "depth", "semantic") if k in result.last
     )
-    print(f"{run.steps_done} steps in {run.seconds / 60:.1f} min; last step: {losses}")
-    print(f"final checkpoint: {run.checkpoint}")
+    print(f"{result.steps_done} steps in {result.seconds / 60:.1f} min; last step: {losses}")
+    print(f"final checkpoint: {result.checkpoint}")
     return 0
 
 
 def _train_vae(args: argparse.Namespace) -> int:
-    run = train_vae(
+    from phigenesis.train.vae import train_vae
+
+    result = train_vae(
         args.shards,
         args.out,
         config=args.config,
@@ -125,20 +129,22 @@ def _train_vae(args: argparse.Namespace) -> int:
     )
     if os.environ.get("RANK", "0") != "0":  # torchrun: rank 0 reports
         return 0
-    if not run.finished:
-        print(f"stopped at step {run.step}; resume with --resume; checkpoint: {run.checkpoint}")
+    if not result.finished:
+        print(f"stopped at step {result.step}; resume with --resume; checkpoint: {result.checkpoint}")
         return 0
-    if run.val:
-        held_out = ", ".join(run.val_scenes)
-        print(f"validation PSNR {run.val['psnr_db']:.2f} dB on {run.val['clips']} clips ({held_out})")
+    if result.val:
+        held_out = ", ".join(result.val_scenes)
+        print(f"validation PSNR {result.val['psnr_db']:.2f} dB on {result.val['clips']} clips ({held_out})")
     else:
         print("no validation clips (--val-fraction 0 or too few frames)")
-    print(f"final checkpoint: {run.checkpoint}")
+    print(f"final checkpoint: {result.checkpoint}")
     return 0
 
 
 def _train_segmenter(args: argparse.Namespace) -> int:
-    run = train_segmenter(
+    from phigenesis.train.segmenter import train_segmenter
+
+    result = train_segmenter(
         args.shards,
         args.out,
         config=args.config,
@@ -157,20 +163,78 @@ def _train_segmenter(args: argparse.Namespace) -> int:
         init=args.init,
         pretrained=args.pretrained,
     )
-    scores = run.scores
+    scores = result.scores
     if scores:
-        held_out = ", ".join(run.val_scenes)
+        held_out = ", ".join(result.val_scenes)
         print(f"validation mIoU {scores['miou']:.3f} on {scores['images']} images ({held_out})")
         for name, iou in sorted(scores["iou"].items(), key=lambda kv: -kv[1]):
             print(f"  {name:14s} {iou:.3f}" if not math.isnan(iou) else f"  {name:14s} -")
-    print(f"best checkpoint: {run.best}")
+    print(f"best checkpoint: {result.best}")
     return 0
 
 
+COMMANDS: dict[str, Command] = {"segmenter": _train_segmenter, "vae": _train_vae, "stage1": _train_stage1}
+
+
+def _steps_logged(out: Path) -> int | None:
+    """The last step in the run's ``metrics.csv`` (one row per step done), None if there is none."""
+    from phigenesis.train.runner import read_metrics
+
+    try:
+        steps = [int(row["step"]) for row in read_metrics(out)]
+    except (OSError, ValueError, KeyError):
+        return None
+    return steps[-1] if steps else None
+
+
+def run_interrupted(out: str | os.PathLike[str]) -> str:
+    """What Ctrl-C leaves of a resumable run (vae, stage1): the step it reached and the newest
+    complete checkpoint, which ``--resume`` continues from."""
+    from phigenesis.train.runner import kept_step
+
+    out = Path(out)
+    kept = kept_step(out)
+    logged = _steps_logged(out)
+    reached = max((s for s in (logged, kept) if s is not None), default=None)
+    at = f"interrupted after step {reached}" if reached else "interrupted before the first step"
+    if kept is None:
+        return (
+            f"{at}, before the first checkpoint; nothing to resume in {out} "
+            "(rerun without --resume to start again)"
+        )
+    return f"{at}; the checkpoint of step {kept} is kept in {out} (rerun with --resume to continue)"
+
+
+def segmenter_interrupted(out: str | os.PathLike[str]) -> str:
+    """What Ctrl-C leaves of a segmenter run: ``last.pt`` and ``best.pt`` of its last evaluation,
+    from which a new run can start (the segmenter does not resume)."""
+    out = Path(out)
+    last = out / "last.pt"
+    if not last.is_file():
+        return f"interrupted before the first evaluation; nothing is kept in {out}"
+    try:
+        step = json.loads((out / "metrics.json").read_text())["history"][-1]["step"]
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        step = None
+    at = f" (step {step})" if step is not None else ""
+    return (
+        f"interrupted; {last}{at} and best.pt are kept (the segmenter does not resume: rerun to train "
+        f"again, with --init {last} to start from its weights)"
+    )
+
+
+def interrupted(args: argparse.Namespace) -> str | None:
+    """The Ctrl-C line of each subcommand; None in torchrun processes other than rank 0, so a job
+    prints it once."""
+    if os.environ.get("RANK", "0") != "0":
+        return None
+    if args.command == "segmenter":
+        return segmenter_interrupted(args.out)
+    return run_interrupted(args.out)
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    commands = {"segmenter": _train_segmenter, "vae": _train_vae, "stage1": _train_stage1}
-    return dispatch("phigenesis-train", args, commands)
+    return run("phigenesis-train", build_parser, argv, COMMANDS, interrupted)
 
 
 if __name__ == "__main__":

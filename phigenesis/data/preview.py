@@ -6,11 +6,16 @@ Entry point: :func:`draw_frame`. The range view is the frame's views side by sid
 1. RGB, each camera's name in its top-left corner, views separated by a thin line, the frame's
    boxes drawn with their projected edges in every view that sees them (at the image's own time),
    and cells whose direction a neighbouring view owns (the overlap rule) dimmed;
-2. depth (dense, else sparse, else exact truth), turbo-coloured by inverse depth, unknown black;
-3. semantics (pseudo-labels, else truth, else the dataset's labels) in the taxonomy's palette.
+2. depth (:data:`DEPTH_SOURCES`: the pipeline's dense depth, else its sparse depth, else exact
+   truth) in the toolkit's depth colours (:func:`phigenesis.data.colormap.depth_color`: near red,
+   far blue, unknown black);
+3. semantics from the best source the frame has (:data:`SEMANTIC_SOURCES`: exact truth, else the
+   dataset's human labels, else pseudo labels) in the taxonomy's palette.
 
-Rows without data are left out; cells no view covers are dark grey. A top view of the LiDAR and
-the boxes, as tall as the rows, is on the right.
+Each of rows 2 and 3 names its source in its bottom-left corner. Rows without data are left out;
+cells no view covers are dark grey. A top view of the LiDAR and the boxes, as tall as the rows, is
+on the right. Below, the depth colour bar (in metres) and the legend of the classes shown, each
+titled with its source.
 """
 
 from __future__ import annotations
@@ -21,7 +26,14 @@ from numpy.typing import NDArray
 
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
-from phigenesis.data.rangeview import RangeView, ViewPlacement, pack_range_view
+from phigenesis.data.colormap import class_legend, classes_present, depth_color, depth_color_bar
+from phigenesis.data.rangeview import (
+    DepthSource,
+    RangeView,
+    SemanticSource,
+    ViewPlacement,
+    pack_range_view,
+)
 from phigenesis.data.records import Boxes, CameraImage, Frame
 
 BEV_RANGE_M = 60.0
@@ -34,27 +46,73 @@ OVERLAP_DIM = 0.6
 #: Box edges are clipped to this depth in front of the camera (metres) before projection.
 NEAR_M = 0.1
 
+#: Depth maps the depth row shows, the first the frame has: what training uses, else exact truth.
+DEPTH_SOURCES: tuple[DepthSource, ...] = ("dense", "sparse", "truth")
+#: Label maps the semantics row shows, best first: exact truth (synthetic), the dataset's human
+#: labels, the pipeline's pseudo labels (segmenter and geometry).
+SEMANTIC_SOURCES: tuple[SemanticSource, ...] = ("truth", "labels", "pseudo")
+#: How the picture names each source.
+DEPTH_SOURCE_NAMES: dict[str, str] = {
+    "dense": "depth: dense (LiDAR, densified)",
+    "sparse": "depth: sparse (projected LiDAR)",
+    "truth": "depth: exact truth",
+}
+SEMANTIC_SOURCE_NAMES: dict[str, str] = {
+    "truth": "semantics: exact truth",
+    "labels": "semantics: dataset labels",
+    "pseudo": "semantics: pseudo labels",
+}
+
+
+def preview_range_view(frame: Frame) -> RangeView:
+    """The frame's range view as :func:`draw_frame` draws it: depth from the first of
+    :data:`DEPTH_SOURCES` and semantics from the first of :data:`SEMANTIC_SOURCES` that the frame
+    has (``depth_source`` and ``semantic_source`` say which)."""
+    return pack_range_view(frame, depth_sources=DEPTH_SOURCES, semantic_sources=SEMANTIC_SOURCES)
+
 
 def draw_frame(frame: Frame, scale: int = 2) -> NDArray[np.uint8]:
     """An (H, W, 3) uint8 RGB picture of a frame (see the module docstring).
 
     ``scale`` magnifies the range view (after range views taller than
-    :data:`MAX_CAMERA_HEIGHT_PX` are shrunk to it); each row is ``round(Hr * zoom)`` pixels high.
+    :data:`MAX_CAMERA_HEIGHT_PX` are shrunk to it); each row is ``round(Hr * zoom)`` pixels high,
+    row 0 at the top of the picture.
     """
-    rv = pack_range_view(frame, depth_sources=("dense", "sparse", "truth"))
+    rv = preview_range_view(frame)
     layout = rv.layout
     zoom = min(1.0, MAX_CAMERA_HEIGHT_PX / layout.height) * scale
     size = (round(layout.width * zoom), round(layout.height * zoom))
     empty = _resize(~layout.valid(), size, cv2.INTER_NEAREST)
+    text_scale = max(1.0, (0.3 + 0.1 * zoom) / 0.35)
     rows = [_rgb_row(rv, frame, size, zoom)]
     if rv.depth_m is not None:
-        rows.append(_resize(_depth_color(rv.depth_m), size, cv2.INTER_NEAREST))
+        depth_name = DEPTH_SOURCE_NAMES[rv.depth_source]
+        rows.append(_map_row(depth_color(rv.depth_m), size, empty, depth_name, zoom))
     if rv.semantic is not None:
-        rows.append(_resize(tx.PALETTE_RGB[rv.semantic], size, cv2.INTER_NEAREST))
-    for row in rows[1:]:
-        row[empty] = EMPTY_RGB
+        semantic_name = SEMANTIC_SOURCE_NAMES[rv.semantic_source]
+        rows.append(_map_row(tx.PALETTE_RGB[rv.semantic], size, empty, semantic_name, zoom))
     mosaic = np.concatenate(rows, axis=0)
-    return np.concatenate([mosaic, _bev(frame, mosaic.shape[0])], axis=1)
+    picture = [np.concatenate([mosaic, _bev(frame, mosaic.shape[0])], axis=1)]
+    width = picture[0].shape[1]
+    if rv.depth_m is not None:
+        picture.append(depth_color_bar(width, depth_name, text_scale))
+    if rv.semantic is not None:
+        shown = classes_present(rv.semantic[layout.valid()])
+        picture.append(class_legend(shown, width, semantic_name, text_scale))
+    return np.concatenate(picture, axis=0)
+
+
+def _map_row(
+    rgb: NDArray[np.uint8], size: tuple[int, int], empty: NDArray[np.bool_], caption: str, zoom: float
+) -> NDArray[np.uint8]:
+    """A map row: ``rgb`` (layout-sized) at the picture's size, uncovered cells dark grey, and
+    ``caption`` (the map's source) in its bottom-left corner."""
+    row = _resize(rgb, size, cv2.INTER_NEAREST)
+    row[empty] = EMPTY_RGB
+    font = 0.3 + 0.1 * zoom
+    for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):
+        cv2.putText(row, caption, (3, row.shape[0] - 4), 0, font, colour, thickness, cv2.LINE_AA)
+    return row
 
 
 def _resize(plane: NDArray, size: tuple[int, int], interpolation: int) -> NDArray:
@@ -145,16 +203,6 @@ def _clip_near(
         f = (NEAR_M - p[cut, 2]) / (q[cut, 2] - p[cut, 2])
         p[cut] = p[cut] + f[:, None] * (q[cut] - p[cut])
     return a, b, keep
-
-
-def _depth_color(depth_m: NDArray[np.float32]) -> NDArray[np.uint8]:
-    """Turbo colour map of inverse depth (near = red); unknown depth is black."""
-    valid = depth_m > 0
-    inv = np.where(valid, 1.0 / np.maximum(depth_m, 1e-3), 0.0)
-    u8 = np.clip(inv / 0.5 * 255.0, 0, 255).astype(np.uint8)  # 2 m and nearer saturate
-    rgb = cv2.applyColorMap(u8, cv2.COLORMAP_TURBO)[..., ::-1]
-    rgb[~valid] = 0
-    return rgb
 
 
 def _box_color(class_id: int) -> tuple[int, int, int]:

@@ -618,22 +618,18 @@ def write_json(report: dict[str, Any], path: str | os.PathLike[str]) -> Path:
 # Picture
 
 
-def _colour_depth(depth: np.ndarray, vmax: float) -> np.ndarray:
-    import matplotlib
+def picture_panels(
+    result: ClipResult, shifts_m: tuple[float, ...] = ()
+) -> tuple[list[str], list[list[np.ndarray]]]:
+    """The picture's column titles and, per input view (at most 3), its panels as (H, W, 3) uint8
+    RGB: input image, render, rendered depth, truth depth (both in the toolkit's depth colours,
+    :func:`phigenesis.data.colormap.depth_color`, as ``phigenesis-prep preview`` draws depth),
+    rendered semantics, and the shifted render beside its truth for the shift nearest 2 m when
+    there is one."""
+    from phigenesis.data.colormap import depth_color
 
-    rgb = matplotlib.colormaps["turbo"](np.clip(depth / max(vmax, 1e-6), 0, 1))[..., :3]
-    rgb[depth <= 0] = 0.0
-    return rgb
-
-
-def save_picture(result: ClipResult, path: str | os.PathLike[str], shifts_m: tuple[float, ...] = ()) -> Path:
-    """A PNG of one clip: a row per input view (at most 3), columns input image, render, rendered
-    depth, truth depth (same colour range), rendered semantics, and the shifted render beside its
-    truth for the shift nearest 2 m when there is one."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    def u8(rgb: np.ndarray) -> np.ndarray:
+        return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
 
     views, render = result.views["input"], result.model["input"]
     shift = min(shifts_m, key=lambda d: abs(d - 2.0)) if shifts_m else None
@@ -641,31 +637,58 @@ def save_picture(result: ClipResult, path: str | os.PathLike[str], shifts_m: tup
     columns = ["input", "render", "rendered depth", "truth depth", "rendered semantics"]
     if shift_name is not None:
         columns += [f"render {shift_name}", f"truth {shift_name}"]
-    rows = min(len(views), 3)
-    fig, axes = plt.subplots(rows, len(columns), figsize=(2.2 * len(columns), 1.7 * rows), squeeze=False)
-    for r in range(rows):
-        truth_d = views.depth[r].numpy()
-        vmax = float(np.percentile(truth_d[truth_d > 0], 95)) if (truth_d > 0).any() else 1.0
+    rows = []
+    for r in range(min(len(views), 3)):
         panels = [
-            views.images[r].numpy(),
-            render.rgb[r].numpy(),
-            _colour_depth(render.depth[r].numpy(), vmax),
-            _colour_depth(truth_d, vmax),
+            u8(views.images[r].numpy()),
+            u8(render.rgb[r].numpy()),
+            depth_color(render.depth[r].numpy()),
+            depth_color(views.depth[r].numpy()),
             taxonomy.PALETTE_RGB[render.semantic[r].numpy()],
         ]
         if shift_name is not None:
-            panels += [result.model[shift_name].rgb[r].numpy(), result.views[shift_name].images[r].numpy()]
+            panels += [
+                u8(result.model[shift_name].rgb[r].numpy()),
+                u8(result.views[shift_name].images[r].numpy()),
+            ]
+        rows.append(panels)
+    return columns, rows
+
+
+def save_picture(result: ClipResult, path: str | os.PathLike[str], shifts_m: tuple[float, ...] = ()) -> Path:
+    """A PNG of one clip: the panels of :func:`picture_panels` in a grid, then the depth colour bar
+    (metres) and the legend of the classes the rendered semantics show."""
+    import cv2
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from phigenesis.data.colormap import class_legend, classes_present, depth_color_bar
+
+    columns, rows = picture_panels(result, shifts_m)
+    fig, axes = plt.subplots(
+        len(rows), len(columns), figsize=(2.2 * len(columns), 1.7 * len(rows)), dpi=100, squeeze=False
+    )
+    for r, panels in enumerate(rows):
         for c, panel in enumerate(panels):
             ax = axes[r, c]
-            ax.imshow(np.clip(panel, 0, 255) if panel.dtype == np.uint8 else np.clip(panel, 0, 1))
+            ax.imshow(panel, interpolation="nearest")
             ax.set_xticks([])
             ax.set_yticks([])
             if r == 0:
                 ax.set_title(columns[c], fontsize=8)
     fig.suptitle(f"{result.scene_id} frame {result.start}", fontsize=9)
     fig.tight_layout()
+    fig.canvas.draw()
+    grid = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    plt.close(fig)
+    shown = classes_present(result.model["input"].semantic[: len(rows)].numpy())
+    picture = np.concatenate(
+        [grid, depth_color_bar(grid.shape[1]), class_legend(shown, grid.shape[1], "rendered classes")], axis=0
+    )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    if not cv2.imwrite(str(path), picture[..., ::-1]):
+        raise OSError(f"could not write {path}")
     return path
