@@ -8,6 +8,7 @@ import ast
 import builtins
 import csv
 import logging
+import os
 import re
 import shutil
 from collections.abc import Callable
@@ -49,6 +50,14 @@ class _WritesAFile:
 
     def __reduce__(self):
         return builtins.exec, (f"open({str(self.path)!r}, 'w').write('pwned')",)
+
+
+class _TouchesAFile(_WritesAFile):
+    """Unpickling this runs a shell command (``os.system``), whose module torch blocks outright:
+    its refusal message has another form than an unlisted global's."""
+
+    def __reduce__(self):
+        return os.system, (f"touch {str(self.path)!r}",)
 
 
 def _metrics_rows(out: Path) -> list[dict[str, str]]:
@@ -175,11 +184,14 @@ DAMAGED_POINTERS = {
 # Nothing is unpickled
 
 
-def test_a_crafted_trainer_pt_is_refused_without_running_its_code(tmp_path: Path) -> None:
+@pytest.mark.parametrize("payload", [_WritesAFile, _TouchesAFile])
+def test_a_crafted_trainer_pt_is_refused_without_running_its_code(
+    payload: type[_WritesAFile], tmp_path: Path
+) -> None:
     marker = tmp_path / "pwned.txt"
     folder = tmp_path / "step-0000002"
     folder.mkdir()
-    torch.save({"step": 2, "optimizer": _WritesAFile(marker), "extra": {}}, folder / "trainer.pt")
+    torch.save({"step": 2, "optimizer": payload(marker), "extra": {}}, folder / "trainer.pt")
     with pytest.raises(CheckpointError) as error:
         load_training_state(folder)
     assert not marker.exists()
@@ -606,7 +618,6 @@ def test_a_stage1_resume_without_a_usable_checkpoint_is_refused_and_keeps_the_lo
 
 
 def test_a_ctrl_c_while_a_log_row_is_written_arrives_after_the_row_is_complete(tmp_path: Path) -> None:
-    import os
     import signal
 
     from phigenesis.train.runner import MetricsLog, interrupts_held, read_metrics

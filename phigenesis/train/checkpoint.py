@@ -215,6 +215,15 @@ def _one_line(error: BaseException) -> str:
     return " ".join(str(error).split())
 
 
+#: Lines of torch's ``weights_only`` message that advise the reader, not describe the file.
+_TORCH_ADVICE = (
+    "Weights only load failed",
+    "Re-running `torch.load`",
+    "Check the documentation",
+    "Please use",
+)
+
+
 def _torch_error_reason(error: Exception) -> str:
     """What a failed ``torch.load(weights_only=True)`` found wrong with its file, in one line,
     without torch's advice on ``weights_only`` (which does not apply: the file is the problem)."""
@@ -222,10 +231,15 @@ def _torch_error_reason(error: Exception) -> str:
     if "WeightsUnpickler error:" in text:
         text = text.split("WeightsUnpickler error:", 1)[1]
     lines = [line.strip() for line in text.splitlines() if line.strip()]
-    first = lines[0] if lines else type(error).__name__
+    facts = [line for line in lines if not line.startswith(_TORCH_ADVICE)]
+    first = facts[0] if facts else type(error).__name__
     for cut in (". Please use", ". This is an internal", ". Check the documentation"):
         first = first.split(cut, 1)[0]
     return first.rstrip(".")
+
+
+#: How torch names the object a refused file asks for ("GLOBAL posix.system"), across its versions.
+_ASKED_GLOBAL = re.compile(r"(?:GLOBAL|Unsupported global:)\s+([\w.]+)")
 
 
 def read_torch_file(path: str | os.PathLike[str], map_location: str = "cpu") -> Any:
@@ -239,12 +253,11 @@ def read_torch_file(path: str | os.PathLike[str], map_location: str = "cpu") -> 
         raise CheckpointError(f"{path}: cannot be read ({e.strerror or e})") from e
     except Exception as e:  # any unpickling failure means "not a usable file"
         reason = _torch_error_reason(e)
-        asked = re.search(r"GLOBAL (\S+) was not an allowed global", reason)
-        if asked is not None or reason.startswith("Unsupported global"):
-            name = asked.group(1) if asked is not None else reason.removeprefix("Unsupported global: ")
+        asked = _ASKED_GLOBAL.search(str(e))
+        if asked is not None:
             raise CheckpointError(
-                f"{path}: refused: the file asks for {name!r} (code or a class, which no checkpoint "
-                "holds); nothing in it was run"
+                f"{path}: refused: the file asks for {asked.group(1)!r} (code or a class, which no "
+                "checkpoint holds); nothing in it was run"
             ) from e
         raise CheckpointError(
             f"{path}: not a readable checkpoint (truncated, damaged or not a PyTorch file: {reason})"
