@@ -162,28 +162,25 @@ def _bool(value: Any) -> bool:
     return value
 
 
+def _integer_in(value: Any, low: int, high: int, what: str) -> int:
+    """``value`` as an int in ``[low, high]``; ``what`` describes the field for the error."""
+    n = _integer(value, what)
+    if not low <= n <= high:
+        raise _Invalid(f"must be {what}")
+    return n
+
+
 def _timestamp(value: Any) -> int:
     what = f"an integer timestamp in microseconds in [0, {MAX_TIMESTAMP_MICROS}] (before 2100)"
-    t = _integer(value, what)
-    if not 0 <= t <= MAX_TIMESTAMP_MICROS:
-        raise _Invalid(f"must be {what}")
-    return t
+    return _integer_in(value, 0, MAX_TIMESTAMP_MICROS, what)
 
 
 def _pixels(value: Any) -> int:
-    what = f"an integer number of pixels in [1, {MAX_PIXELS}]"
-    n = _integer(value, what)
-    if not 1 <= n <= MAX_PIXELS:
-        raise _Invalid(f"must be {what}")
-    return n
+    return _integer_in(value, 1, MAX_PIXELS, f"an integer number of pixels in [1, {MAX_PIXELS}]")
 
 
 def _count(value: Any) -> int:
-    what = f"an integer count in [-1, {MAX_COUNT}] (-1 = unknown)"
-    n = _integer(value, what)
-    if not -1 <= n <= MAX_COUNT:
-        raise _Invalid(f"must be {what}")
-    return n
+    return _integer_in(value, -1, MAX_COUNT, f"an integer count in [-1, {MAX_COUNT}] (-1 = unknown)")
 
 
 def _position(value: Any) -> NDArray[np.float64]:
