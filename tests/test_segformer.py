@@ -187,3 +187,16 @@ def test_hugging_face_layout_weights_load_into_the_same_model(tmp_path: Path) ->
         assert torch.equal(source(x), loaded(x))
     with pytest.raises(ValueError, match="needs"):
         load_hf_weights(create_model("segformer_b0"), str(tmp_path / "pytorch_model.bin"))
+
+
+def test_hugging_face_weights_that_are_not_a_torch_file_give_one_line_naming_it(tmp_path: Path) -> None:
+    from phigenesis.errors import CheckpointError
+    from phigenesis.models.segformer import load_hf_weights
+
+    path = tmp_path / "pytorch_model.bin"
+    path.write_bytes(b"<html>not the weights</html>")
+    with pytest.raises(CheckpointError) as e:
+        load_hf_weights(create_model("segformer_tiny"), str(path))
+    message = str(e.value)
+    assert message.startswith(f"{path}: not a readable checkpoint") and "\n" not in message
+    assert "weights_only" not in message

@@ -35,6 +35,7 @@ from torch import nn
 
 from phigenesis.data import taxonomy as tx
 from phigenesis.models import register_model
+from phigenesis.torch_files import read_torch_file
 
 #: ImageNet mean and standard deviation of RGB in [0, 1] (what pretrained encoders expect).
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -401,7 +402,7 @@ def load_hf_weights(model: SegFormer, path: str) -> SegFormer:
 
         hf = load_file(path)
     else:
-        hf = torch.load(path, map_location="cpu", weights_only=True)
+        hf = read_torch_file(path)
     hf = {k.removeprefix("module."): v for k, v in hf.items()}
     ours = model.state_dict()
     converted: dict[str, torch.Tensor] = {}
