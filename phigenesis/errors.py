@@ -11,6 +11,7 @@ Hierarchy::
     PhiGenesisError
       PrepError          a prep run cannot start, or a scene failed
         SourceError      a dataset file is invalid (WaymoFormatError, NuScenesError, ...)
+        CacheWriteError  a cache file cannot be written (a full disk; also an OSError; in shards.py)
       CacheError         a cache directory, manifest or shard is missing, malformed or corrupt
       CheckpointError    a checkpoint or a run folder cannot be used
 
