@@ -117,7 +117,7 @@ class GaussianScene:
         semantics: bool = False,
         motion: bool = False,
         near: float = 0.2,
-        backend: str = "torch",
+        backend: str = "auto",
     ) -> SceneRender:
         """Renders the scene at time ``t_s`` into C pinhole cameras.
 

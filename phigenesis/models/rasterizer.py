@@ -10,23 +10,34 @@ from the equations, with the project's conventions (``phigenesis.geometry``):
 
 Per camera and Gaussian: ``Sigma = R diag(s)^2 R^T``, camera-space mean and covariance, the EWA
 Jacobian ``J`` (its ``x/z``, ``y/z`` clamped to 1.3 x the field of view, only inside ``J``), the 2D
-covariance ``J Sigma J^T + 0.3 I`` (low-pass dilation), and a square support of half-width
-``ceil(3 sqrt(lambda_max))`` pixels. Gaussians with ``z <= near``, a non-finite projection or a support
-holding no pixel centre are culled. A pixel composites the Gaussians whose support contains it, front to
-back by camera z (ties in index order):
-``alpha = min(0.99, opacity * exp(-0.5 d^T Sigma2d^-1 d))``, skipped if ``alpha < 1/255``; a Gaussian
-that would bring the transmittance below ``1e-4`` is not added and ends the pixel.
+covariance ``J Sigma J^T + 0.3 I`` (low-pass dilation). Gaussians with ``z <= near``, opacity below
+1/255, a non-finite projection or a box holding no pixel centre are culled.
 
-:func:`rasterize` bins Gaussians into ``tile x tile`` pixel tiles, sorts each tile by depth and
-composites tiles in batches (cumulative products). With gradients, a no-grad pass first finds how
-many of each tile's Gaussians any pixel adds before it stops, and the checkpointed gradient pass only
-covers those;
-:func:`rasterize_reference` loops over all depth-sorted Gaussians for every pixel with no tiles, and
-is what the tests compare against.
+Compositing follows gsplat 1.5.3 (one set of conventions for every backend, so a model trained on a
+CPU renders the same with gsplat on a GPU): a pixel takes the Gaussians front to back by camera z
+(ties in index order) with ``alpha = min(0.999, opacity * exp(-sigma))``, skipping ``sigma < 0`` and
+``alpha < 1/255``; a Gaussian that would bring the transmittance to ``<= 1e-4`` is not added and ends
+the pixel. Each Gaussian's box is per axis, ``ceil(k sqrt(Sigma2d_xx))`` by ``ceil(k sqrt(Sigma2d_yy))``
+pixels with ``k = min(3.33, sqrt(2 ln(255 opacity)))`` (gsplat's opacity-aware extent): the bounding box
+of the ellipse where alpha reaches 1/255, so the alpha threshold alone decides which pixels a Gaussian
+touches and the box only bounds the work.
+
+Backends (:func:`rasterize`, ``backend=``): ``"cpu"`` is the native C++ kernel
+(``csrc/rasterize_cpu.cpp``, built on first use by :mod:`phigenesis.models.native`: per-tile depth-sorted
+lists, front-to-back compositing with early stop, gradients by back-to-front replay); ``"torch"`` bins
+Gaussians into tiles, sorts each tile by depth and composites tiles in batches (cumulative products; with
+gradients, a no-grad pass first finds how many of each tile's Gaussians any pixel adds before it stops,
+and the checkpointed gradient pass only covers those); ``"gsplat"`` calls gsplat's CUDA kernels;
+``"auto"`` (the default) picks gsplat for CUDA tensors when it is installed, else the native kernel on
+the CPU when it builds, else the PyTorch path, and logs its choice once. ``$PHIGENESIS_RASTERIZER``
+(``cpu`` or ``torch``) overrides what ``"auto"`` picks. :func:`rasterize_reference` loops over all
+depth-sorted Gaussians for every pixel with no tiles, and is what the tests compare the others against.
 """
 
 from __future__ import annotations
 
+import logging
+import os
 from dataclasses import dataclass
 from typing import Literal
 
@@ -35,17 +46,21 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from phigenesis import geometry
+from phigenesis.models import native
+
+logger = logging.getLogger(__name__)
 
 #: Low-pass filter added to the diagonal of every 2D covariance (pixels^2).
 EPS_2D = 0.3
-#: Largest alpha one Gaussian may have at a pixel.
-MAX_ALPHA = 0.99
+#: Largest alpha one Gaussian may have at a pixel (gsplat 1.5.3).
+MAX_ALPHA = 0.999
 #: Contributions with a smaller alpha are skipped.
 ALPHA_THRESHOLD = 1.0 / 255.0
-#: A pixel stops compositing before its transmittance would drop below this.
+#: A pixel stops compositing before the Gaussian that would bring its transmittance to this or below.
 TRANSMITTANCE_THRESHOLD = 1e-4
-#: Support half-width in standard deviations (of the largest axis of the 2D covariance).
-SIGMA_EXTENT = 3.0
+#: Largest box half-width in standard deviations (gsplat's GAUSSIAN_EXTEND); the opacity-aware extent
+#: ``sqrt(2 ln(255 opacity))`` is at most 3.329, so it is the alpha threshold that bounds a box.
+GAUSSIAN_EXTEND = 3.33
 #: Field-of-view margin of the Jacobian clamp: ``x/z`` is clamped to 1.3 x the half-FoV (Inria, gsplat).
 FOV_CLAMP_MARGIN = 0.3
 #: Scales are clamped to this (metres) so that covariances stay finite in float32.
@@ -53,7 +68,8 @@ MAX_SCALE = 1e4
 #: Below this squared norm a quaternion is treated as "no rotation" (identity).
 QUATERNION_ZERO_SQNORM = 1e-24
 
-Backend = Literal["torch", "gsplat"]
+Backend = Literal["auto", "cpu", "torch", "gsplat"]
+BACKENDS = ("auto", "cpu", "torch", "gsplat")
 
 
 @dataclass(frozen=True)
@@ -66,7 +82,7 @@ class RenderOutput:
     depth: Tensor
     #: (C, H, W) accumulated opacity ``1 - T_final``.
     alpha: Tensor
-    #: (C, N) int64 support half-width in pixels; 0 for culled Gaussians (behind ``near``, off-screen).
+    #: (C, N) int64 box half-width in pixels, the larger of the two axes; 0 for culled Gaussians.
     radii: Tensor
 
 
@@ -77,7 +93,7 @@ class Projection:
     means2d: Tensor  # (C, N, 2) pixel (u, v)
     conics: Tensor  # (C, N, 3) inverse 2D covariance (A, B, C): sigma = A dx^2/2 + B dx dy + C dy^2/2
     depths: Tensor  # (C, N) camera z in metres
-    radii: Tensor  # (C, N) float support half-width in pixels (no gradient), 0 if culled
+    radii: Tensor  # (C, N, 2) float box half-widths along u and v in pixels (no gradient), 0 if culled
     valid: Tensor  # (C, N) bool
 
 
@@ -100,8 +116,13 @@ def project_gaussians(
     width: int,
     height: int,
     near: float = 0.01,
+    opacities: Tensor | None = None,
 ) -> Projection:
-    """EWA projection of N Gaussians into C pinhole cameras (shared by both rasterizers)."""
+    """EWA projection of N Gaussians into C pinhole cameras (shared by every backend).
+
+    ``opacities`` (N,) set each box's opacity-aware extent and cull those below 1/255; without them
+    the extent is :data:`GAUSSIAN_EXTEND` (gsplat's pure-PyTorch projection).
+    """
     n = means.shape[0]
     rot = quaternion_to_rotation(quats)  # (N, 3, 3)
     m = rot * scales.clamp(min=-MAX_SCALE, max=MAX_SCALE)[:, None, :]  # (N, 3, 3) = R diag(s)
@@ -140,14 +161,27 @@ def project_gaussians(
     conics = torch.stack([c / det, -b / det, a / det], dim=-1)  # (C, N, 3)
     means2d = torch.stack([u, v], dim=-1)  # (C, N, 2)
     with torch.no_grad():
-        lam_max = 0.5 * (a + c) + torch.sqrt((0.5 * (a - c)) ** 2 + b * b)
-        radii = torch.ceil(SIGMA_EXTENT * torch.sqrt(lam_max))
+        extend = torch.full((n,), GAUSSIAN_EXTEND, dtype=means.dtype, device=means.device)
+        if opacities is not None:
+            opac = opacities.detach().to(means.dtype)
+            visible = opac >= ALPHA_THRESHOLD
+            extend = torch.sqrt(
+                2.0 * torch.log(torch.where(visible, opac, torch.ones_like(opac)) / ALPHA_THRESHOLD)
+            )
+            extend = torch.where(visible, extend.clamp(max=GAUSSIAN_EXTEND), torch.zeros_like(extend))
+            valid = valid & visible
+        radii = torch.ceil(extend[:, None] * torch.sqrt(torch.stack([a, c], dim=-1)))  # (C, N, 2)
         valid = (
-            valid & torch.isfinite(means2d).all(-1) & torch.isfinite(conics).all(-1) & torch.isfinite(radii)
+            valid
+            & torch.isfinite(means2d).all(-1)
+            & torch.isfinite(conics).all(-1)
+            & torch.isfinite(radii).all(-1)
+            & (radii > 0).all(-1)
         )
-        # Off-screen: the square support holds no pixel centre.
-        valid &= (u + radii >= 0) & (u - radii <= width - 1) & (v + radii >= 0) & (v - radii <= height - 1)
-        radii = torch.where(valid, radii, torch.zeros_like(radii))
+        # Off-screen: the box holds no pixel centre.
+        rx, ry = radii.unbind(-1)
+        valid &= (u + rx >= 0) & (u - rx <= width - 1) & (v + ry >= 0) & (v - ry <= height - 1)
+        radii = torch.where(valid[..., None], radii, torch.zeros_like(radii))
     assert means2d.shape == (world_from_camera.shape[0], n, 2), means2d.shape
     return Projection(means2d=means2d, conics=conics, depths=z, radii=radii, valid=valid)
 
@@ -165,12 +199,15 @@ def _check_inputs(means, quats, scales, opacities, features, world_from_camera, 
 
 
 def _alphas(means2d: Tensor, conics: Tensor, opac: Tensor, radii: Tensor, px: Tensor, py: Tensor) -> Tensor:
-    """Alpha of Gaussians at pixels (broadcasting), 0 outside the support or below the threshold."""
+    """Alpha of Gaussians at pixels (broadcasting; ``radii`` (..., 2)), 0 outside the box, where sigma
+    is negative or alpha is below the threshold."""
     dx = means2d[..., 0] - px
     dy = means2d[..., 1] - py
     sigma = 0.5 * (conics[..., 0] * dx * dx + conics[..., 2] * dy * dy) + conics[..., 1] * dx * dy
     alpha = torch.clamp(opac * torch.exp(-sigma.clamp(min=0.0)), max=MAX_ALPHA)
-    keep = (dx.abs() <= radii) & (dy.abs() <= radii) & (alpha >= ALPHA_THRESHOLD)
+    keep = (
+        (dx.abs() <= radii[..., 0]) & (dy.abs() <= radii[..., 1]) & (sigma >= 0) & (alpha >= ALPHA_THRESHOLD)
+    )
     return torch.where(keep, alpha, torch.zeros_like(alpha))
 
 
@@ -179,7 +216,7 @@ def _composite_tiles(
 ) -> tuple[Tensor, Tensor]:
     """Front-to-back compositing of B tiles of P pixels over K depth-sorted (padded) Gaussians.
 
-    ``means2d`` (B, K, 2), ``conics`` (B, K, 3), ``opac``/``radii`` (B, K) (padding has opacity 0),
+    ``means2d`` (B, K, 2), ``conics`` (B, K, 3), ``opac`` (B, K) (padding has opacity 0), ``radii`` (B, K, 2),
     ``feats`` (B, K, F+1) with depth as the last channel, ``px``/``py`` (B, P). Returns (B, P, F+1)
     accumulated features and (B, P) alpha.
     """
@@ -189,7 +226,7 @@ def _composite_tiles(
     one_minus = 1.0 - alpha
     with torch.no_grad():
         t_incl = torch.cumprod(one_minus, dim=-1)  # transmittance after each Gaussian
-        keep = t_incl >= TRANSMITTANCE_THRESHOLD  # monotone: once false, false for the rest
+        keep = t_incl > TRANSMITTANCE_THRESHOLD  # monotone: once false, false for the rest
     one_minus = torch.where(keep, one_minus, torch.ones_like(one_minus))
     t_after = torch.cumprod(one_minus, dim=-1)  # (B, P, K)
     t_before = torch.cat([torch.ones_like(t_after[..., :1]), t_after[..., :-1]], dim=-1)
@@ -206,7 +243,7 @@ def _used_per_tile(
         means2d[:, None], conics[:, None], opac[:, None], radii[:, None], px[..., None], py[..., None]
     )  # (B, P, K)
     t_incl = torch.cumprod(1.0 - alpha, dim=-1)
-    added = (alpha > 0) & (t_incl >= TRANSMITTANCE_THRESHOLD)  # (B, P, K)
+    added = (alpha > 0) & (t_incl > TRANSMITTANCE_THRESHOLD)  # (B, P, K)
     slot = torch.arange(1, alpha.shape[-1] + 1, device=alpha.device)
     return torch.where(added, slot, 0).amax(dim=(1, 2))
 
@@ -225,9 +262,9 @@ def rasterize(
     near: float = 0.01,
     tile: int = 16,
     max_batch_elements: int = 1 << 22,
-    backend: Backend = "torch",
+    backend: Backend = "auto",
 ) -> RenderOutput:
-    """Renders N 3D Gaussians into C pinhole cameras, differentiably (tile-based, pure PyTorch).
+    """Renders N 3D Gaussians into C pinhole cameras, differentiably (tile-based).
 
     Args:
         means: (N, 3) centres in the world frame, metres.
@@ -241,11 +278,11 @@ def rasterize(
             coordinates at pixel centres.
         width, height: image size in pixels.
         near: Gaussians with camera z at or below this (metres) are culled.
-        tile: tile side in pixels.
-        max_batch_elements: tiles are composited in batches of at most about this many
-            (pixel, Gaussian) pairs; bounds the peak memory.
-        backend: ``"torch"`` (this module) or ``"gsplat"`` (CUDA tensors and gsplat installed; its
-            released kernels use alpha <= 0.999 and a per-axis radius, so results differ slightly).
+        tile: tile side in pixels (``"cpu"`` and ``"torch"``; gsplat uses 16).
+        max_batch_elements: the ``"torch"`` backend composites tiles in batches of at most about this
+            many (pixel, Gaussian) pairs; bounds its peak memory.
+        backend: ``"auto"``, ``"cpu"`` (native kernel), ``"torch"`` (tiled PyTorch) or ``"gsplat"``
+            (CUDA tensors, gsplat installed); see the module docstring. All follow the same conventions.
 
     Returns:
         :class:`RenderOutput` with ``features`` (C, H, W, F), ``depth`` (C, H, W), ``alpha`` (C, H, W)
@@ -261,29 +298,47 @@ def rasterize(
         (torch.Size([1, 24, 32, 3]), 2.0)
     """
     _check_inputs(means, quats, scales, opacities, features, world_from_camera, intrinsics)
-    if backend == "gsplat":
+    chosen = resolve_backend(backend, means.device)
+    if chosen == "gsplat":
         return _rasterize_gsplat(
             means, quats, scales, opacities, features, world_from_camera, intrinsics, width, height, near
         )
-    assert backend == "torch", backend
+    proj = project_gaussians(
+        means, quats, scales, world_from_camera, intrinsics, width, height, near, opacities
+    )
+    if chosen == "cpu":
+        return _rasterize_native(proj, opacities, features, width, height, tile)
+    return _rasterize_torch(proj, opacities, features, width, height, tile, max_batch_elements)
+
+
+def _rasterize_torch(
+    proj: Projection,
+    opacities: Tensor,
+    features: Tensor,
+    width: int,
+    height: int,
+    tile: int,
+    max_batch_elements: int,
+) -> RenderOutput:
+    """The tiled pure-PyTorch backend."""
+    means = proj.means2d
     n, f = features.shape
-    num_cams = world_from_camera.shape[0]
-    proj = project_gaussians(means, quats, scales, world_from_camera, intrinsics, width, height, near)
+    num_cams = proj.means2d.shape[0]
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
     num_tiles = tiles_x * tiles_y
 
-    # Bin: every (camera, Gaussian) goes to all tiles its square support touches (one pixel of slack,
-    # harmless because the per-pixel support test decides), sorted by (camera, tile) then depth.
+    # Bin: every (camera, Gaussian) goes to all tiles its box touches (one pixel of slack, harmless
+    # because the per-pixel box test decides), sorted by (camera, tile) then depth.
     with torch.no_grad():
-        r = proj.radii
+        rx, ry = proj.radii.unbind(-1)
         u, v = proj.means2d[..., 0], proj.means2d[..., 1]
         big = float(max(width, height) + 2)
-        j0 = torch.floor((u - r - 1).clamp(-big, 2 * big)).long().clamp(min=0)
-        j1 = torch.ceil((u + r + 1).clamp(-big, 2 * big)).long().clamp(max=width - 1)
-        i0 = torch.floor((v - r - 1).clamp(-big, 2 * big)).long().clamp(min=0)
-        i1 = torch.ceil((v + r + 1).clamp(-big, 2 * big)).long().clamp(max=height - 1)
+        j0 = torch.floor((u - rx - 1).clamp(-big, 2 * big)).long().clamp(min=0)
+        j1 = torch.ceil((u + rx + 1).clamp(-big, 2 * big)).long().clamp(max=width - 1)
+        i0 = torch.floor((v - ry - 1).clamp(-big, 2 * big)).long().clamp(min=0)
+        i1 = torch.ceil((v + ry + 1).clamp(-big, 2 * big)).long().clamp(max=height - 1)
         on_screen = proj.valid & (j0 <= j1) & (i0 <= i1)
-        radii_out = r.long()
+        radii_out = proj.radii.amax(-1).long()
         cam_idx, g_idx = torch.nonzero(on_screen, as_tuple=True)  # (M,)
         order = torch.argsort(proj.depths[cam_idx, g_idx], stable=True)
         cam_idx, g_idx = cam_idx[order], g_idx[order]
@@ -308,7 +363,7 @@ def rasterize(
     alpha_out = torch.zeros(num_cams * num_tiles, tile * tile, dtype=dtype, device=means.device)
     local = torch.arange(tile * tile, device=means.device)
     need_grad = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (means, quats, scales, opacities, features, world_from_camera, intrinsics)
+        t.requires_grad for t in (proj.means2d, proj.conics, proj.depths, opacities, features)
     )
 
     def batches(counts: Tensor):  # tiles in batches of similar Gaussian counts, the largest first
@@ -390,7 +445,9 @@ def rasterize_reference(
     in depth order, each tested at every pixel; a per-pixel transmittance and stop flag. For tests."""
     _check_inputs(means, quats, scales, opacities, features, world_from_camera, intrinsics)
     f = features.shape[1]
-    proj = project_gaussians(means, quats, scales, world_from_camera, intrinsics, width, height, near)
+    proj = project_gaussians(
+        means, quats, scales, world_from_camera, intrinsics, width, height, near, opacities
+    )
     py, px = torch.meshgrid(
         torch.arange(height, dtype=means.dtype, device=means.device),
         torch.arange(width, dtype=means.dtype, device=means.device),
@@ -409,7 +466,7 @@ def rasterize_reference(
                 proj.means2d[cam, g], proj.conics[cam, g], opacities[g], proj.radii[cam, g], px, py
             )  # (H, W)
             next_trans = trans * (1.0 - alpha)
-            stop = (alpha > 0) & (next_trans < TRANSMITTANCE_THRESHOLD)
+            stop = (alpha > 0) & (next_trans <= TRANSMITTANCE_THRESHOLD)
             done = done | stop
             add = (alpha > 0) & ~done
             weight = torch.where(add, alpha * trans, torch.zeros_like(alpha))
@@ -420,10 +477,71 @@ def rasterize_reference(
         images.append(color)
         depths.append(depth / alpha_img.clamp(min=1e-10))
         alphas.append(alpha_img)
-    radii = torch.where(proj.valid, proj.radii, torch.zeros_like(proj.radii)).long()
+    radii = torch.where(proj.valid[..., None], proj.radii, torch.zeros_like(proj.radii)).amax(-1).long()
     return RenderOutput(
         features=torch.stack(images), depth=torch.stack(depths), alpha=torch.stack(alphas), radii=radii
     )
+
+
+class _NativeComposite(torch.autograd.Function):
+    """The native kernel's binning and compositing as one autograd step over the projection's outputs."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, features, depths, radii, width, height, tile):
+        ext = native.load_rasterizer()
+        assert ext is not None
+        feat, depth_sum, alpha, final_t, used, offsets, ids = ext.forward(
+            means2d, conics, opacities, features, depths, radii, width, height, tile
+        )
+        ctx.save_for_backward(
+            means2d, conics, opacities, features, depths, radii, final_t, used, offsets, ids
+        )
+        ctx.size = (width, height, tile)
+        return feat, depth_sum, alpha
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_feat, grad_depth_sum, grad_alpha):
+        ext = native.load_rasterizer()
+        assert ext is not None
+        saved = ctx.saved_tensors
+        width, height, tile = ctx.size
+        g_m2d, g_conics, g_opac, g_feat, g_depths = ext.backward(
+            *saved,
+            grad_feat.contiguous(),
+            grad_depth_sum.contiguous(),
+            grad_alpha.contiguous(),
+            width,
+            height,
+            tile,
+        )
+        return g_m2d, g_conics, g_opac, g_feat, g_depths, None, None, None, None
+
+
+def _rasterize_native(
+    proj: Projection, opacities: Tensor, features: Tensor, width: int, height: int, tile: int
+) -> RenderOutput:
+    """The native C++ backend (CPU tensors, float32 or float64)."""
+    dtype = proj.means2d.dtype
+    radii = torch.where(proj.valid[..., None], proj.radii, torch.zeros_like(proj.radii)).to(torch.int32)
+    feat, depth_sum, alpha = _NativeComposite.apply(
+        proj.means2d.contiguous(),
+        proj.conics.contiguous(),
+        opacities.to(dtype).contiguous(),
+        features.to(dtype).contiguous(),
+        proj.depths.contiguous(),
+        radii.contiguous(),
+        width,
+        height,
+        tile,
+    )
+    depth = depth_sum / alpha.clamp(min=1e-10)
+    return RenderOutput(features=feat, depth=depth, alpha=alpha, radii=radii.amax(-1).long())
+
+
+def native_available() -> bool:
+    """Whether the native CPU kernel is built (building it on first call)."""
+    return native.load_rasterizer() is not None
 
 
 def gsplat_available() -> bool:
@@ -433,6 +551,42 @@ def gsplat_available() -> bool:
     except Exception:
         return False
     return torch.cuda.is_available()
+
+
+_announced: set[tuple[str, str]] = set()
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    """The backend that renders tensors on ``device`` when ``backend`` is asked for; ``"auto"`` logs its
+    choice and why, once per process and choice."""
+    if backend not in BACKENDS:
+        raise ValueError(f"rasterize: backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "auto":
+        override = os.environ.get("PHIGENESIS_RASTERIZER", "auto").strip().lower() or "auto"
+        if override not in BACKENDS:
+            raise ValueError(f"PHIGENESIS_RASTERIZER must be one of {BACKENDS}, got {override!r}")
+        if override != "auto":
+            chosen, why = override, "set by PHIGENESIS_RASTERIZER"
+        elif device.type == "cuda" and gsplat_available():
+            chosen, why = "gsplat", "CUDA tensors and gsplat installed"
+        elif device.type == "cpu" and native_available():
+            chosen, why = "cpu", "the native CPU kernel is built"
+        elif device.type == "cpu":
+            chosen, why = "torch", f"the native CPU kernel is not available ({native.failure_reason()})"
+        else:
+            chosen, why = "torch", f"{device.type} tensors without gsplat"
+        if (chosen, why) not in _announced:
+            _announced.add((chosen, why))
+            logger.info("rasterize: backend %r (%s)", chosen, why)
+        backend = chosen
+    if backend == "cpu":
+        if device.type != "cpu":
+            raise ValueError(f"rasterize: backend 'cpu' needs CPU tensors, got {device.type}")
+        if not native_available():
+            raise RuntimeError(
+                f"rasterize: the native CPU kernel is not available: {native.failure_reason()}"
+            )
+    return backend
 
 
 def _rasterize_gsplat(
@@ -468,10 +622,13 @@ def _rasterize_gsplat(
 
 
 __all__ = [
+    "BACKENDS",
     "RenderOutput",
     "gsplat_available",
+    "native_available",
     "project_gaussians",
     "quaternion_to_rotation",
     "rasterize",
     "rasterize_reference",
+    "resolve_backend",
 ]

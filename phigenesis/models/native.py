@@ -1,0 +1,123 @@
+"""Builds and loads the native CPU rasterizer (``csrc/rasterize_cpu.cpp``) on first use.
+
+Entry point: :func:`load_rasterizer`.
+
+The extension is compiled from the package's own source with PyTorch's C++ extension tools (g++ with
+OpenMP, and ninja) into a cache folder, once per machine, torch version and source:
+``$PHIGENESIS_NATIVE_DIR`` if set, else ``$XDG_CACHE_HOME/phigenesis/native`` (``~/.cache/...``).
+The folder's name hashes everything the binary depends on (the source, the compiler flags, the
+torch and Python versions and this CPU's instruction set, since it is built with ``-march=native``),
+so a shared home never hands one machine another's build. When the build fails (no compiler, no
+ninja, a read-only cache) the reason is one warning line and :func:`load_rasterizer` returns
+``None``: the caller renders with the PyTorch path. ``PHIGENESIS_NATIVE=0`` skips the build.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import platform
+import sys
+import threading
+from pathlib import Path
+from types import ModuleType
+
+import torch
+
+logger = logging.getLogger(__name__)
+
+SOURCE = Path(__file__).parent / "csrc" / "rasterize_cpu.cpp"
+CFLAGS = ("-O3", "-march=native", "-fopenmp", "-fno-math-errno")
+LDFLAGS = ("-fopenmp",)
+
+_lock = threading.Lock()
+_module: ModuleType | None = None
+_failure: str | None = None
+
+
+def cache_root() -> Path:
+    """The folder holding native builds (see the module docstring)."""
+    if os.environ.get("PHIGENESIS_NATIVE_DIR"):
+        return Path(os.environ["PHIGENESIS_NATIVE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "phigenesis" / "native"
+
+
+def _cpu_flags() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("flags", "Features")):
+                return line
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def build_directory() -> Path:
+    """Where this machine's build of the current source lives."""
+    digest = hashlib.sha256()
+    for part in (SOURCE.read_bytes(), repr((CFLAGS, LDFLAGS)).encode(), torch.__version__.encode()):
+        digest.update(part)
+    digest.update(f"{sys.version_info[:2]} {platform.machine()} {_cpu_flags()}".encode())
+    return cache_root() / f"rasterize_cpu-{digest.hexdigest()[:16]}"
+
+
+def _summary(error: BaseException) -> str:
+    """The line of a build failure worth showing: the first compiler error, else the first line."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    for line in lines:
+        if "error" in line.lower() and not line.lower().startswith("error building extension"):
+            return line[:300]
+    return (lines[0] if lines else type(error).__name__)[:300]
+
+
+def load_rasterizer() -> ModuleType | None:
+    """The compiled extension, built on first call (about a minute, once), or ``None`` if it cannot be
+    built here; the reason is logged once and kept in :func:`failure_reason`."""
+    global _module, _failure
+    with _lock:
+        if _module is not None or _failure is not None:
+            return _module
+        if os.environ.get("PHIGENESIS_NATIVE", "1") == "0":
+            _failure = "disabled by PHIGENESIS_NATIVE=0"
+            return None
+        build_dir = build_directory()
+        try:
+            from torch.utils import cpp_extension
+
+            build_dir.mkdir(parents=True, exist_ok=True)
+            if not any(build_dir.glob("*.so")):
+                logger.info(
+                    "building the native CPU rasterizer (once per machine, about a minute) in %s", build_dir
+                )
+            _module = cpp_extension.load(
+                name=f"phigenesis_{build_dir.name.replace('-', '_')}",
+                sources=[str(SOURCE)],
+                extra_cflags=list(CFLAGS),
+                extra_ldflags=list(LDFLAGS),
+                build_directory=str(build_dir),
+                verbose=False,
+            )
+        except Exception as error:  # any build or load failure means the fallback, never a crash
+            _failure = _summary(error)
+            log = build_dir / "build-error.log"
+            try:
+                log.write_text(f"{type(error).__name__}: {error}\n")
+                where = f" (full log: {log})"
+            except OSError:
+                where = ""
+            logger.warning(
+                "native CPU rasterizer not available: %s; rendering with the PyTorch tiled path%s",
+                _failure,
+                where,
+            )
+        return _module
+
+
+def failure_reason() -> str | None:
+    """Why the extension is not available (after :func:`load_rasterizer` returned ``None``), else ``None``."""
+    return _failure
+
+
+__all__ = ["build_directory", "cache_root", "failure_reason", "load_rasterizer"]
