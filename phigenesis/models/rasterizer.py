@@ -490,11 +490,11 @@ class _NativeComposite(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, features, depths, radii, width, height, tile):
         ext = native.load_rasterizer()
         assert ext is not None
-        feat, depth_sum, alpha, final_t, used, offsets, ids = ext.forward(
+        feat, depth_sum, alpha, final_t, used, offsets, entries, slots = ext.forward(
             means2d, conics, opacities, features, depths, radii, width, height, tile
         )
         ctx.save_for_backward(
-            means2d, conics, opacities, features, depths, radii, final_t, used, offsets, ids
+            means2d, conics, opacities, features, depths, radii, final_t, used, offsets, entries, slots
         )
         ctx.size = (width, height, tile)
         return feat, depth_sum, alpha

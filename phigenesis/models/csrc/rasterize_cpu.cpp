@@ -61,9 +61,22 @@ inline void pixel_span(double centre, int radius, int64_t size, int64_t& lo, int
   hi = b > size - 1 ? size - 1 : (b < -1 ? -1 : static_cast<int64_t>(b));
 }
 
+// One (camera, Gaussian) that touches a pixel centre, packed for the compositing loops: the slots of
+// a camera are contiguous and in depth order, so a tile's list walks memory forwards.
+template <typename scalar_t>
+struct Splat {
+  scalar_t u, v, a, b, c, opacity;
+  // Beyond this sigma alpha is surely below 1/255 (ln(255 opacity) plus a margin far above rounding),
+  // so exp need not be evaluated; below it, the exact test decides.
+  scalar_t sigma_cut;
+  scalar_t z;
+  int32_t rx, ry, g;
+};
+
 struct Binning {
   at::Tensor tile_offsets;  // (C * T + 1) int64: tile k's entries are [offsets[k], offsets[k + 1])
-  at::Tensor gaussian_ids;  // (I,) int32 Gaussian index of each entry
+  at::Tensor entries;       // (I,) int32 slot of each entry
+  at::Tensor slot_ids;      // (S,) int32 (camera * N + Gaussian) of each slot
 };
 
 template <typename scalar_t>
@@ -104,47 +117,66 @@ Binning bin_gaussians(const at::Tensor& means2d, const at::Tensor& depths, const
       return zc[a] < zc[b] || (zc[a] == zc[b] && a < b);
     });
   });
+  std::vector<int64_t> slot_base(cams + 1, 0);
+  for (int64_t c = 0; c < cams; ++c) slot_base[c + 1] = slot_base[c] + static_cast<int64_t>(order[c].size());
+  TORCH_CHECK(slot_base[cams] < (int64_t(1) << 31), "rasterize_cpu: too many visible (camera, Gaussian) pairs");
   auto offsets = torch::empty({cams * num_tiles + 1}, torch::kInt64);
   int64_t* off = offsets.data_ptr<int64_t>();
   off[0] = 0;
   for (int64_t k = 0; k < cams * num_tiles; ++k) off[k + 1] = off[k] + counts[k];
-  auto ids = torch::empty({off[cams * num_tiles]}, torch::kInt32);
-  int32_t* id = ids.data_ptr<int32_t>();
+  auto entries = torch::empty({off[cams * num_tiles]}, torch::kInt32);
+  auto slot_ids = torch::empty({slot_base[cams]}, torch::kInt32);
+  int32_t* ent = entries.data_ptr<int32_t>();
+  int32_t* sid = slot_ids.data_ptr<int32_t>();
   for_each_task(cams, [&](int64_t c) {
     std::vector<int64_t> cursor(off + c * num_tiles, off + (c + 1) * num_tiles);
+    int64_t slot = slot_base[c];
     for (const int32_t g : order[c]) {
       const int32_t* r = rect.data() + (c * n + g) * 4;
       for (int64_t ty = r[2]; ty <= r[3]; ++ty)
-        for (int64_t tx = r[0]; tx <= r[1]; ++tx) id[cursor[ty * tiles_x + tx]++] = g;
+        for (int64_t tx = r[0]; tx <= r[1]; ++tx) ent[cursor[ty * tiles_x + tx]++] = static_cast<int32_t>(slot);
+      sid[slot++] = static_cast<int32_t>(c * n + g);
     }
     std::vector<int32_t>().swap(order[c]);
   });
-  return {offsets, ids};
+  return {offsets, entries, slot_ids};
 }
 
-// The screen-space Gaussian of one list entry.
 template <typename scalar_t>
-struct Splat {
-  scalar_t u, v, a, b, c, opacity;
-  // Beyond this sigma alpha is surely below 1/255 (ln(255 opacity) plus a margin far above rounding),
-  // so exp need not be evaluated; below it, the exact test decides.
-  scalar_t sigma_cut;
-  int64_t j0, j1, i0, i1;  // pixel box clipped to the image and the tile's top-left corner
-};
+std::vector<Splat<scalar_t>> pack_splats(const at::Tensor& means2d, const at::Tensor& conics,
+                                         const at::Tensor& opacities, const at::Tensor& depths,
+                                         const at::Tensor& radii, const at::Tensor& slot_ids) {
+  const int64_t n = means2d.size(1), slots = slot_ids.size(0);
+  const scalar_t *m2d = means2d.data_ptr<scalar_t>(), *con = conics.data_ptr<scalar_t>();
+  const scalar_t *opac = opacities.data_ptr<scalar_t>(), *z = depths.data_ptr<scalar_t>();
+  const int32_t* rad = radii.data_ptr<int32_t>();
+  const int32_t* sid = slot_ids.data_ptr<int32_t>();
+  std::vector<Splat<scalar_t>> splats(slots);
+  at::parallel_for(0, slots, 4096, [&](int64_t begin, int64_t end) {
+    for (int64_t k = begin; k < end; ++k) {
+      const int64_t cg = sid[k], g = cg % n;
+      Splat<scalar_t>& s = splats[k];
+      s.u = m2d[cg * 2], s.v = m2d[cg * 2 + 1];
+      s.a = con[cg * 3], s.b = con[cg * 3 + 1], s.c = con[cg * 3 + 2];
+      s.opacity = opac[g];
+      s.sigma_cut = static_cast<scalar_t>(std::log(255.0 * static_cast<double>(s.opacity)) + 1e-3);
+      s.z = z[cg];
+      s.rx = rad[cg * 2], s.ry = rad[cg * 2 + 1];
+      s.g = static_cast<int32_t>(g);
+    }
+  });
+  return splats;
+}
 
+// The pixel box [j0, j1] x [i0, i1] of a splat inside the tile [x0, x1) x [y0, y1); empty when
+// j0 > j1 or i0 > i1.
 template <typename scalar_t>
-inline Splat<scalar_t> load_splat(const scalar_t* m2d, const scalar_t* con, const scalar_t* opac,
-                                  const int32_t* rad, int64_t cg, int64_t g, int64_t x0, int64_t width,
-                                  int64_t y0, int64_t height) {
-  Splat<scalar_t> s;
-  s.u = m2d[cg * 2], s.v = m2d[cg * 2 + 1];
-  s.a = con[cg * 3], s.b = con[cg * 3 + 1], s.c = con[cg * 3 + 2];
-  s.opacity = opac[g];
-  s.sigma_cut = static_cast<scalar_t>(std::log(255.0 * static_cast<double>(s.opacity)) + 1e-3);
-  pixel_span(s.u, rad[cg * 2], width, s.j0, s.j1);
-  pixel_span(s.v, rad[cg * 2 + 1], height, s.i0, s.i1);
-  s.j0 = std::max(s.j0, x0), s.i0 = std::max(s.i0, y0);
-  return s;
+inline void splat_box(const Splat<scalar_t>& s, int64_t x0, int64_t x1, int64_t y0, int64_t y1,
+                      int64_t width, int64_t height, int64_t& j0, int64_t& j1, int64_t& i0, int64_t& i1) {
+  pixel_span(s.u, s.rx, width, j0, j1);
+  pixel_span(s.v, s.ry, height, i0, i1);
+  j0 = std::max(j0, x0), i0 = std::max(i0, y0);
+  j1 = std::min(j1, x1 - 1), i1 = std::min(i1, y1 - 1);
 }
 
 template <typename scalar_t>
@@ -152,10 +184,12 @@ std::vector<at::Tensor> forward_impl(const at::Tensor& means2d, const at::Tensor
                                      const at::Tensor& opacities, const at::Tensor& features,
                                      const at::Tensor& depths, const at::Tensor& radii, int64_t width,
                                      int64_t height, int64_t tile) {
-  const int64_t cams = means2d.size(0), n = means2d.size(1), f = features.size(1), fd = f + 1;
+  const int64_t cams = means2d.size(0), f = features.size(1), fd = f + 1;
   const int64_t tiles_x = (width + tile - 1) / tile, tiles_y = (height + tile - 1) / tile;
   const int64_t num_tiles = tiles_x * tiles_y;
   Binning bins = bin_gaussians<scalar_t>(means2d, depths, radii, width, height, tile);
+  const std::vector<Splat<scalar_t>> splats =
+      pack_splats<scalar_t>(means2d, conics, opacities, depths, radii, bins.slot_ids);
   const auto opts = means2d.options();
   auto out_feat = torch::zeros({cams, height, width, f}, opts);
   auto out_depth = torch::zeros({cams, height, width}, opts);
@@ -163,12 +197,9 @@ std::vector<at::Tensor> forward_impl(const at::Tensor& means2d, const at::Tensor
   auto final_t = torch::ones({cams, height, width}, opts);
   auto used = torch::zeros({cams, height, width}, opts.dtype(torch::kInt32));
 
-  const scalar_t *m2d = means2d.data_ptr<scalar_t>(), *con = conics.data_ptr<scalar_t>();
-  const scalar_t *opac = opacities.data_ptr<scalar_t>(), *feat = features.data_ptr<scalar_t>();
-  const scalar_t* z = depths.data_ptr<scalar_t>();
-  const int32_t* rad = radii.data_ptr<int32_t>();
+  const scalar_t* feat = features.data_ptr<scalar_t>();
   const int64_t* off = bins.tile_offsets.data_ptr<int64_t>();
-  const int32_t* ids = bins.gaussian_ids.data_ptr<int32_t>();
+  const int32_t* ent = bins.entries.data_ptr<int32_t>();
   scalar_t *o_feat = out_feat.data_ptr<scalar_t>(), *o_depth = out_depth.data_ptr<scalar_t>();
   scalar_t *o_alpha = out_alpha.data_ptr<scalar_t>(), *o_t = final_t.data_ptr<scalar_t>();
   int32_t* o_used = used.data_ptr<int32_t>();
@@ -186,14 +217,13 @@ std::vector<at::Tensor> forward_impl(const at::Tensor& means2d, const at::Tensor
     std::vector<uint8_t> done(pixels, 0);
     int64_t alive = pixels;
     for (int64_t e = begin; e < end && alive > 0; ++e) {
-      const int64_t g = ids[e], cg = c * n + g;
-      const Splat<scalar_t> s = load_splat(m2d, con, opac, rad, cg, g, x0, width, y0, height);
-      const int64_t j1 = std::min(s.j1, x1 - 1), i1 = std::min(s.i1, y1 - 1);
-      const scalar_t* fg = feat + g * f;
-      const scalar_t zg = z[cg];
-      for (int64_t i = s.i0; i <= i1; ++i) {
+      const Splat<scalar_t>& s = splats[ent[e]];
+      int64_t j0, j1, i0, i1;
+      splat_box(s, x0, x1, y0, y1, width, height, j0, j1, i0, i1);
+      const scalar_t* fg = feat + static_cast<int64_t>(s.g) * f;
+      for (int64_t i = i0; i <= i1; ++i) {
         const scalar_t dy = s.v - scalar_t(i);
-        for (int64_t j = s.j0; j <= j1; ++j) {
+        for (int64_t j = j0; j <= j1; ++j) {
           const int64_t p = (i - y0) * tw + (j - x0);
           if (done[p]) continue;
           const scalar_t dx = s.u - scalar_t(j);
@@ -210,7 +240,7 @@ std::vector<at::Tensor> forward_impl(const at::Tensor& means2d, const at::Tensor
           const scalar_t w = alpha * trans[p];
           scalar_t* ap = acc.data() + p * fd;
           for (int64_t q = 0; q < f; ++q) ap[q] += w * fg[q];
-          ap[f] += w * zg;
+          ap[f] += w * s.z;
           trans[p] = next_t;
           last[p] = static_cast<int32_t>(e - begin + 1);
         }
@@ -228,11 +258,11 @@ std::vector<at::Tensor> forward_impl(const at::Tensor& means2d, const at::Tensor
       }
     }
   });
-  return {out_feat, out_depth, out_alpha, final_t, used, bins.tile_offsets, bins.gaussian_ids};
+  return {out_feat, out_depth, out_alpha, final_t, used, bins.tile_offsets, bins.entries, bins.slot_ids};
 }
 
-// Per list entry gradient layout: u, v, A, B, C, opacity, depth, features...
-constexpr int64_t kEntryFixed = 7;
+// Per slot gradient layout: u, v, A, B, C, opacity, depth, features...
+constexpr int64_t kSlotFixed = 7;
 // Most list entries whose gradients the backward pass holds at once.
 constexpr int64_t kChunkEntries = int64_t(1) << 22;
 
@@ -241,33 +271,34 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& means2d, const at::Tenso
                                       const at::Tensor& opacities, const at::Tensor& features,
                                       const at::Tensor& depths, const at::Tensor& radii,
                                       const at::Tensor& final_t, const at::Tensor& used,
-                                      const at::Tensor& tile_offsets, const at::Tensor& gaussian_ids,
-                                      const at::Tensor& grad_feat, const at::Tensor& grad_depth,
-                                      const at::Tensor& grad_alpha, int64_t width, int64_t height,
-                                      int64_t tile) {
+                                      const at::Tensor& tile_offsets, const at::Tensor& entries,
+                                      const at::Tensor& slot_ids, const at::Tensor& grad_feat,
+                                      const at::Tensor& grad_depth, const at::Tensor& grad_alpha, int64_t width,
+                                      int64_t height, int64_t tile) {
   const int64_t cams = means2d.size(0), n = means2d.size(1), f = features.size(1), fd = f + 1;
-  const int64_t stride = kEntryFixed + f;
+  const int64_t stride = kSlotFixed + f;
   const int64_t tiles_x = (width + tile - 1) / tile, tiles_y = (height + tile - 1) / tile;
   const int64_t num_tiles = tiles_x * tiles_y;
-  const int64_t entries = gaussian_ids.size(0);
+  const int64_t num_entries = entries.size(0), slots = slot_ids.size(0);
   const auto opts = means2d.options();
+  const std::vector<Splat<scalar_t>> splats =
+      pack_splats<scalar_t>(means2d, conics, opacities, depths, radii, slot_ids);
   // List entries' gradients go to a buffer of at most kChunkEntries rows: tiles are replayed in
-  // chunks that fit, and each chunk is summed into the outputs before the next (memory stays bounded
-  // however many entries a scene has).
-  const int64_t chunk_rows = std::min<int64_t>(entries, kChunkEntries);
+  // chunks that fit, and each chunk is summed into the slots' gradients before the next (memory stays
+  // bounded however many entries a scene has).
+  const int64_t chunk_rows = std::min<int64_t>(num_entries, kChunkEntries);
   auto entry_grads = torch::empty({std::max<int64_t>(chunk_rows, 1), stride}, opts);
+  auto slot_grads = torch::zeros({slots, stride}, opts);
 
-  const scalar_t *m2d = means2d.data_ptr<scalar_t>(), *con = conics.data_ptr<scalar_t>();
-  const scalar_t *opac = opacities.data_ptr<scalar_t>(), *feat = features.data_ptr<scalar_t>();
-  const scalar_t* z = depths.data_ptr<scalar_t>();
-  const int32_t* rad = radii.data_ptr<int32_t>();
+  const scalar_t* feat = features.data_ptr<scalar_t>();
   const scalar_t* t_final = final_t.data_ptr<scalar_t>();
   const int32_t* n_used = used.data_ptr<int32_t>();
   const int64_t* off = tile_offsets.data_ptr<int64_t>();
-  const int32_t* ids = gaussian_ids.data_ptr<int32_t>();
+  const int32_t* ent = entries.data_ptr<int32_t>();
   const scalar_t *gf = grad_feat.data_ptr<scalar_t>(), *gd = grad_depth.data_ptr<scalar_t>();
   const scalar_t* ga = grad_alpha.data_ptr<scalar_t>();
   scalar_t* eg = entry_grads.data_ptr<scalar_t>();  // row = entry - first entry of the chunk
+  scalar_t* sg = slot_grads.data_ptr<scalar_t>();
   const scalar_t max_alpha = kMaxAlpha, alpha_thr = kAlphaThreshold;
 
   auto replay_tile = [&](int64_t k, int64_t chunk_begin) {
@@ -297,16 +328,16 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& means2d, const at::Tenso
     }
     std::vector<scalar_t> g_feat(fd);
     for (int64_t e = begin + most - 1; e >= begin; --e) {
-      const int64_t g = ids[e], cg = c * n + g, slot = e - begin;
-      const Splat<scalar_t> s = load_splat(m2d, con, opac, rad, cg, g, x0, width, y0, height);
-      const int64_t j1 = std::min(s.j1, x1 - 1), i1 = std::min(s.i1, y1 - 1);
-      const scalar_t* fg = feat + g * f;
-      const scalar_t zg = z[cg];
+      const Splat<scalar_t>& s = splats[ent[e]];
+      const int64_t slot = e - begin;
+      int64_t j0, j1, i0, i1;
+      splat_box(s, x0, x1, y0, y1, width, height, j0, j1, i0, i1);
+      const scalar_t* fg = feat + static_cast<int64_t>(s.g) * f;
       scalar_t g_u = 0, g_v = 0, g_a = 0, g_b = 0, g_c = 0, g_o = 0;
       std::fill(g_feat.begin(), g_feat.end(), scalar_t(0));
-      for (int64_t i = s.i0; i <= i1; ++i) {
+      for (int64_t i = i0; i <= i1; ++i) {
         const scalar_t dy = s.v - scalar_t(i);
-        for (int64_t j = s.j0; j <= j1; ++j) {
+        for (int64_t j = j0; j <= j1; ++j) {
           const int64_t p = (i - y0) * tw + (j - x0);
           if (slot >= last[p]) continue;
           const scalar_t dx = s.u - scalar_t(j);
@@ -330,8 +361,8 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& means2d, const at::Tenso
             bp[q] += w * fg[q];
           }
           g_feat[f] += w * gp[f];
-          d_alpha += gp[f] * (zg * t_before - bp[f] * ra);
-          bp[f] += w * zg;
+          d_alpha += gp[f] * (s.z * t_before - bp[f] * ra);
+          bp[f] += w * s.z;
           trans[p] = t_before;
           if (raw <= max_alpha) {  // the cap passes no gradient
             g_o += vis * d_alpha;
@@ -347,18 +378,10 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& means2d, const at::Tenso
       scalar_t* out = eg + (e - chunk_begin) * stride;
       out[0] = g_u, out[1] = g_v, out[2] = g_a, out[3] = g_b, out[4] = g_c, out[5] = g_o;
       out[6] = g_feat[f];
-      std::copy(g_feat.begin(), g_feat.begin() + f, out + kEntryFixed);
+      std::copy(g_feat.begin(), g_feat.begin() + f, out + kSlotFixed);
     }
   };
 
-  auto g_means2d = torch::zeros({cams, n, 2}, opts);
-  auto g_conics = torch::zeros({cams, n, 3}, opts);
-  auto g_depths = torch::zeros({cams, n}, opts);
-  auto g_opac = torch::zeros({cams, n}, opts);
-  auto g_feats = torch::zeros({cams, n, f}, opts);
-  scalar_t *o_m = g_means2d.data_ptr<scalar_t>(), *o_c = g_conics.data_ptr<scalar_t>();
-  scalar_t *o_z = g_depths.data_ptr<scalar_t>(), *o_o = g_opac.data_ptr<scalar_t>();
-  scalar_t* o_f = g_feats.data_ptr<scalar_t>();
   const int64_t total_tiles = cams * num_tiles;
   for (int64_t first = 0; first < total_tiles;) {
     // The chunk: tiles [first, last) whose entries fit (a tile alone may hold more: then it is its own
@@ -371,27 +394,43 @@ std::vector<at::Tensor> backward_impl(const at::Tensor& means2d, const at::Tenso
       eg = entry_grads.data_ptr<scalar_t>();
     }
     for_each_task(last - first, [&](int64_t k) { replay_tile(first + k, chunk_begin); });
-    // Sum each Gaussian's entries in list order (deterministic); each thread owns a range of
-    // (camera, Gaussian) rows and scans the chunk for them.
-    const int64_t rows = cams * n;
+    // Sum each slot's entries in list order (deterministic); each thread owns a range of slots and
+    // scans the chunk for them.
     const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), chunk_entries / 4096 + 1));
     for_each_task(parts, [&](int64_t part) {
-      const int64_t lo = rows * part / parts, hi = rows * (part + 1) / parts;
-      int64_t k = first;
+      const int64_t lo = slots * part / parts, hi = slots * (part + 1) / parts;
       for (int64_t e = chunk_begin; e < chunk_begin + chunk_entries; ++e) {
-        while (off[k + 1] <= e) ++k;
-        const int64_t cg = (k / num_tiles) * n + ids[e];
-        if (cg < lo || cg >= hi) continue;
+        const int64_t slot = ent[e];
+        if (slot < lo || slot >= hi) continue;
         const scalar_t* src = eg + (e - chunk_begin) * stride;
-        o_m[cg * 2] += src[0], o_m[cg * 2 + 1] += src[1];
-        o_c[cg * 3] += src[2], o_c[cg * 3 + 1] += src[3], o_c[cg * 3 + 2] += src[4];
-        o_o[cg] += src[5];
-        o_z[cg] += src[6];
-        for (int64_t q = 0; q < f; ++q) o_f[cg * f + q] += src[kEntryFixed + q];
+        scalar_t* dst = sg + slot * stride;
+        for (int64_t q = 0; q < stride; ++q) dst[q] += src[q];
       }
     });
     first = last;
   }
+
+  // Slots to (camera, Gaussian) rows: each row has at most one slot, so this is a scatter.
+  auto g_means2d = torch::zeros({cams, n, 2}, opts);
+  auto g_conics = torch::zeros({cams, n, 3}, opts);
+  auto g_depths = torch::zeros({cams, n}, opts);
+  auto g_opac = torch::zeros({cams, n}, opts);
+  auto g_feats = torch::zeros({cams, n, f}, opts);
+  scalar_t *o_m = g_means2d.data_ptr<scalar_t>(), *o_c = g_conics.data_ptr<scalar_t>();
+  scalar_t *o_z = g_depths.data_ptr<scalar_t>(), *o_o = g_opac.data_ptr<scalar_t>();
+  scalar_t* o_f = g_feats.data_ptr<scalar_t>();
+  const int32_t* sid = slot_ids.data_ptr<int32_t>();
+  at::parallel_for(0, slots, 4096, [&](int64_t begin, int64_t end) {
+    for (int64_t k = begin; k < end; ++k) {
+      const int64_t cg = sid[k];
+      const scalar_t* src = sg + k * stride;
+      o_m[cg * 2] = src[0], o_m[cg * 2 + 1] = src[1];
+      o_c[cg * 3] = src[2], o_c[cg * 3 + 1] = src[3], o_c[cg * 3 + 2] = src[4];
+      o_o[cg] = src[5];
+      o_z[cg] = src[6];
+      std::copy(src + kSlotFixed, src + stride, o_f + cg * f);
+    }
+  });
   return {g_means2d, g_conics, g_opac.sum(0), g_feats.sum(0), g_depths};
 }
 
@@ -433,7 +472,7 @@ std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& co
                                  const at::Tensor& opacities, const at::Tensor& features,
                                  const at::Tensor& depths, const at::Tensor& radii, const at::Tensor& final_t,
                                  const at::Tensor& used, const at::Tensor& tile_offsets,
-                                 const at::Tensor& gaussian_ids, const at::Tensor& grad_feat,
+                                 const at::Tensor& entries, const at::Tensor& slot_ids, const at::Tensor& grad_feat,
                                  const at::Tensor& grad_depth, const at::Tensor& grad_alpha, int64_t width,
                                  int64_t height, int64_t tile) {
   check_inputs(means2d, conics, opacities, features, depths, radii, width, height, tile);
@@ -447,7 +486,7 @@ std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& co
   std::vector<at::Tensor> out;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_cpu_backward", [&] {
     out = backward_impl<scalar_t>(means2d, conics, opacities, features, depths, radii, final_t, used,
-                                  tile_offsets, gaussian_ids, grad_feat, grad_depth, grad_alpha, width,
+                                  tile_offsets, entries, slot_ids, grad_feat, grad_depth, grad_alpha, width,
                                   height, tile);
   });
   return out;
@@ -459,9 +498,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "PhiGenesis native CPU Gaussian rasterizer (tile binning, compositing, backward).";
   m.def("forward", &forward,
         "(means2d, conics, opacities, features, depths, radii, width, height, tile) -> "
-        "[features, depth_sum, alpha, final_T, used, tile_offsets, gaussian_ids]");
+        "[features, depth_sum, alpha, final_T, used, tile_offsets, entries, slot_ids]");
   m.def("backward", &backward,
-        "(..., final_T, used, tile_offsets, gaussian_ids, grad_features, grad_depth_sum, grad_alpha, "
+        "(..., final_T, used, tile_offsets, entries, slot_ids, grad_features, grad_depth_sum, grad_alpha, "
         "width, height, tile) -> [grad_means2d, grad_conics, grad_opacities, grad_features, grad_depths]");
   m.def("max_alpha", [] { return kMaxAlpha; });
   m.def("alpha_threshold", [] { return kAlphaThreshold; });
