@@ -3,19 +3,30 @@ synthetic scenes beside an oracle, with its training speed and memory.
 
 Usage (from the repository root, on a quiet machine)::
 
-    python benchmarks/stage1.py [--work /tmp/stage1-bench] [--vae-steps 1000] [--stage1-steps 560] [--reuse]
+    python benchmarks/stage1.py [--work /tmp/stage1-bench] [--vae-steps 1000] [--budget-min 30] [--reuse]
+    python benchmarks/stage1.py --stage1-steps 560   # a fixed step count instead of the budget
 
 1. Caches (reused when present): ``--train-scenes`` synthetic scenes (seed 0) and ``--eval-scenes``
    held-out scenes (seed 100), 40 frames at 96 x 144, bundled synthetic pipeline.
 2. ``phigenesis-train vae`` (vae_tiny, 5-frame clips at 48 x 72, 2 threads).
-3. ``phigenesis-train stage1`` with ``configs/stage1/tiny.yaml`` under ``torchrun`` with 2 CPU
-   processes of 1 thread each (gloo), each drawing one clip per step (batch 2).
-4. ``phigenesis-eval stage1`` on the held-out cache: input views, +5/+10 frames, 1/2/4 m lateral
+3. Step time before/after the native rasterizer: ``--speed-steps`` (15) steps of the same Stage 1
+   run (same config, VAE and ``torchrun`` setup as step 4), once with ``PHIGENESIS_RASTERIZER=torch``
+   (tiled PyTorch) and once with ``PHIGENESIS_RASTERIZER=cpu`` (the native kernel); not counted in the
+   budget.
+4. ``phigenesis-train stage1`` with ``configs/stage1/tiny.yaml`` under ``torchrun`` with 2 CPU
+   processes of 1 thread each (gloo), each drawing one clip per step (batch 2), with the native
+   rasterizer where it builds. Its steps fill the budget: the trainer has no wall-clock limit (its
+   cosine schedule needs the step count up front), so ``steps = floor((budget - VAE wall - start-up)
+   x (1 - margin) / s_per_step)``, with the native speed run's mean step time (after the first step)
+   and the start-up (wall time less the steps) of the speed runs in step 3; ``--stage1-steps`` fixes
+   it instead.
+5. ``phigenesis-eval stage1`` on the held-out cache: input views, +5/+10 frames, 1/2/4 m lateral
    shifts (truth rendered exactly), beside the oracle (one Gaussian per pixel at the true depth with
    the true colour), and the picture ``docs/images/stage1_eval.png``.
 
-Peak RSS is the largest resident set of any one process of a step (``getrusage`` of the children);
-step times are the medians of the ``seconds`` column of the runs' ``metrics.csv``. Writes the
+Peak RSS is the largest resident set of any one process of a step (``wait4`` of that step's command:
+torchrun and its workers included); step times are the medians of the ``seconds`` column of the
+runs' ``metrics.csv``. Writes the
 ``stage1`` section of BENCHMARKS.md. No timing is asserted anywhere.
 """
 
@@ -23,8 +34,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
-import resource
 import shutil
 import statistics
 import subprocess
@@ -36,20 +47,74 @@ import yaml
 from _report import REPO_ROOT, Report
 
 from phigenesis import prep
+from phigenesis.models.rasterizer import native_available
 from phigenesis.train.runner import read_metrics
 
 BIN = Path(sys.executable).parent
+#: PHIGENESIS_RASTERIZER values of the two speed runs, and their names in the table.
+SPEED_BACKENDS = {"torch": "tiled PyTorch", "cpu": "native C++"}
 
 
 def _run(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, float]:
     """Runs a command (its paths hold no spaces), streaming its output; returns (wall seconds,
-    peak RSS of its largest process so far in GiB)."""
+    peak RSS in GiB of its largest process: the command itself or any child it waited for)."""
     print("+", " ".join(cmd), flush=True)
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, env={**os.environ, **(env or {})})
+    proc = subprocess.Popen(cmd, env={**os.environ, **(env or {})})
+    _, status, usage = os.wait4(proc.pid, 0)  # this command's own rusage, its descendants included
+    proc.returncode = os.waitstatus_to_exitcode(status)
     seconds = time.perf_counter() - t0
-    peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return seconds, peak_kib / 2**20
+    if proc.returncode != 0:
+        raise subprocess.CalledProcessError(proc.returncode, cmd)
+    return seconds, usage.ru_maxrss / 2**20  # Linux: KiB
+
+
+def _train_stage1(
+    train_cache: Path, vae_run: Path, out: Path, steps: int, rasterizer: str
+) -> tuple[float, float]:
+    """Stage 1 of ``configs/stage1/tiny.yaml`` for ``steps`` steps under torchrun (2 x 1 thread) with
+    ``PHIGENESIS_RASTERIZER=rasterizer``; (wall seconds, peak RSS GiB)."""
+    shutil.rmtree(out, ignore_errors=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cfg = yaml.safe_load((REPO_ROOT / "configs/stage1/tiny.yaml").read_text())
+    cfg |= {"vae_checkpoint": str(vae_run / "model.safetensors"), "steps": steps}
+    cfg |= {"batch_size": 2, "threads": 1}
+    cfg_path = out.with_name(f"{out.name}.yaml")
+    cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return _run(
+        f"{sys.executable} -m torch.distributed.run --nproc_per_node 2 -m phigenesis.cli.train stage1 "
+        f"--shards {train_cache} --config {cfg_path} --out {out} --no-progress".split(),
+        env={"OMP_NUM_THREADS": "1", "PHIGENESIS_RASTERIZER": rasterizer},
+    )
+
+
+def _step_seconds(run: Path) -> list[float]:
+    """The logged ``seconds`` of every step of a run, in step order."""
+    rows = sorted(read_metrics(run), key=lambda r: r["step"])
+    return [r["seconds"] for r in rows if "seconds" in r]
+
+
+def _per_step(seconds: list[float]) -> float:
+    """Mean step time after the first step (which also warms up)."""
+    return statistics.mean(seconds[1:] if len(seconds) > 1 else seconds)
+
+
+def budget_steps(
+    budget_s: float,
+    vae_wall_s: float,
+    speed: dict[str, tuple[list[float], float, float]],
+    backend: str,
+    margin: float,
+) -> tuple[int, float, float]:
+    """Stage 1 steps with ``backend`` that fit ``budget_s`` after the VAE, from the short speed runs
+    ``speed`` (backend: (step seconds, wall s, RSS)); (steps, s_per_step, start-up s).
+
+    Start-up: a run's wall time less its steps at the mean step time, the smallest over the speed runs
+    (a run that had to build the native kernel first would otherwise overstate it)."""
+    per_step = _per_step(speed[backend][0])
+    startup = min(max(wall - _per_step(sec) * len(sec), 0.0) for sec, wall, _ in speed.values())
+    steps = math.floor((budget_s - vae_wall_s - startup) * (1.0 - margin) / per_step)
+    return steps, per_step, startup
 
 
 def _cache(path: Path, scenes: int, seed: int) -> None:
@@ -73,8 +138,16 @@ def main() -> None:
     ap.add_argument("--train-scenes", type=int, default=8)
     ap.add_argument("--eval-scenes", type=int, default=2)
     ap.add_argument("--vae-steps", type=int, default=1000)
-    ap.add_argument("--stage1-steps", type=int, default=560)
+    ap.add_argument(
+        "--budget-min", type=float, default=30.0, help="VAE + Stage 1 wall time to fill, minutes (default 30)"
+    )
+    ap.add_argument(
+        "--budget-margin", type=float, default=0.05, help="share of the budget kept free (default 0.05)"
+    )
+    ap.add_argument("--stage1-steps", type=int, help="fixed Stage 1 steps (default: fill --budget-min)")
+    ap.add_argument("--speed-steps", type=int, default=15, help="steps of each before/after speed run")
     ap.add_argument("--clips-per-scene", type=int, default=3)
+    ap.add_argument("--picture", type=Path, default=REPO_ROOT / "docs/images/stage1_eval.png")
     ap.add_argument(
         "--reuse", action="store_true", help="keep trained runs in --work (and their timings, timings.json)"
     )
@@ -84,6 +157,13 @@ def main() -> None:
     train_cache, eval_cache = work / "train", work / "eval"
     _cache(train_cache, args.train_scenes, 0)
     _cache(eval_cache, args.eval_scenes, 100)
+    native = native_available()
+    if not native:
+        print(
+            "WARNING: the native rasterizer is not built; Stage 1 trains with the tiled PyTorch one",
+            flush=True,
+        )
+    full_backend = "cpu" if native else "torch"
 
     report = Report(
         "stage1",
@@ -93,56 +173,135 @@ def main() -> None:
         "held-out scenes (seed 100). The VAE trains first (`phigenesis-train vae`, frozen afterwards), then "
         "the range-view adapter (`phigenesis-train stage1 --config configs/stage1/tiny.yaml` under "
         "`torchrun --nproc_per_node 2`, gloo, 1 thread per process, one clip per process per step; semantic "
-        "labels: the synthetic truth, which `semantic_target: auto` takes where a cache has it).",
+        "labels: the synthetic truth, which `semantic_target: auto` takes where a cache has it), with the "
+        f"{SPEED_BACKENDS[full_backend]} rasterizer (`PHIGENESIS_RASTERIZER={full_backend}`).",
     )
 
     vae_run, s1_run = work / "vae", work / "stage1"
     timings_path = work / "timings.json"  # wall time and peak RSS of each phase, kept for --reuse
     timings = json.loads(timings_path.read_text()) if args.reuse and timings_path.exists() else {}
-    if not (args.reuse and (vae_run / "model.safetensors").exists()):
+    if not (args.reuse and (vae_run / "model.safetensors").exists() and "vae" in timings):
         shutil.rmtree(vae_run, ignore_errors=True)
         timings["vae"] = _run(
             f"{BIN}/phigenesis-train vae --shards {train_cache} --out {vae_run} --steps {args.vae_steps} "
             "--threads 2 --size 48x72 --frames 5 --batch-size 4".split()
         )
-    if not (args.reuse and (s1_run / "model.safetensors").exists()):
-        shutil.rmtree(s1_run, ignore_errors=True)
-        cfg = yaml.safe_load((REPO_ROOT / "configs/stage1/tiny.yaml").read_text())
-        cfg |= {"vae_checkpoint": str(vae_run / "model.safetensors"), "steps": args.stage1_steps}
-        cfg |= {"batch_size": 2, "threads": 1}
-        cfg_path = work / "tiny.yaml"
-        cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
-        timings["stage1"] = _run(
-            f"{sys.executable} -m torch.distributed.run --nproc_per_node 2 -m phigenesis.cli.train stage1 "
-            f"--shards {train_cache} --config {cfg_path} --out {s1_run} --no-progress".split(),
-            env={"OMP_NUM_THREADS": "1"},
+        timings_path.write_text(json.dumps(timings))
+
+    # Before/after: a few steps of the same run with each rasterizer (not counted in the budget).
+    speed: dict[str, tuple[list[float], float, float]] = {}  # backend: (step seconds, wall s, RSS GiB)
+    for backend in SPEED_BACKENDS if native else ("torch",):
+        run = work / f"speed-{backend}"
+        key = f"speed_{backend}"
+        reused = args.reuse and key in timings and (run / "model.safetensors").exists()
+        if not reused:
+            timings[key] = _train_stage1(train_cache, vae_run, run, args.speed_steps, backend)
+            timings_path.write_text(json.dumps(timings))
+        speed[backend] = (_step_seconds(run), *timings[key])
+
+    vae_wall = timings["vae"][0]
+    budget_s = 60.0 * args.budget_min
+    if args.stage1_steps is not None:
+        plan = f"Stage 1 steps fixed at {args.stage1_steps} (`--stage1-steps`)."
+        s1_steps = args.stage1_steps
+    else:
+        s1_steps, per_step, startup = budget_steps(
+            budget_s, vae_wall, speed, full_backend, args.budget_margin
         )
-    timings_path.write_text(json.dumps(timings))
+        if s1_steps < 1:
+            raise SystemExit(
+                f"the VAE took {vae_wall / 60:.1f} min of the {args.budget_min:g}-minute budget: no time left"
+            )
+        plan = (
+            f"Stage 1 steps: {s1_steps} = floor(({args.budget_min:g} min budget "
+            f"- {vae_wall / 60:.1f} min VAE - {startup:.0f} s start-up) x {1 - args.budget_margin:.2f} "
+            f"/ {per_step:.2f} s per step), "
+            f"from the speed runs (the {SPEED_BACKENDS[full_backend]} one's mean step time after its first "
+            "step; start-up: the smallest wall time less steps)."
+        )
+    if not (args.reuse and (s1_run / "model.safetensors").exists() and "stage1" in timings):
+        print(plan, flush=True)
+        timings["stage1"] = _train_stage1(train_cache, vae_run, s1_run, s1_steps, full_backend)
+        timings["stage1_plan"] = plan
+        timings_path.write_text(json.dumps(timings))
+    plan = timings.get("stage1_plan", "")  # how the reused run's steps were chosen
     result = work / "eval.json"
-    picture = REPO_ROOT / "docs/images/stage1_eval.png"
+    picture = args.picture
     timings["eval"] = _run(
         f"{BIN}/phigenesis-eval stage1 --ckpt {s1_run / 'model.safetensors'} --shards {eval_cache} "
         f"--out {result} --picture {picture} --clips-per-scene {args.clips_per_scene} --threads 2".split()
     )
+    timings_path.write_text(json.dumps(timings))
 
     rows = []
-    for name, run, batch in (("vae (vae_tiny)", vae_run, None), ("stage1 (stage1_tiny)", s1_run, 2)):
-        wall, rss = timings.get(name.split()[0], (float("nan"), float("nan")))
+    s1_name = f"stage1 (stage1_tiny, {SPEED_BACKENDS[full_backend]})"
+    for key, name, run, batch in (("vae", "vae (vae_tiny)", vae_run, None), ("stage1", s1_name, s1_run, 2)):
+        wall, rss = timings.get(key, (float("nan"), float("nan")))
         step_s, steps = _step_stats(run, wall)
         rows.append(
             [name, steps, f"{wall / 60:.1f}", f"{step_s:.2f}", f"{1 / step_s:.2f}", batch or "", f"{rss:.2f}"]
         )
+    total_min = (timings["vae"][0] + timings["stage1"][0]) / 60
     report.table(
         "Training speed and memory",
         ["run", "steps", "wall min", "median s/step", "steps/s", "clips/step", "peak RSS GiB"],
         rows,
-        "Wall time includes start-up and validation; the 30-minute budget covers both runs together. "
-        "Peak RSS: the largest process (each torchrun worker holds the model and its clips).",
+        f"Wall time includes start-up and validation; the {args.budget_min:g}-minute budget covers both runs "
+        f"together: {total_min:.1f} min here. {plan} Peak RSS: the largest process (each torchrun worker "
+        "holds the model and its clips).",
     )
+    report.table(*_speed_table(speed, args.speed_steps, native))
     metrics = json.loads(result.read_text())
     report.table(*_eval_table(metrics))
     report.text("![input, render, depth and semantics of a held-out clip](docs/images/stage1_eval.png)")
     report.write()
+
+
+def _speed_table(
+    speed: dict[str, tuple[list[float], float, float]], steps: int, native: bool
+) -> tuple[str, list[str], list[list[object]], str]:
+    """Stage 1 step time with the tiled PyTorch rasterizer and with the native kernel."""
+    medians = {b: statistics.median(sec) for b, (sec, _, _) in speed.items()}
+    rows: list[list[object]] = []
+    for backend, label in SPEED_BACKENDS.items():
+        if backend not in speed:
+            rows.append([label, f"`{backend}`", "—", "—", "—", "—", "—"])
+            continue
+        seconds, wall, rss = speed[backend]
+        ratio = medians["torch"] / medians[backend]
+        rows.append(
+            [
+                label,
+                f"`{backend}`",
+                len(seconds),
+                f"{medians[backend]:.2f}",
+                f"{wall:.0f}",
+                f"{rss:.2f}",
+                "1.0x" if backend == "torch" else f"{ratio:.1f}x",
+            ]
+        )
+    note = (
+        f"{steps} steps of the Stage 1 run above (same config, VAE, data and torchrun layout; the first "
+        "steps of its warm-up), once per rasterizer, chosen with `PHIGENESIS_RASTERIZER`. Median s/step "
+        "of the logged step times (the first step included in the median); wall: the whole command, "
+        "start-up and the final checkpoint included. Speed-up: tiled median / this median."
+    )
+    if not native:
+        note += " The native kernel is not built here (`native_available()` is False): no native row."
+    return (
+        "Stage 1 step time: tiled PyTorch vs native rasterizer",
+        [
+            "rasterizer",
+            "PHIGENESIS_RASTERIZER",
+            "steps",
+            "median s/step",
+            "wall s",
+            "peak RSS GiB",
+            "speed-up",
+        ],
+        rows,
+        note,
+    )
 
 
 def _eval_table(metrics: dict) -> tuple[str, list[str], list[list[object]], str]:
