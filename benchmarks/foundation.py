@@ -13,7 +13,9 @@ Measures, in one run:
    broken down by column group from the Arrow buffers of the shards.
 3. Frames/s of :class:`~phigenesis.data.loader.FrameDataset` through a torch DataLoader, against
    the "decode floor": decoding the same stored images (and truth PNGs) from memory with
-   ``cv2.imdecode`` in one process.
+   ``cv2.imdecode`` in one process; for the training fields on that cache, then for images alone
+   at the paper's R1 (160x240, that cache) and R2 (576x1024, a small cache built for it) sizes,
+   with where an image-only frame's time goes beyond decoding.
 
 Prints the tables and replaces the ``foundation`` section of BENCHMARKS.md. No timing is asserted.
 """
@@ -123,7 +125,8 @@ def time_rendering(rig: str, frames: int) -> RenderTimes:
         rng = np.random.default_rng([*scene.seed_sequence, k])
         world_from_ego = scene.world_from_ego(t_micros)
         t0 = time.perf_counter()
-        sweep = scene._lidar(t_micros, world_from_ego, rng)
+        raw = renderer.render_lidar(cfg.lidar, t_micros, cfg.start_micros, scene.spin_period_s, rng)
+        sweep = scene._lidar(raw, t_micros, world_from_ego)
         result.lidar.append(time.perf_counter() - t0)
         result.lidar_points.append(len(sweep.points_ego))
         t0 = time.perf_counter()
@@ -313,11 +316,15 @@ def decode_pass(encoded: list[list[tuple[np.ndarray, int]]]) -> Callable[[], Non
     return run_pass
 
 
-def loader_pass(cache_dir: Path, fields: Sequence[str], workers: int, batch_size: int) -> Callable[[], None]:
-    """One full pass of a DataLoader over the cache's frames (persistent workers)."""
+def loader_pass(
+    cache_dir: Path, fields: Sequence[str], workers: int, batch_size: int, repeat: int = 1
+) -> Callable[[], None]:
+    """One full pass of a DataLoader over the cache's frames, ``repeat`` times each (persistent workers)."""
+    dataset = FrameDataset(cache_dir, fields=fields)
     loader = DataLoader(
-        FrameDataset(cache_dir, fields=fields),
+        dataset,
         batch_size=batch_size,
+        sampler=list(range(len(dataset))) * repeat,
         collate_fn=collate_frames,
         num_workers=workers,
         persistent_workers=workers > 0,
@@ -333,33 +340,35 @@ def loader_pass(cache_dir: Path, fields: Sequence[str], workers: int, batch_size
 LOADER_VARIANTS = ((0, 1), (2, 1), (2, 4))
 
 
+def goal_cell(ratio: float) -> str:
+    return f"≤ {FLOOR_RATIO_GOAL}: " + ("met" if ratio <= FLOOR_RATIO_GOAL else "missed")
+
+
+def loader_rows(
+    label: str, cache_dir: Path, fields: Sequence[str], floor_label: str, passes: int, repeat: int = 1
+) -> list[list[str]]:
+    """Rows of the decode floor and of each LOADER_VARIANTS DataLoader over the same frames,
+    measured in one interleaved run."""
+    encoded = stored_bytes(cache_dir, with_truth=fields != IMAGE_FIELDS) * repeat
+    runs = {"floor": decode_pass(encoded)}
+    for workers, batch in LOADER_VARIANTS:
+        runs[f"{workers}/{batch}"] = loader_pass(cache_dir, fields, workers, batch, repeat)
+    seconds = interleaved_medians(runs, passes)
+    floor = seconds.pop("floor")
+    loads = len(encoded)
+    rows = [[label, f"decode floor ({floor_label})", f"{loads / floor:.1f}", "1.00", "—"]]
+    for (workers, batch), t in zip(LOADER_VARIANTS, seconds.values(), strict=True):
+        reader = f"DataLoader, {workers} workers, batch {batch}"
+        rows.append([label, reader, f"{loads / t:.1f}", f"{t / floor:.2f}", goal_cell(t / floor)])
+    return rows
+
+
 def report_loader(report: Report, cache_dir: Path, passes: int) -> None:
-    """Section 3: DataLoader frames/s per field set and worker count, against the decode floor."""
+    """Section 3a: DataLoader frames/s for the training fields and worker counts, against the decode floor."""
     frames = len(CacheReader(cache_dir))
-    rows = []
-    variants = [
-        ("images+cameras+truth+boxes", TRAINING_FIELDS, "images + 4 truth PNGs", True),
-        ("images", IMAGE_FIELDS, "images", False),
-    ]
-    for label, fields, floor_label, with_truth in variants:
-        runs = {"floor": decode_pass(stored_bytes(cache_dir, with_truth))}
-        for workers, batch in LOADER_VARIANTS:
-            runs[f"{workers}/{batch}"] = loader_pass(cache_dir, fields, workers, batch)
-        seconds = interleaved_medians(runs, passes)
-        floor = seconds.pop("floor")
-        rows.append([label, f"decode floor ({floor_label})", f"{frames / floor:.1f}", "1.00", "—"])
-        for (workers, batch), t in zip(LOADER_VARIANTS, seconds.values(), strict=True):
-            ratio = t / floor
-            goal = f"≤ {FLOOR_RATIO_GOAL}: " + ("met" if ratio <= FLOOR_RATIO_GOAL else "missed")
-            rows.append(
-                [
-                    label,
-                    f"DataLoader, {workers} workers, batch {batch}",
-                    f"{frames / t:.1f}",
-                    f"{ratio:.2f}",
-                    goal,
-                ]
-            )
+    rows = loader_rows(
+        "images+cameras+truth+boxes", cache_dir, TRAINING_FIELDS, "images + 4 truth PNGs", passes
+    )
     report.table(
         "Loader throughput",
         ["fields", "reader", "frames/s", "time / floor", "goal"],
@@ -368,8 +377,114 @@ def report_loader(report: Report, cache_dir: Path, passes: int) -> None:
         f"column read are checked); median of {passes} rounds after one warm-up round, the floor and "
         "the loaders taking turns within each round (workers are persistent, so their start-up is not "
         "timed). The decode floor decodes the same stored buffers, already in memory, with "
-        "`cv2.imdecode` in one process.",
+        "`cv2.imdecode` in one process. Images alone: the next table.",
     )
+
+
+#: The paper's image sizes (H, W): R1 is the default synthetic size, R2 gets a cache of its own.
+PAPER_SIZES = {"R1": (160, 240), "R2": (576, 1024)}
+#: Each pass over an image-size cache loads at least this many frames (small caches repeat theirs).
+MIN_LOADS_PER_PASS = 32
+
+
+@dataclass
+class SizedCache:
+    name: str
+    height: int
+    width: int
+    path: Path
+    frames: int
+    build_s: float | None  # None for the default benchmark cache, built for section 2
+
+    @property
+    def label(self) -> str:
+        return f"{self.name} {self.height}x{self.width}"
+
+    @property
+    def repeat(self) -> int:
+        return -(-MIN_LOADS_PER_PASS // self.frames)
+
+
+def frame_costs(cache: SizedCache, passes: int) -> list[list[str]]:
+    """Where an image-only frame's time goes in one process: reading its columns with and without
+    their CRC checks, decoding its JPEGs, FrameDataset[i] and a DataLoader with 0 workers."""
+    dataset = FrameDataset(cache.path, fields=IMAGE_FIELDS)
+    unchecked = FrameDataset(cache.path, fields=IMAGE_FIELDS, check_crc=False)
+    indices = list(range(len(dataset))) * cache.repeat
+    columns = [dataset._columns(i) for i in range(len(dataset))]
+    loader = loader_pass(cache.path, IMAGE_FIELDS, 0, 1, cache.repeat)
+
+    def read(ds: FrameDataset) -> Callable[[], None]:
+        return lambda: collections.deque((ds.reader.read(i, columns[i]) for i in indices), maxlen=0)
+
+    runs = {
+        "floor": decode_pass(stored_bytes(cache.path, with_truth=False) * cache.repeat),
+        "read": read(dataset),
+        "read_unchecked": read(unchecked),
+        "item": lambda: collections.deque((dataset[i] for i in indices), maxlen=0),
+        "loader": loader,
+    }
+    ms = {k: 1e3 * t / len(indices) for k, t in interleaved_medians(runs, passes).items()}
+    total = ms["loader"]
+    steps = [
+        (f"read the frame's {len(columns[0])} columns, CRC-32s checked", ms["read"]),
+        ("  of which the CRC-32 checks", ms["read"] - ms["read_unchecked"]),
+        ("decode the JPEGs (the floor)", ms["floor"]),
+        ("FrameDataset[i]: read + decode + de-interleave", ms["item"]),
+        ("  beyond read and decode", ms["item"] - ms["read"] - ms["floor"]),
+        ("DataLoader, 0 workers, batch 1", total),
+        ("  beyond FrameDataset[i] (collate, batching)", total - ms["item"]),
+    ]
+    return [[cache.label, step, f"{t:.3f}", f"{100 * t / total:.0f}%"] for step, t in steps]
+
+
+def report_image_sizes(report: Report, caches: list[SizedCache], passes: int) -> None:
+    """Section 3b: image-only loading against the decode floor at R1 and R2, and its per-frame costs."""
+    rows = []
+    for cache in caches:
+        rows += loader_rows(cache.label, cache.path, IMAGE_FIELDS, "images", passes, cache.repeat)
+
+    def origin(c: SizedCache) -> str:
+        if c.build_s is None:
+            return f"{c.label}: the cache above ({c.frames} frames)"
+        frames = f"{c.frames} frame" + ("s" if c.frames != 1 else "")
+        return f"{c.label}: {frames} of 1 scene, default pipeline, built in {c.build_s:.0f} s"
+
+    report.table(
+        "Image-only loading at the paper's sizes",
+        ["size", "reader", "frames/s", "time / floor", "goal"],
+        rows,
+        f"Field group `images` only (each frame's 5 JPEGs, decoded into `uint8 [C, 3, H, W]`); "
+        f"{'; '.join(origin(c) for c in caches)}. A pass loads each frame "
+        f"{' / '.join(str(c.repeat) for c in caches)} times (at least {MIN_LOADS_PER_PASS} loads); "
+        f"median of {passes} rounds, the floor and the loaders taking turns within each round. The "
+        "decode floor runs in one process; 2 workers can beat it on 2 cores. Worker batches travel "
+        "in pooled shared-memory segments (`phigenesis.data.batch_pool`).",
+    )
+    cost_rows = []
+    for cache in caches:
+        cost_rows += frame_costs(cache, passes)
+    report.table(
+        "Image-only loading: where a frame's time goes (one process)",
+        ["size", "step", "ms/frame", "share of DataLoader time"],
+        cost_rows,
+        "Medians of interleaved rounds as above; the indented rows are differences of the others. "
+        "Reading checks the CRC-32 of every column it returns: the `cameras` column holds every PNG "
+        "of the frame's cameras, not only the JPEGs, so its check covers more bytes than are decoded.",
+    )
+
+
+def build_sized_caches(tmp: Path, default_cache: Path, frames_r2: int) -> list[SizedCache]:
+    """R1 is the default benchmark cache (160x240); R2 is built here with ``frames_r2`` frames."""
+    args = CacheReader(default_cache).manifest.arguments
+    assert (args["height"], args["width"]) == PAPER_SIZES["R1"], args
+    caches = [SizedCache("R1", *PAPER_SIZES["R1"], default_cache, len(CacheReader(default_cache)), None)]
+    height, width = PAPER_SIZES["R2"]
+    path = tmp / "cache_r2"
+    t0 = time.perf_counter()
+    prep.synthetic(path, scenes=1, frames=frames_r2, height=height, width=width, progress=False)
+    caches.append(SizedCache("R2", height, width, path, frames_r2, time.perf_counter() - t0))
+    return caches
 
 
 # --------------------------------------------------------------------------------------------
@@ -387,6 +502,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     frames = args.frames if args.frames is not None else (2 if args.quick else 20)
     scenes = args.scenes if args.scenes is not None else (1 if args.quick else 2)
     passes = 2 if args.quick else 7
+    frames_r2 = 1 if args.quick else 4
 
     report = Report(
         "foundation",
@@ -401,6 +517,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         prep.synthetic(cache_dir, scenes=scenes, frames=frames, progress=False)
         report_cache_bytes(report, cache_dir, time.perf_counter() - t0)
         report_loader(report, cache_dir, passes)
+        report_image_sizes(report, build_sized_caches(Path(tmp), cache_dir, frames_r2), passes)
     print(f"wrote section 'foundation' of {report.write()}")
 
 

@@ -15,12 +15,13 @@ TFRecord file and a v2 Parquet root. Then, pinned to one CPU and taking turns wi
    of every range image and pixel pose, ``MatrixFloat.ParseFromString`` of each decompressed blob.
 2. v1 full: what ``phigenesis-prep waymo`` does per frame: :class:`WaymoSource` over the file (CRCs
    checked), conversion to the scene model, ``frame_to_batch`` and a :class:`ShardWriter`.
-3. v2 floor: every row group of every component file read with ``ParquetFile.read_row_group``,
-   restricted to the columns the reader uses (and, for comparison, the same decoding streamed with
-   ``iter_batches`` one frame's rows at a time).
+3. v2 streamed floor: every component file decoded with ``ParquetFile.iter_batches`` one
+   frame's rows at a time, restricted to the columns the reader uses (the v2 goal is measured
+   against it), and, for comparison, every row group read whole with ``read_row_group``.
 4. v2 full: as 2, over the v2 root.
 
-and the same full paths instrumented per stage. Prints the tables and replaces the ``waymo``
+and the same full paths instrumented per stage. Then, each in a fresh process, the peak resident
+memory of the full readers and the two v2 floors. Prints the tables and replaces the ``waymo``
 section of BENCHMARKS.md. No timing is asserted.
 """
 
@@ -46,6 +47,8 @@ import functools
 import gc
 import json
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 import zlib
@@ -486,11 +489,13 @@ def v2_streamed_floor_variant(root: Path, segment: str, frames: int) -> Variant:
     files = _v2_files(root, segment, frames)
 
     def run() -> tuple[float, dict[str, float]]:
+        watch = Stopwatch()
         t0 = time.perf_counter()
-        for _, path, columns, per_frame in files:
-            for _batch in pq.ParquetFile(path).iter_batches(batch_size=per_frame, columns=columns):
-                pass
-        return time.perf_counter() - t0, {}
+        for tag, path, columns, per_frame in files:
+            with watch(tag):
+                for _batch in pq.ParquetFile(path).iter_batches(batch_size=per_frame, columns=columns):
+                    pass
+        return time.perf_counter() - t0, dict(watch.seconds)
 
     return run
 
@@ -516,7 +521,7 @@ def _convert_and_write(
                 frame.scene_id = segment
             with watch("Arrow batch"):
                 batch = frame_to_batch(frame, "waymo", schema)
-            with watch("shard write (IPC)"):
+            with watch("shard write"):
                 writer.write(batch)
     assert writer is not None
     with watch("shard finish"):
@@ -559,13 +564,93 @@ def v2_stages_variant(root: Path, segment: str, cache_dir: Path, spec: PipelineS
     def raws(watch: Stopwatch) -> Iterator[RawFrame]:
         with watch("scene setup"):
             seg = v2.V2Segment(root, segment)
-        with watch.patched(v2._ComponentFile, "_row_group", "Parquet row groups"):
+        with watch.patched(v2._RowStream, "take", "Parquet batches"):
             for i in range(len(seg)):
                 with watch("read"):
                     raw = seg.frame(i)
                 yield raw
 
     return _staged_variant(raws, segment, cache_dir, spec)
+
+
+#: The timed variants, in the order they take turns.
+VARIANTS = ("v1 floor", "v1 full", "v2 floor", "v2 streamed floor", "v2 full", "v1 stages", "v2 stages")
+#: The variants whose peak memory is measured, each in a fresh process.
+MEMORY_PROBES = ("v2 full", "v2 streamed floor", "v2 floor", "v1 full")
+
+
+def make_variant(name: str, inputs: Inputs, caches: Path, spec: PipelineSpec) -> Variant:
+    """The variant called ``name`` (one of :data:`VARIANTS`) over ``inputs``, writing under ``caches``."""
+    frames, segment = inputs.frames, inputs.segment
+    makers: dict[str, Callable[[], Variant]] = {
+        "v1 floor": lambda: v1_floor_variant(inputs.v1_path),
+        "v1 full": lambda: full_variant(inputs.v1_path, caches / "v1-full", spec),
+        "v2 floor": lambda: v2_floor_variant(inputs.v2_root, segment, frames),
+        "v2 streamed floor": lambda: v2_streamed_floor_variant(inputs.v2_root, segment, frames),
+        "v2 full": lambda: full_variant(inputs.v2_root, caches / "v2-full", spec),
+        "v1 stages": lambda: v1_stages_variant(inputs.v1_path, segment, caches / "v1-stages", spec),
+        "v2 stages": lambda: v2_stages_variant(inputs.v2_root, segment, caches / "v2-stages", spec),
+    }
+    return makers[name]()
+
+
+@dataclass
+class Memory:
+    """Resident memory of one variant's pass over the segment, in a fresh process (bytes)."""
+
+    before: int  # resident when the pass starts (interpreter, libraries, inputs indexed)
+    peak: int  # the process's peak resident memory (VmHWM), the pass included
+
+    @property
+    def pass_peak(self) -> int:
+        """How far the pass raised the resident memory above where it started."""
+        return max(self.peak - self.before, 0)
+
+
+def _status_bytes(field: str) -> int:
+    """A memory figure of this process from /proc/self/status (``VmRSS``: resident now; ``VmHWM``:
+    the peak since exec, which unlike ``ru_maxrss`` does not include the parent's at the fork)."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(f"{field}:"):
+                return int(line.split()[1]) * KIB
+    raise RuntimeError(f"/proc/self/status has no {field}")
+
+
+def pinned_cpu(pinned: str) -> int | None:
+    """The CPU that :func:`pin_to_one_cpu`'s description names, or None if it did not pin."""
+    words = pinned.split()
+    return int(words[3]) if words[:3] == ["pinned", "to", "CPU"] else None
+
+
+def peak_memory(name: str, inputs: Inputs, caches: Path, cpu: int | None) -> Memory:
+    """Peak resident memory of one pass of variant ``name``, run in a fresh process (this script
+    with ``--memory-probe``), pinned as the timed runs are, so nothing this process allocated
+    counts."""
+    probe = {"variant": name, "cpu": cpu, "caches": str(caches), "inputs": dataclasses.asdict(inputs)}
+    probe["inputs"] = {k: str(v) if isinstance(v, Path) else v for k, v in probe["inputs"].items()}
+    out = subprocess.run(
+        [sys.executable, __file__, "--memory-probe", json.dumps(probe)],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
+    result = json.loads(out.strip().splitlines()[-1])
+    shutil.rmtree(caches, ignore_errors=True)
+    return Memory(result["before"], result["peak"])
+
+
+def memory_probe(probe_json: str) -> None:
+    """The child of :func:`peak_memory`: runs the variant once and prints its memory as JSON."""
+    probe = json.loads(probe_json)
+    fields = probe["inputs"]
+    inputs = Inputs(**{**fields, "v1_path": Path(fields["v1_path"]), "v2_root": Path(fields["v2_root"])})
+    pin_to_one_cpu(probe["cpu"])
+    run = make_variant(probe["variant"], inputs, Path(probe["caches"]), load_pipeline("waymo"))
+    gc.collect()
+    before = _status_bytes("VmRSS")
+    run()
+    print(json.dumps({"before": before, "peak": _status_bytes("VmHWM")}))
 
 
 @dataclass
@@ -667,67 +752,58 @@ def report_frame(report: Report, frame: BenchFrame, inputs: Inputs, cache_bytes:
 
 
 def report_throughput(report: Report, t: dict[str, Timings], frames: int, rounds: int) -> None:
-    rows = []
-    for fmt in ("v1", "v2"):
-        floor = t[f"{fmt} floor"].median()
-        full = t[f"{fmt} full"].median()
-        floor_what = (
-            "floor: file read + protobuf parse + zlib + MatrixFloat parse"
-            if fmt == "v1"
-            else "floor: Parquet read_row_group of the used columns"
-        )
-        rows.append([fmt, floor_what, ms(floor), t[f"{fmt} floor"].spread(), f"{1 / floor:.1f}", "1.00", "—"])
-        if fmt == "v2":
-            streamed = t["v2 streamed floor"]
-            rows.append(
-                [
-                    fmt,
-                    "streamed floor: Parquet iter_batches, one frame's rows per batch",
-                    ms(streamed.median()),
-                    streamed.spread(),
-                    f"{1 / streamed.median():.1f}",
-                    f"{streamed.median() / floor:.2f}",
-                    "—",
-                ]
-            )
-        ratio = full / floor
-        goal = f"≤ {FLOOR_RATIO_GOAL}: " + ("met" if ratio <= FLOOR_RATIO_GOAL else "missed")
-        rows.append(
-            [
-                fmt,
-                "full: WaymoSource -> convert -> Arrow batch -> shard write",
-                ms(full),
-                t[f"{fmt} full"].spread(),
-                f"{1 / full:.1f}",
-                f"{ratio:.2f}",
-                goal,
-            ]
-        )
+    def row(fmt: str, name: str, what: str, floor: float, goal: bool) -> list[str]:
+        median = t[name].median()
+        ratio = median / floor
+        verdict = f"≤ {FLOOR_RATIO_GOAL}: " + ("met" if ratio <= FLOOR_RATIO_GOAL else "missed")
+        return [
+            fmt,
+            what,
+            ms(median),
+            t[name].spread(),
+            f"{1 / median:.1f}",
+            f"{ratio:.2f}",
+            verdict if goal else "—",
+        ]
+
+    full_what = "full: WaymoSource -> convert -> Arrow batch -> shard write"
+    v1_floor, v2_floor = t["v1 floor"].median(), t["v2 streamed floor"].median()
+    v1_what = "floor: file read + protobuf parse + zlib + MatrixFloat parse"
+    v2_what = "floor: Parquet iter_batches, one frame's rows per batch"
+    groups_what = "for comparison: Parquet read_row_group (10 frames at a time)"
+    rows = [
+        row("v1", "v1 floor", v1_what, v1_floor, False),
+        row("v1", "v1 full", full_what, v1_floor, True),
+        row("v2", "v2 streamed floor", v2_what, v2_floor, False),
+        row("v2", "v2 floor", groups_what, v2_floor, False),
+        row("v2", "v2 full", full_what, v2_floor, True),
+    ]
     report.table(
         "Throughput on one core",
         ["format", "reader", "ms/frame", "min–max ms", "frames/s", "time / floor", "goal"],
         rows,
         f"Per-frame time of a pass over all {frames} frames of the segment, median (and range) of "
         f"{rounds} rounds after one warm-up round; the variants (these five and the two instrumented "
-        "runs below) take turns within each round, in an order rotated from round to round. Input "
-        "files are in the page cache. "
-        "**v1 floor**: for each record (offsets from the headers, indexed beforehand), a plain "
+        "runs below) take turns within each round, in an order rotated from round to round, so each "
+        "ratio compares times measured side by side in the same run. Input files are in the page "
+        "cache. **v1 floor**: for each record (offsets from the headers, indexed beforehand), a plain "
         "`seek` + `read` of its payload (no CRC), `Frame.ParseFromString`, and for each laser "
         "`zlib.decompress` of its compressed return 1, return 2 and pixel-pose range images, each "
         "decompressed blob parsed with `MatrixFloat.ParseFromString` (the library reads the packed "
         "floats with `np.frombuffer` instead, which is cheaper). "
-        "**v2 floor**: for each component file of the segment, `pq.ParquetFile` opened and every "
-        "row group read with `read_row_group(g, columns=...)`, restricted to the columns the reader "
-        "uses, into Arrow tables (nothing converted to numpy); the goal is measured against it. "
-        "**v2 streamed floor**: the same files and columns decoded with `ParquetFile.iter_batches` in "
-        "batches of one frame's rows (the calibrations in one batch), so memory stays bounded: the "
-        "same decoding without allocating whole row groups (see the LiDAR row group above); the full v2 "
-        f"reader takes {t['v2 full'].median() / t['v2 streamed floor'].median():.2f}x its time. "
+        "**v2 floor**: for each component file of the segment, `pq.ParquetFile` opened and its rows "
+        "decoded with `iter_batches` in batches of one frame's rows (the calibrations in one batch), "
+        "restricted to the columns the reader uses, into Arrow (nothing converted to numpy): the "
+        "decoding the reader cannot avoid, with memory bounded to about a frame; the v2 goal is "
+        "measured against it. For comparison, the same files and columns read a whole row group "
+        "at a time (`read_row_group`), which allocates 10 frames of range images at once (see the "
+        "LiDAR row group above and the memory table below). "
         "**full**: a new `WaymoSource(WaymoConfig(input=...))` (v1: both CRCs of every record "
         "checked), `load` of the segment and, per frame, `convert.frame`, `frame_to_batch` with the "
         "waymo pipeline's contents (`pipelines/waymo.yaml`: LiDAR, camera labels, no truth maps) and "
-        "`ShardWriter.write`, then the shard's close (SHA-256 and CRC index of the shard, fsync, "
-        "rename), amortized over the frames; as `process_scene` does, without manifest and progress bar.",
+        "`ShardWriter.write` (which hashes the row as it writes it: SHA-256 of the file, CRC-32s of "
+        "the row's metadata and columns), then the shard's close (footer, fsync, rename), amortized "
+        "over the frames; as `process_scene` does, without manifest and progress bar.",
     )
 
 
@@ -735,19 +811,20 @@ def report_floor(report: Report, t: dict[str, Timings]) -> None:
     rows = []
     for fmt, stages in (
         ("v1", ("file read", "protobuf Frame parse", "zlib.decompress", "MatrixFloat parse")),
-        ("v2", tuple(sorted(t["v2 floor"].stages))),
+        ("v2", tuple(sorted(t["v2 streamed floor"].stages))),
     ):
-        total = t[f"{fmt} floor"].median()
+        floor = t["v1 floor" if fmt == "v1" else "v2 streamed floor"]
+        total = floor.median()
         for stage in stages:
-            s = t[f"{fmt} floor"].median(stage)
+            s = floor.median(stage)
             rows.append([fmt, stage, ms(s), f"{100 * s / total:.0f}%"])
         rows.append([fmt, "whole floor", ms(total), "100%"])
     report.table(
         "Floor, by step",
         ["format", "step (v2: component file)", "ms/frame", "share"],
         rows,
-        "Medians of the per-round step times of the floor runs above (v2: per component file, row "
-        "groups and calibrations amortized over the frames).",
+        "Medians of the per-round step times of the floor runs above (v2: the streamed floor, per "
+        "component file, the calibrations amortized over the frames).",
     )
 
 
@@ -757,13 +834,13 @@ _BREAKDOWN = (
     ("v1: read record + CRC check", "read + CRC", None, ()),
     ("v1: protobuf parse, fields -> raw records", "parse", None, ("range images: zlib + decode",)),
     ("v1: range images zlib + decode", "range images: zlib + decode", None, ()),
-    ("v2: Parquet row groups (cached per 10 frames)", None, "Parquet row groups", ()),
-    ("v2: select frame rows, Arrow -> raw records", None, "read", ("Parquet row groups",)),
+    ("v2: Parquet decode, a frame's rows at a time", None, "Parquet batches", ()),
+    ("v2: Arrow -> raw records", None, "read", ("Parquet batches",)),
     ("range images -> points", "range images -> points", "range images -> points", ()),
     ("convert rest (cameras, boxes)", "convert", "convert", ("range images -> points",)),
     ("Arrow batch (frame_to_batch)", "Arrow batch", "Arrow batch", ()),
-    ("shard write (IPC)", "shard write (IPC)", "shard write (IPC)", ()),
-    ("shard finish (SHA-256, CRC index, fsync), amortized", "shard finish", "shard finish", ()),
+    ("shard write (IPC, SHA-256 and CRC-32s of the row)", "shard write", "shard write", ()),
+    ("shard finish (footer, fsync, rename), amortized", "shard finish", "shard finish", ()),
 )
 
 
@@ -803,13 +880,36 @@ def report_breakdown(report: Report, t: dict[str, Timings]) -> None:
         rows,
         "The full path run stage by stage (the library's own functions, called as `WaymoSource` and "
         "`process_scene` call them; nested stages are timed by wrapping `v1._matrix`, "
-        "`convert.lidar_sweep` and `v2._ComponentFile._row_group` for the run, and subtracted from "
+        "`convert.lidar_sweep` and `v2._RowStream.take` for the run, and subtracted from "
         "the stage that contains them). Medians per stage over the rounds, so the sum need not equal "
         "the whole. Shares are of the instrumented run's whole time.",
     )
 
 
 # --------------------------------------------------------------------------------------------
+
+
+def report_memory(report: Report, memory: dict[str, Memory]) -> None:
+    what = {
+        "v2 full": "v2 full reader (WaymoSource -> ... -> shard write)",
+        "v2 streamed floor": "v2 streamed floor (iter_batches, a frame's rows per batch)",
+        "v2 floor": "v2 read_row_group (10 frames at a time)",
+        "v1 full": "v1 full reader (for comparison)",
+    }
+    rows = [
+        [what[name], f"{m.peak / MIB:,.0f}", f"{m.pass_peak / MIB:,.0f}", f"{m.before / MIB:,.0f}"]
+        for name, m in memory.items()
+    ]
+    report.table(
+        "Peak memory (each in a fresh process)",
+        ["variant", "peak RSS MiB", "pass above start MiB", "RSS at start MiB"],
+        rows,
+        "Each variant's pass over the segment (as timed above) run once in a fresh Python process "
+        "(this script with `--memory-probe`, pinned to the same CPU): the process's peak resident "
+        "memory (`VmHWM`), and how far the pass raised it above the resident memory it started "
+        "with (the interpreter, numpy, pyarrow, OpenCV and the benchmark's imports, the inputs "
+        "indexed). It includes what pyarrow's allocator keeps for reuse.",
+    )
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -833,7 +933,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         "--workdir", type=Path, help="where the inputs and caches go (default: a temporary dir)"
     )
     parser.add_argument("--quick", action="store_true", help="small numbers, for a smoke test (< 1 min)")
+    parser.add_argument("--memory-probe", help=argparse.SUPPRESS)  # internal: see peak_memory
     args = parser.parse_args(argv)
+    if args.memory_probe:
+        memory_probe(args.memory_probe)
+        return
     frames = args.frames if args.frames is not None else (3 if args.quick else 20)
     rounds = args.rounds if args.rounds is not None else (2 if args.quick else 7)
     render_h, render_w = args.render_size or ((320, 480) if args.quick else (640, 960))
@@ -869,16 +973,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         cache_bytes = sum(p.stat().st_size for p in (probe / SHARDS_DIR).glob("*.arrow"))
         shutil.rmtree(probe)
 
-        variants: dict[str, Variant] = {
-            "v1 floor": v1_floor_variant(inputs.v1_path),
-            "v1 full": full_variant(inputs.v1_path, caches / "v1-full", spec),
-            "v2 floor": v2_floor_variant(inputs.v2_root, inputs.segment, frames),
-            "v2 streamed floor": v2_streamed_floor_variant(inputs.v2_root, inputs.segment, frames),
-            "v2 full": full_variant(inputs.v2_root, caches / "v2-full", spec),
-            "v1 stages": v1_stages_variant(inputs.v1_path, inputs.segment, caches / "v1-stages", spec),
-            "v2 stages": v2_stages_variant(inputs.v2_root, inputs.segment, caches / "v2-stages", spec),
-        }
+        variants = {name: make_variant(name, inputs, caches, spec) for name in VARIANTS}
         timings = run_rounds(variants, rounds, frames)
+        cpu = pinned_cpu(pinned)
+        memory = {name: peak_memory(name, inputs, caches / "memory", cpu) for name in MEMORY_PROBES}
 
         report.table(
             "Setup",
@@ -889,6 +987,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         report_throughput(report, timings, frames, rounds)
         report_floor(report, timings)
         report_breakdown(report, timings)
+        report_memory(report, memory)
     total_s = time.perf_counter() - t_start
     report.parts.append(
         f"The run took {total_s:.0f} s ({setup_s:.0f} s of it rendering the frame and writing the inputs)."

@@ -243,3 +243,17 @@ def test_cameras_of_different_sizes_come_as_per_camera_lists(tmp_path: Path) -> 
     for cam, image, depth in zip(frame.cameras, sample["images"], sample["truth_depth"], strict=True):
         assert np.array_equal(image.numpy().transpose(1, 2, 0), cam.decode_image())
         assert np.array_equal(depth.numpy(), cam.truth.depth_m)
+
+
+def test_samples_held_while_later_frames_are_decoded_stay_intact(tiny_cache: Path) -> None:
+    ds = FrameDataset(tiny_cache, fields=("images", "truth"))
+    reference = [FrameDataset(tiny_cache, fields=("images", "truth"))[i] for i in range(len(ds))]
+    held = [ds[i] for i in range(len(ds))]  # more than the dataset keeps allocations for
+    for _ in range(2):
+        for i in range(len(ds)):
+            assert_same(ds[i], reference[i], f"frame {i}")
+    assert_same(held, reference)
+    addresses = {ds[0]["images"].untyped_storage().data_ptr() for _ in range(3)}
+    assert len(addresses) == 1  # a freed frame's allocation is reused
+    kept = ds[0]
+    assert ds[0]["images"].untyped_storage().data_ptr() != kept["images"].untyped_storage().data_ptr()

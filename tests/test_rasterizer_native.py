@@ -15,7 +15,8 @@ from phigenesis.models import native
 from phigenesis.models.rasterizer import RenderOutput, native_available, rasterize, rasterize_reference
 from tests.test_rasterizer import _cameras, _hard_scene, _intrinsics, _scene
 
-pytestmark = pytest.mark.skipif(
+#: Everything but the fallback test needs the extension built here.
+needs_native = pytest.mark.skipif(
     not native_available(), reason=f"native build unavailable: {native.failure_reason()}"
 )
 
@@ -56,6 +57,7 @@ def _assert_gradients_match(scene: dict, cams, k, width, height, rtol: float = 1
         torch.testing.assert_close(a, b, rtol=rtol, atol=rtol * scale, msg=name)
 
 
+@needs_native
 @pytest.mark.parametrize(
     ("n", "seed", "features", "width", "height", "tile"),
     [(60, 0, 3, 40, 30, 16), (120, 1, 1, 33, 21, 8), (90, 2, 16, 27, 19, 16), (200, 3, 6, 64, 48, 16)],
@@ -71,6 +73,7 @@ def test_native_matches_per_pixel_reference(n, seed, features, width, height, ti
     _assert_values_match(out, rasterize_reference(*args), atol=1e-5 if dtype == F64 else 1e-4)
 
 
+@needs_native
 @pytest.mark.parametrize(("seed", "features", "tile"), [(4, 3, 16), (5, 8, 8)])
 @pytest.mark.parametrize("dtype", [F64, F32])
 def test_native_gradients_match_the_pytorch_path(seed, features, tile, dtype):
@@ -87,6 +90,7 @@ def test_native_gradients_match_the_pytorch_path(seed, features, tile, dtype):
     )
 
 
+@needs_native
 @pytest.mark.parametrize("dtype", [F64, F32])
 def test_native_hard_cases_match_reference_and_pytorch_gradients(dtype):
     scene = _hard_scene(dtype)
@@ -106,6 +110,7 @@ def test_native_hard_cases_match_reference_and_pytorch_gradients(dtype):
     _assert_gradients_match(scene, cams, k, 24, 16, rtol=1e-4 if dtype == F64 else 2e-3)
 
 
+@needs_native
 def test_a_hundred_thousand_gaussians_on_one_pixel():
     n = 100_000
     g = torch.Generator().manual_seed(9)
@@ -124,6 +129,7 @@ def test_a_hundred_thousand_gaussians_on_one_pixel():
     _assert_gradients_match(scene, cams, k, 4, 4, tile=4)
 
 
+@needs_native
 def test_empty_scenes_one_pixel_images_and_empty_tiles():
     cams, k = _cameras(2), _intrinsics(2, 12, 10, 10.0)
     none = {k_: v[:0] for k_, v in _scene(3, 0).items()}  # no Gaussians at all
@@ -153,6 +159,7 @@ def test_empty_scenes_one_pixel_images_and_empty_tiles():
     _assert_values_match(out, rasterize_reference(*args), atol=1e-12)
 
 
+@needs_native
 def test_native_is_deterministic_and_independent_of_the_thread_count():
     """The kernel's outputs and gradients are bitwise the same for one or two threads (each tile writes
     its own entries; the sums run in list order), and a whole render's gradients repeat exactly."""
@@ -190,6 +197,7 @@ def test_native_is_deterministic_and_independent_of_the_thread_count():
     assert all(torch.equal(a, b) for a, b in zip(*whole, strict=True))
 
 
+@needs_native
 def test_auto_picks_the_native_kernel_on_cpu_and_the_env_var_overrides(monkeypatch):
     from phigenesis.models.rasterizer import resolve_backend
 

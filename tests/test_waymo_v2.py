@@ -366,3 +366,47 @@ def test_image_without_camera_calibration(root: Path) -> None:
     message = str(raw.invalid_sensors[("camera", 4)])
     assert "camera SIDE_LEFT" in message and "no camera_calibration row" in message
     assert SEGMENTS[0] in message and str(root / "camera_image" / f"{SEGMENTS[0]}.parquet") in message
+
+
+def test_a_frame_is_decoded_alone_not_with_the_rest_of_its_row_group(
+    tmp_path: Path, frames: list[RawFrame]
+) -> None:
+    write_v2(tmp_path, frames)  # one row group holds all 3 frames of a segment
+    seg = V2Segment(tmp_path, SEGMENTS[0])
+    lidar = seg.files["lidar"]
+    assert lidar.num_row_groups == 1 and lidar.batch_rows == 2  # two lasers per frame
+    for i in range(len(seg)):
+        seg.frame(i)
+        stream = lidar._stream
+        assert stream is not None and stream.position == 2 * (i + 1)  # decoded up to this frame's rows
+        assert stream.pending is None or stream.pending.num_rows <= lidar.batch_rows
+
+
+def test_frames_read_in_any_order_come_back_whole(tmp_path: Path, frames: list[RawFrame]) -> None:
+    write_v2(tmp_path, frames, frames_per_row_group=2)
+    want = _by_segment(frames, SEGMENTS[0])
+    seg = V2Segment(tmp_path, SEGMENTS[0])
+    for i in (2, 0, 1, 1, 0, 2):  # backwards (the stream restarts), repeated, across row groups
+        _assert_same(seg.frame(i), want[i], f"frame {i}")
+
+
+def test_a_file_whose_frames_interleave_row_by_row_still_reads_each_frame(
+    tmp_path: Path, frames: list[RawFrame]
+) -> None:
+    write_v2(tmp_path, frames)
+    path = tmp_path / "lidar_box" / f"{SEGMENTS[0]}.parquet"
+    table = pq.read_table(path)
+    order = np.argsort(np.arange(table.num_rows) % 3, kind="stable")  # row k of each frame together
+    shuffled = table.take(pa.array(order))
+    assert shuffled.column("key.frame_timestamp_micros") != table.column("key.frame_timestamp_micros")
+    pq.write_table(shuffled, path, row_group_size=4)
+    want = _by_segment(frames, SEGMENTS[0])
+    seg = V2Segment(tmp_path, SEGMENTS[0])
+    for i in range(len(seg)):
+        got = seg.frame(i).labels
+        positions = np.flatnonzero(
+            shuffled.column("key.frame_timestamp_micros").to_numpy() == want[i].timestamp_micros
+        )
+        rows = shuffled.take(pa.array(positions))
+        assert got.ids == rows.column("key.laser_object_id").to_pylist()
+        assert sorted(got.ids) == sorted(want[i].labels.ids)

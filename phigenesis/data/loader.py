@@ -54,8 +54,10 @@ image) and "lidar_range_image" (the sweep as beams x azimuth), give the keys lis
 
 from __future__ import annotations
 
+import math
 import os
-from collections.abc import Callable, Sequence
+import weakref
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -65,7 +67,7 @@ import pyarrow as pa
 import torch
 from torch.utils.data import Dataset
 
-from phigenesis.data import codec
+from phigenesis.data import batch_pool, codec
 from phigenesis.data.loader_rangeview import lidar_range_sample, range_view_sample
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheError, CacheReader
@@ -75,11 +77,51 @@ FIELD_GROUPS = ("images", "cameras", "truth", "depth", "pseudo", "lidar", "boxes
 RANGE_FIELD_GROUPS = ("range_view", "lidar_range_image")
 
 
-def _bytes_view(arr: pa.BinaryArray, i: int) -> np.ndarray | None:
-    """Zero-copy uint8 view of element ``i`` of a binary array (None if null)."""
-    if not arr[i].is_valid:
-        return None
-    return np.frombuffer(arr[i].as_buffer(), dtype=np.uint8)
+def _binary_views(arr: pa.Array) -> list[np.ndarray | None]:
+    """Zero-copy uint8 views of the elements of a binary array (None where null), sliced out of its
+    data buffer at its offsets (a third of the cost of one Arrow scalar per element)."""
+    if arr.null_count or not (pa.types.is_binary(arr.type) or pa.types.is_large_binary(arr.type)):
+        return [
+            np.frombuffer(arr[i].as_buffer(), dtype=np.uint8) if arr[i].is_valid else None
+            for i in range(len(arr))
+        ]
+    _, offsets, data = arr.buffers()
+    width = 8 if pa.types.is_large_binary(arr.type) else 4
+    ends = np.frombuffer(offsets, f"<i{width}", len(arr) + 1, arr.offset * width).tolist()
+    values = np.frombuffer(data, np.uint8) if data is not None else np.empty(0, np.uint8)
+    return [values[ends[i] : ends[i + 1]] for i in range(len(arr))]
+
+
+class _CameraFields(Mapping[str, pa.Array]):
+    """The camera struct fields of a one-row batch, as :func:`~phigenesis.data.schema.cameras_of`
+    gives them, each taken out of the struct on first use (flattening all 31 fields cost 70 us a
+    frame: a tenth of what reading images costs beyond decoding them at 160x240)."""
+
+    def __init__(self, batch: pa.RecordBatch):
+        struct = batch.column("cameras")[0].values
+        self._struct = struct
+        self._fields: dict[str, pa.Array] = {}
+        if struct is None or struct.null_count:  # null entries: cameras_of merges their validity
+            self._fields = cameras_of(batch)
+            self._struct = None
+        self._names = dict.fromkeys(self._fields if self._struct is None else self._struct.type.names)
+
+    def __getitem__(self, name: str) -> pa.Array:
+        field = self._fields.get(name)
+        if field is None:
+            if self._struct is None or name not in self._names:
+                raise KeyError(name)
+            field = self._fields[name] = self._struct.field(name)
+        return field
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._names
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
 
 
 #: A decoder of one stored map that writes into the given output array.
@@ -142,13 +184,55 @@ _PSEUDO_JOBS = (
 )
 
 
-def _decode_maps(cf: dict[str, pa.Array], names: list[str], jobs: list[_MapJob]) -> dict[str, Any]:
+class _Arenas:
+    """The allocations a dataset decodes frames' maps into, each reused once every tensor carved
+    out of it has been freed.
+
+    malloc alone recycles one frame's allocation when frames come one at a time, but a worker
+    collating a batch frees several at once, and glibc then hands the memory back to the kernel
+    and takes it again, page by page: images alone, batches of 4, the worker spent 22 % (160x240)
+    and 27 % (576x1024) of its time more. At most ``keep`` allocations are kept; beyond that they
+    are malloc's.
+    """
+
+    def __init__(self, keep: int = 8):
+        self.keep = keep
+        self._arenas: list[np.ndarray] = []
+        self._busy: set[int] = set()
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_Arenas, (self.keep,))  # another process starts with none
+
+    def take(self, nbytes: int) -> torch.Tensor:
+        """A uint8 tensor of ``nbytes``; its memory is reused only once it and all tensors and
+        arrays viewing it are freed."""
+        free = [i for i in range(len(self._arenas)) if i not in self._busy]
+        fits = [i for i in free if self._arenas[i].nbytes >= nbytes]
+        if fits:
+            index = min(fits, key=lambda i: self._arenas[i].nbytes)
+        elif len(self._arenas) < self.keep:
+            index = len(self._arenas)
+            self._arenas.append(np.empty(nbytes, np.uint8))
+        elif free:  # all kept ones too small: replace one
+            index = free[0]
+            self._arenas[index] = np.empty(nbytes, np.uint8)
+        else:
+            return torch.from_numpy(np.empty(nbytes, np.uint8))
+        self._busy.add(index)
+        use = self._arenas[index][:nbytes]  # torch holds this very array: its death frees the arena
+        weakref.finalize(use, self._busy.discard, index).atexit = False
+        return torch.from_numpy(use)
+
+
+def _decode_maps(
+    cf: Mapping[str, pa.Array], names: list[str], jobs: list[_MapJob], arenas: _Arenas
+) -> dict[str, Any]:
     """Decodes every job's map of every camera straight into its output.
 
     When all cameras share a size, each job's maps form one [C, (channels,) H, W] tensor and all
-    jobs' tensors are carved out of a single allocation: its size repeats frame after frame, so
-    malloc recycles it, where separate arrays made the kernel zero fresh pages for every frame
-    (measured: a third of the loader's time). Cameras of different sizes give lists of tensors.
+    jobs' tensors are carved out of a single allocation, taken from ``arenas``: separate arrays
+    made the kernel zero fresh pages for every frame (measured: a third of the loader's time).
+    Cameras of different sizes give lists of tensors.
     """
     sizes = list(zip(cf["height"].to_pylist(), cf["width"].to_pylist(), strict=True))
     uniform = all(size == sizes[0] for size in sizes)
@@ -158,23 +242,24 @@ def _decode_maps(cf: dict[str, pa.Array], names: list[str], jobs: list[_MapJob])
         return () if job.channels is None else (job.channels,)
 
     if uniform:
-        shapes = [((len(names), *lead(j), *sizes[0]), np.dtype(j.dtype)) for j in jobs]
-        nbytes = [(int(np.prod(shape)) * dt.itemsize + 63) // 64 * 64 for shape, dt in shapes]
-        arena = np.empty(sum(nbytes), np.uint8)
-        offsets = np.concatenate([[0], np.cumsum(nbytes)[:-1]]).astype(int)
+        shapes = [(len(names), *lead(j), *sizes[0]) for j in jobs]
+        dtypes = [_TORCH_DTYPES[np.dtype(j.dtype)] for j in jobs]
+        nbytes = [math.prod(shape) * dt.itemsize for shape, dt in zip(shapes, dtypes, strict=True)]
+        offsets = [0]
+        for n in nbytes:
+            offsets.append(offsets[-1] + (n + 63) // 64 * 64)
+        arena = arenas.take(offsets[-1])
     out: dict[str, Any] = {}
     for k, job in enumerate(jobs):
-        views = [_bytes_view(cf[job.column], i) for i in range(len(names))]
+        views = _binary_views(cf[job.column])
         if any(v is None for v in views):
             if job.required:
                 raise ValueError(f"camera {names[views.index(None)]} has no {job.column}")
             continue
         if uniform:
-            shape, dt = shapes[k]
-            stacked = (
-                arena[offsets[k] : offsets[k] + int(np.prod(shape)) * dt.itemsize].view(dt).reshape(shape)
-            )
-            outputs = list(stacked)
+            # torch views keep the arena's storage, and numpy views of them the tensor, alive
+            stacked = arena[offsets[k] : offsets[k] + nbytes[k]].view(dtypes[k]).view(shapes[k])
+            outputs = list(stacked.numpy())
         else:
             outputs = [np.empty((*lead(job), *size), job.dtype) for size in sizes]
         for name, data, target in zip(names, views, outputs, strict=True):
@@ -182,8 +267,15 @@ def _decode_maps(cf: dict[str, pa.Array], names: list[str], jobs: list[_MapJob])
                 job.decode(data, target)
             except ValueError as e:  # wrong size or type: name the camera
                 raise ValueError(f"camera {name}: {e}") from e
-        out[job.key] = torch.from_numpy(stacked) if uniform else [torch.from_numpy(o) for o in outputs]
+        out[job.key] = stacked if uniform else [torch.from_numpy(o) for o in outputs]
     return out
+
+
+_TORCH_DTYPES = {
+    np.dtype(np.uint8): torch.uint8,
+    np.dtype(np.int32): torch.int32,
+    np.dtype(np.float32): torch.float32,
+}
 
 
 def _flat(arr: pa.Array) -> np.ndarray:
@@ -208,6 +300,13 @@ class FrameDataset(Dataset):
             raise ValueError(f"unknown field groups {sorted(unknown)}; choose from {groups}")
         self.reader = CacheReader(cache_dir, check_crc=check_crc)
         self.fields = tuple(fields)
+        self._map_jobs = (
+            ([_IMAGE_JOB] if "images" in self.fields else [])
+            + (list(_TRUTH_JOBS) if "truth" in self.fields else [])
+            + (list(_DEPTH_JOBS) if "depth" in self.fields else [])
+            + (list(_PSEUDO_JOBS) if "pseudo" in self.fields else [])
+        )
+        self._arenas = _Arenas()
 
     def __len__(self) -> int:
         return len(self.reader)
@@ -237,17 +336,11 @@ class FrameDataset(Dataset):
             "frame_timestamp_micros": batch.column("frame_timestamp_micros")[0].as_py(),
             "world_from_ego": torch.from_numpy(_flat(batch.column("world_from_ego")).reshape(4, 4).copy()),
         }
-        cf = cameras_of(batch)
+        cf = _CameraFields(batch)
         n_cam = len(cf["camera_name"])
         names = cf["camera_name"].to_pylist()
         out["camera_names"] = names
-        jobs = (
-            ([_IMAGE_JOB] if "images" in self.fields else [])
-            + (list(_TRUTH_JOBS) if "truth" in self.fields else [])
-            + (list(_DEPTH_JOBS) if "depth" in self.fields else [])
-            + (list(_PSEUDO_JOBS) if "pseudo" in self.fields else [])
-        )
-        out.update(_decode_maps(cf, names, jobs))
+        out.update(_decode_maps(cf, names, self._map_jobs, self._arenas))
         if "cameras" in self.fields:
             out["intrinsics"] = torch.from_numpy(
                 _flat(cf["intrinsics"]).reshape(n_cam, 3, 3).astype(np.float32)
@@ -276,7 +369,7 @@ class FrameDataset(Dataset):
             if "truth_instance" in lf and lf["truth_instance"][0].is_valid:
                 out["lidar_truth_instance"] = torch.from_numpy(_flat(lf["truth_instance"]).astype(np.int32))
         if "range_view" in self.fields:
-            out.update(range_view_sample(batch, cf, out))
+            out.update(range_view_sample(batch, cameras_of(batch), out))
         if "lidar_range_image" in self.fields:
             out.update(lidar_range_sample(batch))
         if "boxes" in self.fields:
@@ -299,43 +392,95 @@ class FrameDataset(Dataset):
 
 def collate_frames(samples: list[dict[str, Any]]) -> FrameBatch:
     """Batches samples: tensors of equal shape are stacked (new dim 0), numbers become tensors,
-    everything else (variable-size LiDAR and boxes, per-camera lists, strings) is a list."""
-    out = FrameBatch()
+    everything else (variable-size LiDAR and boxes, per-camera lists, strings) is a list.
+
+    In a DataLoader worker every tensor of the batch is built straight in a pooled shared-memory
+    segment, which then travels to the main process without a copy (see :class:`FrameBatch`)."""
+    plan: list[tuple[str, str, Any]] = []
     for key in samples[0]:
         values = [s[key] for s in samples]
         if all(isinstance(v, torch.Tensor) for v in values) and all(
+            v.shape == values[0].shape and v.dtype == values[0].dtype for v in values
+        ):
+            plan.append((key, "stack", values))
+        elif all(isinstance(v, (int, float)) for v in values):
+            plan.append((key, "tensor", torch.tensor(values)))
+        elif all(isinstance(v, torch.Tensor) for v in values) and all(
             v.shape == values[0].shape for v in values
         ):
-            out[key] = values[0].unsqueeze(0) if len(values) == 1 else torch.stack(values)
-        elif all(isinstance(v, (int, float)) for v in values):
-            out[key] = torch.tensor(values)
+            plan.append((key, "tensor", torch.stack(values)))  # mixed dtypes: torch promotes
         else:
-            out[key] = values
+            plan.append((key, "list", values))
+    buffer = None
+    if batch_pool.worker_pool() is not None:
+        shapes: list[tuple[tuple[int, ...], torch.dtype]] = []
+        for _, kind, value in plan:
+            if kind == "stack":
+                shapes.append(((len(value), *value[0].shape), value[0].dtype))
+            elif kind == "tensor":
+                shapes.append((tuple(value.shape), value.dtype))
+            else:
+                shapes += [(tuple(t.shape), t.dtype) for t in _tensors_in(value)]
+        specs, total = batch_pool.layout(shapes)
+        buffer = batch_pool.allocate(total)
+    out = FrameBatch()
+    if buffer is None:
+        for key, kind, value in plan:
+            if kind == "stack":
+                out[key] = value[0].unsqueeze(0) if len(value) == 1 else torch.stack(value)
+            else:
+                out[key] = value
+        return out
+    views = iter(batch_pool.views(buffer, specs))
+    for key, kind, value in plan:
+        if kind == "stack":
+            out[key] = torch.stack(value, out=next(views))
+        elif kind == "tensor":
+            out[key] = next(views).copy_(value)
+        else:
+            out[key] = _copied_into(value, views)
     return out
+
+
+def _tensors_in(obj: Any) -> list[torch.Tensor]:
+    """The tensors inside nested lists and dicts, in the order :func:`_replace_tensors` meets them."""
+    if isinstance(obj, torch.Tensor):
+        return [obj]
+    if isinstance(obj, (list, dict)):
+        return [t for v in (obj.values() if isinstance(obj, dict) else obj) for t in _tensors_in(v)]
+    return []
+
+
+def _copied_into(obj: Any, views: Iterator[torch.Tensor]) -> Any:
+    """``obj`` (nested lists and dicts) with each tensor replaced by a copy in the next of ``views``."""
+    if isinstance(obj, torch.Tensor):
+        return next(views).copy_(obj)
+    if isinstance(obj, dict):
+        return {k: _copied_into(v, views) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_copied_into(v, views) for v in obj]
+    return obj
 
 
 class FrameBatch(dict):
     """A batch from :func:`collate_frames`: a plain dict in use.
 
     When a DataLoader worker sends it to the main process, all its tensors travel packed in one
-    shared-memory buffer and come back as views of it. torch otherwise shares every tensor through
-    its own segment and file descriptor, which costs more than decoding a frame's images.
+    shared-memory buffer and come back as views of it: torch otherwise shares every tensor through
+    its own segment and file descriptor, which costs more than decoding a frame's images. The
+    buffer is one of a few segments each worker reuses (:mod:`phigenesis.data.batch_pool`); the
+    segment goes back to its worker only once every tensor of the batch has been freed, so a batch
+    may be held as long as wanted.
     """
 
     def __reduce__(self) -> tuple[Any, ...]:
         tensors: list[torch.Tensor] = []
         skeleton = _replace_tensors(dict(self), tensors)
-        specs, total = [], 0
-        for t in tensors:
-            nbytes = t.numel() * t.element_size()
-            specs.append((total, t.dtype, tuple(t.shape)))
-            total += (nbytes + 63) // 64 * 64
-        buffer = torch.empty(total, dtype=torch.uint8)
-        if torch.utils.data.get_worker_info() is not None:
-            buffer.share_memory_()
-        for (offset, dtype, shape), t in zip(specs, tensors, strict=True):
-            buffer[offset : offset + t.numel() * t.element_size()].view(dtype).view(shape).copy_(t)
-        return (_rebuild_batch, (buffer, specs, skeleton))
+        rebuild, args = batch_pool.pack(tensors)
+        return (_rebuild_batch, (skeleton, rebuild, args))
+
+    def __copy__(self) -> FrameBatch:
+        return FrameBatch(self)  # what pin_memory copies: the same tensors, not a repacked buffer
 
 
 class _Slot(int):
@@ -363,11 +508,5 @@ def _fill_tensors(obj: Any, views: list[torch.Tensor]) -> Any:
     return obj
 
 
-def _rebuild_batch(
-    buffer: torch.Tensor, specs: list[tuple[int, torch.dtype, tuple[int, ...]]], skeleton: dict
-) -> FrameBatch:
-    views = []
-    for offset, dtype, shape in specs:
-        nbytes = int(np.prod(shape, dtype=np.int64)) * torch.empty(0, dtype=dtype).element_size()
-        views.append(buffer[offset : offset + nbytes].view(dtype).view(shape))
-    return FrameBatch(_fill_tensors(skeleton, views))
+def _rebuild_batch(skeleton: dict, rebuild: Callable[..., list[torch.Tensor]], args: tuple) -> FrameBatch:
+    return FrameBatch(_fill_tensors(skeleton, rebuild(*args)))

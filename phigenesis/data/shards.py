@@ -12,7 +12,8 @@ where it ends, where its body starts, the CRC-32 of its metadata and the CRC-32 
 column's bytes, plus the CRC-32 of the file footer. The reader checks a shard's size and footer
 when it opens it, and a row's metadata and the columns it returns when it reads the row: a flipped
 byte in anything a caller reads raises an error naming the shard, row and column, and reading only
-the images of a frame never hashes its LiDAR. :func:`verify_cache` re-hashes everything.
+the images of a frame never hashes its LiDAR. :func:`verify_cache` re-hashes everything. The
+writer computes all of these from the bytes as it writes them, never reading a shard back.
 
 Trust: a manifest is untrusted input. :meth:`Manifest.load` checks it against the cache's schema
 once (every field's type and range, the row index's shape, scenes and shards agreeing with each
@@ -29,12 +30,14 @@ file and the system's reason.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import hashlib
 import json
 import os
+import sys
 import uuid
 import zlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -178,6 +181,119 @@ def column_ranges(batch: pa.RecordBatch, base_address: int) -> list[tuple[int, i
     return [column_range(c, base_address) for c in batch.columns]
 
 
+#: The bytes an Arrow IPC file starts with ("ARROW1" and two bytes of padding), before its schema.
+_IPC_FILE_MAGIC = b"ARROW1\x00\x00"
+
+
+def _writeback_starter() -> Callable[[int, int, int], object] | None:
+    """Linux's ``sync_file_range(fd, offset, nbytes, SYNC_FILE_RANGE_WRITE)``, or None where the C
+    library has none: it starts writing a file range to disk without waiting for it."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        function = libc.sync_file_range
+    except (OSError, AttributeError):
+        return None
+    function.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint]
+    function.restype = ctypes.c_int
+    return lambda fd, offset, nbytes: function(fd, offset, nbytes, 2)  # SYNC_FILE_RANGE_WRITE = 2
+
+
+_start_writeback = _writeback_starter()
+
+
+class _HashingSink:
+    """The sink a shard's IPC writer writes into: it holds what the writer writes until
+    :meth:`take` passes it on to the file and to the file's SHA-256 (in file order), and returns
+    it for indexing. The writer takes each row as soon as ``write_batch`` returns, and the footer
+    at the end, so the shard's hashes are computed from the bytes as they are written and nothing
+    is read back. The buffer is reused from row to row (fresh pages for every row would cost the
+    kernel's zeroing of them)."""
+
+    def __init__(self, file: Any):
+        self._file = file
+        # Each row is handed to the disk as it is written (where the system allows), so that the
+        # fsync that completes the shard does not wait for all of it (it cost 2.5-3 ms a frame).
+        fileno = getattr(file, "fileno", None)
+        self._fd: int | None = fileno() if fileno is not None and _start_writeback is not None else None
+        self.sha256 = hashlib.sha256()
+        #: Bytes passed on to the file so far.
+        self.flushed = 0
+        self._buffer = bytearray(1 << 20)
+        self._view = memoryview(self._buffer)
+        self._held = 0
+        self._closed = False
+
+    def write(self, data: Any) -> int:
+        chunk = memoryview(data).cast("B")
+        end = self._held + len(chunk)
+        if end > len(self._buffer):
+            grown = bytearray(max(end, 2 * len(self._buffer)))
+            grown[: self._held] = self._view[: self._held]
+            self._buffer, self._view = grown, memoryview(grown)
+        self._view[self._held : end] = chunk
+        self._held = end
+        return len(chunk)
+
+    def take(self) -> memoryview:
+        """What was written since the last call (valid until the next write), after writing it to
+        the file and adding it to the SHA-256."""
+        data = self._view[: self._held]
+        self._file.write(data)
+        if self._fd is not None and _start_writeback is not None:
+            _start_writeback(self._fd, self.flushed, self._held)  # advisory: the fsync checks the write
+        self.sha256.update(data)
+        self.flushed += self._held
+        self._held = 0
+        return data
+
+    def tell(self) -> int:
+        return self.flushed + self._held
+
+    def flush(self) -> None:
+        """Nothing to do: rows reach the file through :meth:`take`."""
+
+    def writable(self) -> bool:
+        return True
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        """Closes the file; bytes not taken are dropped (the writer takes everything it keeps)."""
+        self._closed = True
+        self._file.close()
+
+
+def _row_entry(row: memoryview, start: int, schema: pa.Schema, where: str) -> list[int]:
+    """The row index entry ``[end, body_start, metadata_crc32, crc32 of each column...]`` of one
+    record batch, from the bytes the IPC writer wrote for it (``row``, starting at file offset
+    ``start``; row 0 also holds the file's magic and schema).
+
+    The batch is decoded zero-copy from ``row``, so each column's byte range is the span of its
+    buffers' addresses, as :func:`shard_info` finds them in a finished file."""
+    buffer = pa.py_buffer(row)
+    skip = 0
+    if start == 0:
+        if bytes(row[: len(_IPC_FILE_MAGIC)]) != _IPC_FILE_MAGIC:
+            raise CacheError(f"{where}: the IPC writer did not start the file with Arrow's magic bytes")
+        skip = len(_IPC_FILE_MAGIC)
+    messages = pa.ipc.MessageReader.open_stream(buffer.slice(skip))
+    message = messages.read_next_message()
+    while message.type != "record batch":
+        message = messages.read_next_message()
+    ranges = column_ranges(pa.ipc.read_record_batch(message, schema), buffer.address)
+    end = len(row)
+    body_start = min((lo for lo, hi in ranges if hi > lo), default=end)
+    if not all(0 <= lo <= hi <= end for lo, hi in ranges if hi > lo):
+        raise CacheError(f"{where}: a row's buffers lie outside its record batch; cannot index it")
+    return [start + end, start + body_start, zlib.crc32(row[:body_start])] + [
+        zlib.crc32(row[lo:hi]) for lo, hi in ranges
+    ]
+
+
 class ShardWriter:
     """Writes one scene's rows into Arrow IPC shards of bounded size, atomically.
 
@@ -185,6 +301,10 @@ class ShardWriter:
     exceeds ``max_bytes``. Each shard is renamed to its final name only when complete; the list of
     complete shards comes back from :meth:`close`. Use as a context manager: on an exception the
     unfinished temporary file is removed.
+
+    The manifest's hashes of a shard (its SHA-256, each row's metadata and column CRC-32s, the
+    footer's) are computed from the bytes as they are written (:class:`_HashingSink`): the same
+    values :func:`shard_info` computes by reading the finished file back.
     """
 
     def __init__(
@@ -195,10 +315,10 @@ class ShardWriter:
         self.schema = schema
         self.max_bytes = int(max_bytes)
         self.shards: list[ShardInfo] = []
-        self._sink: pa.NativeFile | None = None
+        self._sink: _HashingSink | None = None
         self._writer: pa.ipc.RecordBatchFileWriter | None = None
         self._tmp: Path | None = None
-        self._ends: list[int] = []
+        self._row_index: list[list[int]] = []
         shard_dir = self.cache_dir / SHARDS_DIR
         try:
             shard_dir.mkdir(parents=True, exist_ok=True)
@@ -229,8 +349,10 @@ class ShardWriter:
                 self._open_shard()
             assert self._writer is not None and self._sink is not None
             self._writer.write_batch(batch)
-            self._ends.append(self._sink.tell())
-            if self._ends[-1] >= self.max_bytes:
+            start = self._sink.flushed
+            row = self._sink.take()
+            self._row_index.append(_row_entry(row, start, self.schema, str(self._tmp)))
+            if self._row_index[-1][0] >= self.max_bytes:
                 self._finish_shard()
         except OSError as e:
             raise self._write_failed(e) from e
@@ -238,22 +360,34 @@ class ShardWriter:
     def _open_shard(self) -> None:
         final = self._final_path(len(self.shards))
         self._tmp = final.with_name(f"{final.name}{TMP_MARKER}{uuid.uuid4().hex[:8]}")
-        self._sink = pa.OSFile(str(self._tmp), "wb")
+        self._sink = _HashingSink(pa.OSFile(str(self._tmp), "wb"))
         self._writer = pa.ipc.new_file(self._sink, self.schema)
-        self._ends = []
+        self._row_index = []
 
     def _finish_shard(self) -> None:
         assert self._writer is not None and self._sink is not None and self._tmp is not None
         self._writer.close()
+        footer_crc32 = zlib.crc32(self._sink.take())  # from the last row's end to the end of the file
+        size, sha256 = self._sink.flushed, self._sink.sha256.hexdigest()
         self._sink.close()
         with open(self._tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         final = self._final_path(len(self.shards))
-        info = shard_info(self._tmp, self.scene_id, self._ends)
+        rows = self._row_index
         os.replace(self._tmp, final)
         fsync_dir(final.parent)
-        info.path = final.relative_to(self.cache_dir).as_posix()
-        self.shards.append(info)
+        self.shards.append(
+            ShardInfo(
+                path=final.relative_to(self.cache_dir).as_posix(),
+                scene_id=self.scene_id,
+                rows=len(rows),
+                bytes=size,
+                sha256=sha256,
+                columns=list(self.schema.names),
+                row_index=rows,
+                footer_crc32=footer_crc32,
+            )
+        )
         self._writer = self._sink = self._tmp = None
 
     def _write_failed(self, error: OSError) -> CacheWriteError:
@@ -285,7 +419,8 @@ class ShardWriter:
 
 
 def shard_info(path: Path, scene_id: str, row_ends: list[int]) -> ShardInfo:
-    """Size, SHA-256 and the per-row, per-column CRC index of a finished shard file.
+    """Size, SHA-256 and the per-row, per-column CRC index of a finished shard file, read back
+    from disk: the reference the writer's hashes (computed as it writes) are tested against.
 
     ``row_ends`` are the file positions after each record batch, as the writer saw them.
     """

@@ -73,19 +73,20 @@ def inflate_matrix(compressed: bytes, what: str) -> bytes:
     Raises :class:`WaymoFormatError` naming ``what`` if the stream is not zlib, ends early, its
     data run declares more than the cap, or it inflates beyond it.
     """
-    inflater = zlib.decompressobj()
     try:
-        head = inflater.decompress(compressed, 16)
-        declared = _declared_data_bytes(head)
+        # The first bytes say how much data the matrix declares: refuse before inflating the rest.
+        declared = _declared_data_bytes(zlib.decompressobj().decompress(compressed, 16))
         if declared is not None and declared > MAX_MATRIX_BYTES:
             raise WaymoFormatError(
                 f"{what}: the matrix declares {declared} bytes of data, more than the {MAX_MATRIX_BYTES} "
                 "a range image can hold"
             )
-        rest = inflater.decompress(inflater.unconsumed_tail, MAX_MATRIX_BYTES - len(head) + 1)
+        # Then the whole stream again from its start, into one buffer (inflating the rest after
+        # the head would cost a copy of the matrix to join the two).
+        inflater = zlib.decompressobj()
+        data = inflater.decompress(compressed, MAX_MATRIX_BYTES + 1)
     except zlib.error as e:
         raise WaymoFormatError(f"{what}: range image does not decompress ({e})") from None
-    data = head + rest
     if len(data) > MAX_MATRIX_BYTES:
         raise WaymoFormatError(
             f"{what}: range image inflates beyond {MAX_MATRIX_BYTES} bytes from {len(compressed)} "

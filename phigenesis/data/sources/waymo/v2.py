@@ -6,11 +6,12 @@ into and write from the records of :mod:`.raw`, which keep Waymo's own frames an
 ``target_from_source`` transforms, ``global`` = Waymo's world frame, ``vehicle`` = Waymo's ego frame,
 metres, radians, seconds since the epoch for camera times and microseconds for frame timestamps.
 
-Reading is frame by frame: :class:`V2Segment` indexes the timestamp column of each component once,
-then reads only the row groups that hold the requested frame (the most recent ones are kept), so a
-sequential pass reads each row group once. Real files differ from the declared schema; the reader
-accepts float32 or float64 transforms (fixed-size or plain lists) and camera / LiDAR names stored as
-integer codes or as strings such as ``"FRONT"``.
+Reading is frame by frame: :class:`V2Segment` indexes the timestamp column of each component once
+(which file rows hold each frame), then decodes each component a frame's rows at a time
+(``ParquetFile.iter_batches``), so memory holds about one frame, not a row group (10 frames of
+range images are 244 MiB in Arrow), and a pass in file order decodes each row once. Real files
+differ from the declared schema; the reader accepts float32 or float64 transforms (fixed-size or
+plain lists) and camera / LiDAR names stored as integer codes or as strings such as ``"FRONT"``.
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ from __future__ import annotations
 import math
 import os
 import uuid
-from collections import Counter, OrderedDict
-from collections.abc import Callable, Sequence
+from collections import Counter
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -84,7 +85,9 @@ _OBJ = "key.laser_object_id"
 _INTRINSICS = ("f_u", "f_v", "c_u", "c_v", "k1", "k2", "p1", "p2", "k3")
 _XYZ = ("x", "y", "z")
 _MAPPING = "instance_id_to_global_id_mapping"
-_CACHED_ROW_GROUPS = 2
+#: Read buffer of a component file, bytes: column chunks are read this much at a time.
+_READ_BUFFER_BYTES = 1 << 20
+_R = TypeVar("_R")
 
 
 def _c(tag: str, field: str) -> str:
@@ -293,7 +296,9 @@ def _row_name(table: pa.Table, row: int) -> str:
 
 
 def _column(table: pa.Table, name: str) -> pa.Array:
-    col = table.column(name).combine_chunks()
+    chunked = table.column(name)
+    # combine_chunks copies even a single chunk (a frame's range images: ~20 MB).
+    col = chunked.chunk(0) if chunked.num_chunks == 1 else chunked.combine_chunks()
     return pc.dictionary_decode(col) if pa.types.is_dictionary(col.type) else col
 
 
@@ -433,13 +438,63 @@ def _range_images(
 # Reading
 
 
+class _RowStream:
+    """The rows of a component file in file order from the start of one row group on, decoded
+    a few at a time (``ParquetFile.iter_batches`` of ``batch_rows`` rows, one row group after the
+    other), so only the batch in hand is in memory."""
+
+    def __init__(self, file: _ComponentFile, group: int) -> None:
+        self.file = file
+        self.group = group
+        #: File row number of the first row of ``pending``.
+        self.position = int(file.group_starts[group])
+        self.pending: pa.RecordBatch | None = None
+        self._batches = self._decode(group)
+
+    def _decode(self, first_group: int) -> Iterator[pa.RecordBatch]:
+        f = self.file
+        for group in range(first_group, f.num_row_groups):
+            self.group = group
+            f.reads[(f.tag, group)] += 1
+            yield from f.file.iter_batches(
+                batch_size=f.batch_rows, row_groups=[group], columns=f.columns, use_threads=False
+            )
+
+    def take(self, positions: NDArray[np.int64]) -> list[pa.RecordBatch]:
+        """The rows at file row numbers ``positions`` (increasing, none before :attr:`position`),
+        in file order; the stream moves on to the row after the last of them."""
+        parts: list[pa.RecordBatch] = []
+        end = int(positions[-1]) + 1
+        while self.position < end:
+            if self.pending is None or self.pending.num_rows == 0:
+                self.pending = next(self._batches, None)
+                if self.pending is None:
+                    raise pa.ArrowInvalid(f"the file ends at row {self.position}, before row {end - 1}")
+            stop = min(self.position + self.pending.num_rows, end)
+            lo, hi = np.searchsorted(positions, [self.position, stop])
+            if hi > lo:
+                wanted = positions[lo:hi] - self.position
+                if wanted[-1] - wanted[0] + 1 == len(wanted):  # contiguous: a slice, no copy
+                    parts.append(self.pending.slice(int(wanted[0]), len(wanted)))
+                else:
+                    parts.append(self.pending.take(pa.array(wanted)))
+            rest = self.pending.num_rows - (stop - self.position)
+            # Drop a used-up batch at once: even an empty slice of it would keep its memory.
+            self.pending = self.pending.slice(stop - self.position) if rest else None
+            self.position = stop
+        return parts
+
+
 class _ComponentFile:
-    """One component file of one segment: its timestamp index and a small row-group cache."""
+    """One component file of one segment: where each frame's rows are, and a stream that decodes
+    the rows a frame at a time."""
 
     def __init__(self, tag: str, path: Path, reads: Counter[tuple[str, int]]) -> None:
         self.tag, self.path, self.reads = tag, path, reads
         try:
-            self.file = pq.ParquetFile(path)
+            # No pre-buffering and a small read buffer: a column chunk is read as it is decoded,
+            # not all at once (a LiDAR row group's range images are tens of MB even compressed).
+            self.file = pq.ParquetFile(path, pre_buffer=False, buffer_size=_READ_BUFFER_BYTES)
         except (pa.ArrowException, OSError) as e:
             raise WaymoFormatError(f"{path}: not a readable Parquet file ({e})") from e
         names = set(self.file.schema_arrow.names)
@@ -448,65 +503,67 @@ class _ComponentFile:
         if missing:
             raise WaymoFormatError(f"{path}: {tag} is missing column(s) {', '.join(missing)}")
         self.columns = required + [c for c in optional if c in names]
-        self._cache: OrderedDict[int, pa.Table] = OrderedDict()
-        self.index: dict[int, list[int]] = {} if tag in _STATIC else self._index_frames()
+        meta = self.file.metadata
+        #: File row number where each row group starts, then the file's number of rows.
+        self.group_starts = np.cumsum([0] + [meta.row_group(g).num_rows for g in range(meta.num_row_groups)])
+        self.index: dict[int, NDArray[np.int64]] = {} if tag in _STATIC else self._index_frames()
+        #: Rows per decoded batch: a frame's rows on average (5 per frame for the sensor components).
+        self.batch_rows = max(1, -(-meta.num_rows // max(1, len(self.index))))
+        self._stream: _RowStream | None = None
 
     @property
     def num_row_groups(self) -> int:
         return self.file.metadata.num_row_groups
 
-    def _index_frames(self) -> dict[int, list[int]]:
-        """Frame timestamp (us) -> the row groups holding its rows, from the key column alone."""
+    def _index_frames(self) -> dict[int, NDArray[np.int64]]:
+        """Frame timestamp (us) -> the file row numbers of its rows, from the key column alone."""
         column = self._read(lambda: self.file.read(columns=[_TS])).column(_TS)
         if column.null_count:
             raise WaymoFormatError(f"{self.path}: column {_TS} has null entries")
         if not pa.types.is_integer(column.type):
             raise WaymoFormatError(f"{self.path}: column {_TS} is {column.type}, not integer microseconds")
-        ts = column.to_numpy()
-        sizes = [self.file.metadata.row_group(i).num_rows for i in range(self.num_row_groups)]
-        groups = np.repeat(np.arange(len(sizes)), sizes)
-        pairs = np.unique(np.stack([ts.astype(np.int64), groups]), axis=1)
-        index: dict[int, list[int]] = {}
-        for t, g in pairs.T.tolist():
-            index.setdefault(t, []).append(g)
-        return index
+        ts = column.to_numpy().astype(np.int64)
+        order = np.argsort(ts, kind="stable")  # stable: each frame's row numbers stay increasing
+        keys, starts = np.unique(ts[order], return_index=True)
+        if not len(keys):
+            return {}
+        return dict(zip(keys.tolist(), np.split(order.astype(np.int64), starts[1:]), strict=True))
 
-    def _read(self, fn: Callable[[], pa.Table]) -> pa.Table:
+    def _read(self, fn: Callable[[], _R]) -> _R:
         try:
             return fn()
         except (pa.ArrowException, OSError) as e:
             raise WaymoFormatError(f"{self.path}: cannot read {self.tag} ({e})") from e
 
-    def _row_group(self, group: int) -> pa.Table:
-        if group in self._cache:
-            self._cache.move_to_end(group)
-            return self._cache[group]
-        table = self._read(lambda: self.file.read_row_group(group, columns=self.columns))
-        self.reads[(self.tag, group)] += 1
-        self._cache[group] = table
-        while len(self._cache) > _CACHED_ROW_GROUPS:
-            self._cache.popitem(last=False)
-        return table
+    def _group_of(self, row: int) -> int:
+        return int(np.searchsorted(self.group_starts, row, side="right")) - 1
 
     def rows(self, timestamp: int) -> pa.Table:
-        """The rows of frame ``timestamp`` (only the used columns), in file order."""
-        groups = self.index.get(timestamp, [])
-        if not groups:
+        """The rows of frame ``timestamp`` (only the used columns), in file order.
+
+        Read from the file's stream: frames asked for in file order decode each row once; a frame
+        behind the stream (or row groups ahead of it) restarts it at the frame's row group.
+        """
+        positions = self.index.get(timestamp)
+        if positions is None:
             return self.file.schema_arrow.empty_table().select(self.columns)
-        tables = [self._row_group(g) for g in groups]
-        table = pa.concat_tables(tables) if len(tables) > 1 else tables[0]
-        match = np.flatnonzero(
-            pc.equal(table.column(_TS), pa.scalar(timestamp, table.schema.field(_TS).type)).to_numpy(
-                zero_copy_only=False
-            )
-        )
-        if len(match) and match[-1] - match[0] + 1 == len(match):
-            return table.slice(int(match[0]), len(match))  # a frame's rows are contiguous: no copy
-        return table.take(pa.array(match))
+        first = int(positions[0])
+        stream = self._stream
+        if stream is None or stream.position > first or self._group_of(first) > stream.group:
+            stream = self._stream = _RowStream(self, self._group_of(first))
+        try:
+            parts = stream.take(positions)
+        except (pa.ArrowException, OSError) as e:
+            self._stream = None
+            raise WaymoFormatError(f"{self.path}: cannot read {self.tag} ({e})") from e
+        return pa.Table.from_batches(parts)
 
     def all_rows(self) -> pa.Table:
-        """Every row (for the per-segment calibration components)."""
-        tables = [self._row_group(g) for g in range(self.num_row_groups)]
+        """Every row (for the per-segment components: calibrations, the vehicle poses)."""
+        tables = []
+        for group in range(self.num_row_groups):
+            tables.append(self._read(lambda g=group: self.file.read_row_group(g, columns=self.columns)))
+            self.reads[(self.tag, group)] += 1
         if not tables:
             return self.file.schema_arrow.empty_table().select(self.columns)
         return pa.concat_tables(tables)
@@ -517,8 +574,9 @@ class V2Segment:
 
     Construction checks the root and the segment's component files (existence, Parquet footer,
     expected columns) and indexes the frame timestamps; :meth:`frame_keys` reads every frame's
-    pose (the vehicle_pose component, once) and :meth:`frame` then reads the row groups of one
-    frame. ``row_group_reads`` counts the row groups read, keyed by (component tag, group).
+    pose (the vehicle_pose component, once) and :meth:`frame` then decodes the rows of one frame
+    from each component's stream. ``row_group_reads`` counts how often each row group was started
+    (read whole, or streamed from its first row), keyed by (component tag, group).
 
     Errors name the component file and the frame timestamp (and the row's camera, LiDAR or
     object); a value that only spoils one camera's or one LiDAR's data is put in the raw frame's
@@ -698,9 +756,6 @@ def _mark_repeated(raw: RawFrame, calibrations: list[Any], part: str, path: Path
                 part, c.name, WaymoFormatError(f"{path}: sensor code {c.name} has two {part} rows")
             )
         seen.add(c.name)
-
-
-_R = TypeVar("_R")
 
 
 def _naming(file: _ComponentFile, ts: int | None, read: Callable[[], _R]) -> _R:
