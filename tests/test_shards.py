@@ -546,6 +546,20 @@ def test_dataset_checks_only_the_columns_it_reads_and_names_a_damaged_one(
     assert CacheReader(out).read(2, ["lidar", "boxes"]).num_columns == 2  # undamaged columns still read
 
 
+def test_a_reader_checks_each_row_and_column_once(tiny_cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    reader = CacheReader(tiny_cache)
+    reader.read(1, ["cameras"])  # opens the shard (footer) and checks row 1's metadata and cameras
+    calls: list[int] = []
+    real = shards.zlib.crc32
+    monkeypatch.setattr(shards.zlib, "crc32", lambda data, *a: calls.append(len(data)) or real(data, *a))
+    reader.read(1, ["cameras"])
+    assert calls == []  # already checked by this reader
+    reader.read(1, ["cameras", "lidar"])
+    assert len(calls) == 1  # only the new column
+    reader.read(2, ["cameras"])
+    assert len(calls) == 3  # a new row: its metadata and its column
+
+
 def test_rows_other_than_the_corrupt_one_still_read(
     corrupt_cache: tuple[Path, Path, int], tiny_cache: Path
 ) -> None:

@@ -702,7 +702,10 @@ class LidarSweep:
         bad = np.zeros(len(self.points_ego), bool)
         for name in ("points_ego", "origins_ego"):
             xyz = getattr(self, name)
-            bad |= ~(np.abs(xyz) <= MAX_POINT_DISTANCE_M).all(axis=1)  # NaN compares False
+            # One flat pass first (a NaN makes the maximum NaN, which compares False); the per-point
+            # mask only when something fails.
+            if not np.abs(xyz).max(initial=0.0) <= MAX_POINT_DISTANCE_M:
+                bad |= ~(np.abs(xyz) <= MAX_POINT_DISTANCE_M).all(axis=1)
         for name in ("intensity", "elongation"):
             value = getattr(self, name)
             if value is not None:

@@ -821,7 +821,13 @@ def _check_listing(file: Path, scenes: list[SceneEntry], shards: list[ShardInfo]
 
 
 class ShardReader:
-    """Random access to the rows of one shard, checking the manifest's CRCs of what it returns."""
+    """Random access to the rows of one shard, checking the manifest's CRCs of what it returns.
+
+    Each row's metadata and each column of a row is checked the first time this reader returns it
+    (its memory map stays the one it checked): a DataLoader that reads every frame once per epoch
+    pays for the CRCs in its first epoch only. A file damaged on disk is still refused on its first
+    read in every process; ``verify`` re-hashes everything.
+    """
 
     def __init__(self, cache_dir: Path, info: ShardInfo, check_crc: bool = True):
         self.info = info
@@ -849,6 +855,7 @@ class ShardReader:
                 f"{self.path}: holds {self._reader.num_record_batches} rows, the manifest says {info.rows}"
             )
         self._column_index = {name: i for i, name in enumerate(info.columns)}
+        self._checked: set[tuple[int, int]] = set()  # (row, column index; -1: metadata) seen intact
 
     def _check(self, start: int, end: int, expected: int, what: str) -> None:
         if zlib.crc32(self._view[start:end]) != expected:
@@ -867,8 +874,10 @@ class ShardReader:
         if unknown:
             raise KeyError(f"{self.path}: no columns {unknown}; it has {self.info.columns}")
         entry = self.info.row_index[row]
-        if self.check_crc:
+        checked = self._checked
+        if self.check_crc and (row, -1) not in checked:
             self._check(self.info.row_start(row), entry[1], entry[2], f"row {row} (metadata)")
+            checked.add((row, -1))
         try:
             batch = self._reader.get_batch(row)
         except (pa.ArrowInvalid, OSError) as e:
@@ -876,8 +885,11 @@ class ShardReader:
         if self.check_crc:
             for name in names:
                 k = self._column_index[name]
+                if (row, k) in checked:
+                    continue
                 lo, hi = column_range(batch.column(k), self._buffer.address)
                 self._check(lo, hi, entry[3 + k], f"row {row}, column {name!r}")
+                checked.add((row, k))
         return batch if columns is None else batch.select(names)
 
     @property
