@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import pytest
 
 from phigenesis.data.sources.synthetic import SyntheticConfig
 from phigenesis.data.sources.synthetic.rigs import LidarSpec
+
+# A suite started in the background of a non-interactive shell inherits SIGINT ignored, which Python
+# then leaves ignored (no KeyboardInterrupt) in itself and in every command it starts: the Ctrl-C
+# tests would fail for the launcher's sake. Restore Python's handler (children then get the default).
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 #: A LiDAR small enough for fast tests (16 beams x 256 columns).
 TINY_LIDAR = LidarSpec(beams=16, columns=256, sectors=8)
