@@ -321,7 +321,7 @@ def _rasterize_torch(
     max_batch_elements: int,
 ) -> RenderOutput:
     """The tiled pure-PyTorch backend."""
-    means = proj.means2d
+    device, dtype = proj.means2d.device, proj.means2d.dtype
     n, f = features.shape
     num_cams = proj.means2d.shape[0]
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
@@ -346,9 +346,9 @@ def _rasterize_torch(
         ty0, ty1 = i0[cam_idx, g_idx] // tile, i1[cam_idx, g_idx] // tile
         nx, ny = tx1 - tx0 + 1, ty1 - ty0 + 1
         counts = nx * ny  # (M,)
-        src = torch.repeat_interleave(torch.arange(cam_idx.numel(), device=means.device), counts)  # (I,)
+        src = torch.repeat_interleave(torch.arange(cam_idx.numel(), device=device), counts)  # (I,)
         first = torch.cumsum(counts, 0) - counts
-        k = torch.arange(src.numel(), device=means.device) - first[src]
+        k = torch.arange(src.numel(), device=device) - first[src]
         tile_id = (ty0[src] + k // nx[src]) * tiles_x + tx0[src] + k % nx[src]
         key = cam_idx[src] * num_tiles + tile_id  # (I,) global tile key
         order = torch.argsort(key, stable=True)  # stable: depth order kept inside a tile
@@ -357,11 +357,10 @@ def _rasterize_torch(
         tile_keys, tile_counts = torch.unique_consecutive(key, return_counts=True)
         tile_start = torch.cumsum(tile_counts, 0) - tile_counts
 
-    dtype = means.dtype
     feats_d = torch.cat([features.to(dtype)[None].expand(num_cams, n, f), proj.depths[..., None]], -1)
-    out = torch.zeros(num_cams * num_tiles, tile * tile, f + 1, dtype=dtype, device=means.device)
-    alpha_out = torch.zeros(num_cams * num_tiles, tile * tile, dtype=dtype, device=means.device)
-    local = torch.arange(tile * tile, device=means.device)
+    out = torch.zeros(num_cams * num_tiles, tile * tile, f + 1, dtype=dtype, device=device)
+    alpha_out = torch.zeros(num_cams * num_tiles, tile * tile, dtype=dtype, device=device)
+    local = torch.arange(tile * tile, device=device)
     need_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (proj.means2d, proj.conics, proj.depths, opacities, features)
     )
@@ -378,7 +377,7 @@ def _rasterize_torch(
 
     def gather(batch: Tensor, kmax: int, counts: Tensor) -> tuple[Tensor, ...]:
         with torch.no_grad():
-            slot = torch.arange(kmax, device=means.device)
+            slot = torch.arange(kmax, device=device)
             pad = slot[None] >= counts[batch, None]  # (B, K)
             index = torch.where(pad, torch.zeros((), dtype=torch.long), tile_start[batch, None] + slot)
             cams, gids = isect_cam[index], isect_g[index]  # (B, K)
@@ -477,7 +476,7 @@ def rasterize_reference(
         images.append(color)
         depths.append(depth / alpha_img.clamp(min=1e-10))
         alphas.append(alpha_img)
-    radii = torch.where(proj.valid[..., None], proj.radii, torch.zeros_like(proj.radii)).amax(-1).long()
+    radii = proj.radii.amax(-1).long()  # 0 where culled
     return RenderOutput(
         features=torch.stack(images), depth=torch.stack(depths), alpha=torch.stack(alphas), radii=radii
     )
@@ -523,7 +522,7 @@ def _rasterize_native(
 ) -> RenderOutput:
     """The native C++ backend (CPU tensors, float32 or float64)."""
     dtype = proj.means2d.dtype
-    radii = torch.where(proj.valid[..., None], proj.radii, torch.zeros_like(proj.radii)).to(torch.int32)
+    radii = proj.radii.to(torch.int32)  # 0 where culled
     feat, depth_sum, alpha = _NativeComposite.apply(
         proj.means2d.contiguous(),
         proj.conics.contiguous(),
