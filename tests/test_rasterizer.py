@@ -88,6 +88,36 @@ def test_tiled_render_matches_per_pixel_reference(n, seed, width, height, tile, 
     _assert_same(fast, ref)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_centres_per_camera_equal_one_render_per_camera(backend):
+    scene = _scene(50, 4)
+    cams, width, height = 3, 30, 20
+    poses, k = _cameras(cams), _intrinsics(cams, width, height, 30.0)
+    shift = torch.tensor([[0.0, 0.0, 0.0], [0.3, -0.1, 0.2], [-0.4, 0.2, 0.5]], dtype=F64)
+    per_camera = scene["means"][None] + shift[:, None]  # (C, N, 3)
+    rest = [scene[k_] for k_ in ("quats", "scales", "opacities")]
+    feats = scene["features"].clone().requires_grad_(True)
+    means = per_camera.clone().requires_grad_(True)
+    together = rasterize(means, *rest, feats, poses, k, width, height, backend=backend)
+    (together.features.sum() + together.depth.sum()).backward()
+    grads = means.grad.clone(), feats.grad.clone()
+    means.grad = feats.grad = None
+    for c in range(cams):
+        one = rasterize(
+            means[c], *rest, feats, poses[c : c + 1], k[c : c + 1], width, height, backend=backend
+        )
+        _assert_same(
+            RenderOutput(*(getattr(together, f)[c : c + 1] for f in ("features", "depth", "alpha", "radii"))),
+            one,
+            1e-12,
+        )
+        (one.features.sum() + one.depth.sum()).backward()
+    torch.testing.assert_close(means.grad, grads[0], atol=1e-10, rtol=1e-10)
+    torch.testing.assert_close(feats.grad, grads[1], atol=1e-10, rtol=1e-10)
+    with pytest.raises(AssertionError):
+        rasterize(per_camera[:2], *rest, scene["features"], poses, k, width, height, backend=backend)
+
+
 def test_tiled_render_matches_reference_in_float32_and_small_batches():
     scene = _scene(60, 2, dtype=torch.float32)
     args = (*scene.values(), _cameras(2, torch.float32), _intrinsics(2, 24, 20, 30.0, torch.float32), 24, 20)

@@ -32,6 +32,8 @@ class GaussianScene:
         dynamic: (N,) bool, whether the Gaussian belongs to something that moves.
         time_s: (N,) float32 reference time of each Gaussian, seconds after ``time_origin_micros``.
         time_origin_micros: the time origin (int64 microseconds).
+        depth_entropy: (N,) float32 entropy (nats) of the depth distribution each Gaussian's
+            pixel predicted (Stage 1's bins head; one of Stage 2's uncertainty maps), or None.
     """
 
     means: Tensor
@@ -44,6 +46,7 @@ class GaussianScene:
     dynamic: Tensor
     time_s: Tensor
     time_origin_micros: int = 0
+    depth_entropy: Tensor | None = None
 
     def __post_init__(self) -> None:
         n = self.means.shape[0]
@@ -57,6 +60,8 @@ class GaussianScene:
             "dynamic": (n,),
             "time_s": (n,),
         }
+        if self.depth_entropy is not None:
+            expected["depth_entropy"] = (n,)
         for name, shape in expected.items():
             if tuple(getattr(self, name).shape) != shape:
                 raise ValueError(
@@ -80,18 +85,20 @@ class GaussianScene:
         """(N, 3) centres at time ``t_s`` (seconds after the time origin), world frame, metres."""
         return self.means + self.velocity * (t_s - self.time_s)[:, None]
 
+    def tensors(self) -> dict[str, Tensor]:
+        """Every per-Gaussian tensor by field name (optional ones only when present)."""
+        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "time_origin_micros"}
+        return {k: v for k, v in values.items() if v is not None}
+
     def select(self, mask: Tensor) -> GaussianScene:
         """The Gaussians where ``mask`` (N,) bool is true (or at the given indices)."""
-        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "time_origin_micros"}
-        return replace(self, **{k: v[mask] for k, v in values.items()})
+        return replace(self, **{k: v[mask] for k, v in self.tensors().items()})
 
     def detach(self) -> GaussianScene:
-        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "time_origin_micros"}
-        return replace(self, **{k: v.detach() for k, v in values.items()})
+        return replace(self, **{k: v.detach() for k, v in self.tensors().items()})
 
     def to(self, device: str | torch.device) -> GaussianScene:
-        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "time_origin_micros"}
-        return replace(self, **{k: v.to(device) for k, v in values.items()})
+        return replace(self, **{k: v.to(device) for k, v in self.tensors().items()})
 
     @staticmethod
     def concatenate(scenes: list[GaussianScene]) -> GaussianScene:
@@ -99,11 +106,10 @@ class GaussianScene:
         origins = {s.time_origin_micros for s in scenes}
         if len(origins) != 1:
             raise ValueError(f"GaussianScene.concatenate: different time origins {sorted(origins)}")
-        values = {
-            f.name: torch.cat([getattr(s, f.name) for s in scenes])
-            for f in fields(GaussianScene)
-            if f.name != "time_origin_micros"
-        }
+        names = {tuple(s.tensors()) for s in scenes}
+        if len(names) != 1:
+            raise ValueError("GaussianScene.concatenate: some scenes have a depth_entropy and others not")
+        values = {name: torch.cat([s.tensors()[name] for s in scenes]) for name in names.pop()}
         return GaussianScene(**values, time_origin_micros=origins.pop())
 
     def render(
@@ -116,6 +122,7 @@ class GaussianScene:
         *,
         semantics: bool = False,
         motion: bool = False,
+        entropy: bool = False,
         near: float = 0.2,
         backend: str = "auto",
     ) -> SceneRender:
@@ -127,44 +134,41 @@ class GaussianScene:
             t_s: render time, seconds after the time origin: one for all cameras, or (C,) one per camera.
             semantics: also composite class probabilities (softmax of the logits).
             motion: also composite the velocities (a flow map, m/s, world frame).
+            entropy: also render the depth entropy (needs ``depth_entropy``).
         """
         feats = [self.colors]
         if semantics:
             feats.append(torch.softmax(self.semantic_logits, dim=-1))
         if motion:
             feats.append(self.velocity)
+        if entropy:
+            if self.depth_entropy is None:
+                raise ValueError("GaussianScene.render(entropy=True): this scene has no depth_entropy")
+            feats.append(self.depth_entropy[:, None])
         features = torch.cat(feats, dim=-1)
         dtype = self.means.dtype
         times = torch.as_tensor(t_s, dtype=torch.float64).reshape(-1).expand(world_from_camera.shape[0])
-        outs = []
-        # Cameras of one rig fire at different times (a rolling rig): one pass per distinct time.
-        for t in torch.unique(times):
-            cams = torch.nonzero(times == t)[:, 0]
-            out = rasterize(
-                self.means_at(float(t)),
-                self.quats,
-                self.scales,
-                self.opacities,
-                features,
-                world_from_camera[cams].to(dtype),
-                intrinsics[cams].to(dtype),
-                width,
-                height,
-                near=near,
-                backend=backend,  # type: ignore[arg-type]
-            )
-            outs.append((cams, out))
-        if len(outs) == 1:
-            out = outs[0][1]
+        # Cameras of one rig fire at different times (a rolling rig): one set of centres per
+        # distinct time, all cameras in one pass.
+        distinct, which = torch.unique(times, return_inverse=True)
+        if len(distinct) == 1:
+            means = self.means_at(float(distinct[0]))
         else:
-            order = torch.argsort(torch.cat([c for c, _ in outs]))
-            out = RenderOutput(
-                features=torch.cat([o.features for _, o in outs])[order],
-                depth=torch.cat([o.depth for _, o in outs])[order],
-                alpha=torch.cat([o.alpha for _, o in outs])[order],
-                radii=torch.cat([o.radii for _, o in outs])[order],
-            )
-        return SceneRender.split(out, self.num_classes if semantics else 0, motion)
+            means = torch.stack([self.means_at(float(t)) for t in distinct])[which]  # (C, N, 3)
+        out = rasterize(
+            means,
+            self.quats,
+            self.scales,
+            self.opacities,
+            features,
+            world_from_camera.to(dtype),
+            intrinsics.to(dtype),
+            width,
+            height,
+            near=near,
+            backend=backend,  # type: ignore[arg-type]
+        )
+        return SceneRender.split(out, self.num_classes if semantics else 0, motion, entropy)
 
 
 @dataclass(frozen=True)
@@ -176,10 +180,25 @@ class SceneRender:
     alpha: Tensor  # (C, H, W) accumulated opacity
     semantic_probs: Tensor | None  # (C, H, W, K) premultiplied class probabilities, if asked for
     velocity: Tensor | None  # (C, H, W, 3) premultiplied velocity, m/s, if asked for
+    #: (C, H, W) depth entropy (nats) of what the pixel sees, ``sum w_i e_i / sum w_i`` as the depth
+    #: is (not premultiplied; 0 where alpha is 0), if asked for.
+    depth_entropy: Tensor | None = None
 
     @staticmethod
-    def split(out: RenderOutput, num_classes: int, motion: bool) -> SceneRender:
+    def split(out: RenderOutput, num_classes: int, motion: bool, entropy: bool = False) -> SceneRender:
         f = out.features
         sem = f[..., 3 : 3 + num_classes] if num_classes else None
-        vel = f[..., 3 + num_classes : 6 + num_classes] if motion else None
-        return SceneRender(rgb=f[..., :3], depth=out.depth, alpha=out.alpha, semantic_probs=sem, velocity=vel)
+        end = 3 + num_classes + (3 if motion else 0)
+        vel = f[..., 3 + num_classes : end] if motion else None
+        ent = None
+        if entropy:
+            covered = out.alpha > 0
+            ent = torch.where(covered, f[..., end] / out.alpha.clamp(min=1e-12), torch.zeros_like(out.alpha))
+        return SceneRender(
+            rgb=f[..., :3],
+            depth=out.depth,
+            alpha=out.alpha,
+            semantic_probs=sem,
+            velocity=vel,
+            depth_entropy=ent,
+        )

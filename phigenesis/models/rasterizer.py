@@ -120,16 +120,19 @@ def project_gaussians(
 ) -> Projection:
     """EWA projection of N Gaussians into C pinhole cameras (shared by every backend).
 
-    ``opacities`` (N,) set each box's opacity-aware extent and cull those below 1/255; without them
-    the extent is :data:`GAUSSIAN_EXTEND` (gsplat's pure-PyTorch projection).
+    ``means`` is (N, 3), or (C, N, 3) for a centre per camera (a moving scene seen by cameras that
+    fire at different times). ``opacities`` (N,) set each box's opacity-aware extent and cull
+    those below 1/255; without them the extent is :data:`GAUSSIAN_EXTEND` (gsplat's pure-PyTorch
+    projection).
     """
-    n = means.shape[0]
+    n = means.shape[-2]
     rot = quaternion_to_rotation(quats)  # (N, 3, 3)
     m = rot * scales.clamp(min=-MAX_SCALE, max=MAX_SCALE)[:, None, :]  # (N, 3, 3) = R diag(s)
     r_wc = world_from_camera[:, :3, :3]  # (C, 3, 3)
     t_wc = world_from_camera[:, :3, 3]  # (C, 3)
     r_cw = r_wc.transpose(1, 2)  # rigid inverse
-    means_c = torch.einsum("cij,nj->cni", r_cw, means) - torch.einsum("cij,cj->ci", r_cw, t_wc)[:, None]
+    rotated = torch.einsum("cij,nj->cni" if means.ndim == 2 else "cij,cnj->cni", r_cw, means)
+    means_c = rotated - torch.einsum("cij,cj->ci", r_cw, t_wc)[:, None]
     x, y, z = means_c.unbind(-1)  # (C, N)
     valid = z > near
     z_safe = torch.where(valid, z, torch.ones_like(z))  # keeps culled Gaussians free of inf and nan grads
@@ -187,13 +190,13 @@ def project_gaussians(
 
 
 def _check_inputs(means, quats, scales, opacities, features, world_from_camera, intrinsics) -> None:
-    n = means.shape[0]
-    assert means.shape == (n, 3), means.shape
+    n = means.shape[-2]
+    c = world_from_camera.shape[0]
+    assert means.shape in ((n, 3), (c, n, 3)), means.shape
     assert quats.shape == (n, 4), quats.shape
     assert scales.shape == (n, 3), scales.shape
     assert opacities.shape == (n,), opacities.shape
     assert features.ndim == 2 and features.shape[0] == n, features.shape
-    c = world_from_camera.shape[0]
     assert world_from_camera.shape == (c, 4, 4), world_from_camera.shape
     assert intrinsics.shape == (c, 3, 3), intrinsics.shape
 
@@ -267,7 +270,8 @@ def rasterize(
     """Renders N 3D Gaussians into C pinhole cameras, differentiably (tile-based).
 
     Args:
-        means: (N, 3) centres in the world frame, metres.
+        means: (N, 3) centres in the world frame, metres; or (C, N, 3), each camera's own (the
+            centres at each camera's capture time, for a moving scene and a rolling rig).
         quats: (N, 4) rotations, ``w, x, y, z``, world from Gaussian; need not be normalised, zero = identity.
         scales: (N, 3) standard deviations along the Gaussian's axes, metres (post-activation; clamped to
             ``MAX_SCALE``).
@@ -593,6 +597,25 @@ def _rasterize_gsplat(
 ) -> RenderOutput:
     if not gsplat_available() or not means.is_cuda:
         raise RuntimeError("backend='gsplat' needs gsplat installed, CUDA and CUDA tensors")
+    if means.ndim == 3:  # gsplat takes one set of centres: one call per camera
+        outs = [
+            _rasterize_gsplat(
+                means[c],
+                quats,
+                scales,
+                opacities,
+                features,
+                world_from_camera[c : c + 1],
+                intrinsics[c : c + 1],
+                width,
+                height,
+                near,
+            )
+            for c in range(means.shape[0])
+        ]
+        return RenderOutput(
+            *(torch.cat([getattr(o, k) for o in outs]) for k in ("features", "depth", "alpha", "radii"))
+        )
     import gsplat
 
     shift = torch.zeros_like(intrinsics)
