@@ -16,11 +16,32 @@ For each evaluated clip (context windows spread over every scene) the model pred
   for synthetic caches (others skip them with a logged reason).
 
 Scores per image: PSNR (dB) and SSIM (mean of :func:`~phigenesis.models.losses.ssim`) of the
-composited colour; depth RMSE (m), AbsRel and delta < 1.25 of the rendered depth against the truth
-depth (synthetic ``truth_depth`` when the cache has it, else the dense depth; pixels with truth > 0);
-the rendered semantics (argmax of the composited class probabilities, pixels with alpha < 0.5 as
+composited colour; the rendered depth against the truth depth (synthetic ``truth_depth`` when the
+cache has it, else the dense depth) under the field's depth protocol
+(:mod:`phigenesis.eval.depth_protocol`: every pixel with truth > 0, prediction and truth clamped to
+[1e-3, 80] m, so a pixel the render leaves empty counts as a prediction of 1e-3 m; z-depth; AbsRel,
+SqRel, RMSE, RMSE log, delta < 1.25, 1.25^2, 1.25^3), over three pixel subsets:
+
+- ``all``: every truth pixel;
+- ``lidar``: those the cache's LiDAR-derived depth covers (:func:`lidar_covered`: the dense depth
+  > 0, or, where the cache records each dense pixel's origin, the LiDAR-measured and densified ones);
+- ``no_lidar``: the others (surfaces the LiDAR missed: beyond its range, between or above its
+  beams).
+
+The shifted views have no cache depth: their ``lidar`` / ``no_lidar`` values are NaN (null in JSON).
+The rendered semantics (argmax of the composited class probabilities, pixels with alpha < 0.5 as
 sky) feed one confusion matrix per section, whose mIoU is reported (truth semantics, else pseudo
-labels). Section values are means over images (depth: over images with a covered pixel).
+labels). Section values are means over images (depth: over the images with a pixel in the subset,
+as SurroundDepth averages).
+
+Report keys of a section (:meth:`SectionScores.summary`, in :data:`METRICS` order): ``psnr_db``,
+``ssim``, then per subset the depth metrics ``abs_rel``, ``sq_rel``, ``rmse_m``, ``rmse_log``,
+``delta_1_25``, ``delta_1_25_2``, ``delta_1_25_3``, named plainly for ``all`` and with the subset
+as a suffix otherwise (``abs_rel_lidar``, ``rmse_m_no_lidar``; :func:`depth_key`), then ``miou``.
+Besides them (not in the gap): the same depth metrics pooled over all pixels of the section with a
+further ``_pooled`` suffix (``abs_rel_pooled``, ``abs_rel_lidar_pooled``), ``depth_pixels``
+(``_lidar``, ``_no_lidar``) the truth pixels scored, and ``depth_coverage``, the mean share of truth
+pixels the render has a depth for.
 
 An ORACLE is scored the same way as a reference for what the representation can reach from the
 context views alone: one Gaussian per context pixel at the true depth with the pixel's colour,
@@ -28,8 +49,8 @@ isotropic scale ``0.3 * depth / focal`` (0.3 pixel footprints: the rasterizer's 
 still closes the gaps between neighbours, and the image is sharper than at the adapter's initial 0.6,
 21.5 -> about 25 dB at 48 x 72), opacity 0.99, its true class
 and, where the truth flow exceeds 0.5 m/s, that velocity; a constant background (the mean colour of
-the context images' sky pixels). ``gap`` is oracle - model for PSNR/SSIM/mIoU/delta and
-model - oracle for the depth errors (positive = the model is worse).
+the context images' sky pixels). ``gap`` is oracle - model for PSNR/SSIM/mIoU/deltas and
+model - oracle for the depth errors (positive = the model is worse), per key of :data:`METRICS`.
 
 Frames and units: poses are ``world_from_camera`` (OpenCV axes) in the cache's world frame,
 metres; times are seconds after the clip's first context frame; images are RGB in [0, 1].
@@ -52,27 +73,43 @@ import torch
 from torch import Tensor
 
 from phigenesis.data import taxonomy
-from phigenesis.data.records import CameraCalibration, CameraTruth
+from phigenesis.data.records import DENSE_ORIGINS, CameraCalibration, CameraTruth
 from phigenesis.data.shards import MANIFEST_NAME
 from phigenesis.data.taxonomy import IGNORE_ID, NUM_CLASSES, SKY
+from phigenesis.eval.depth_protocol import ALL, DEPTH_METRICS, DepthAccumulator
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.losses import psnr, ssim
 from phigenesis.models.stage1 import Stage1Model, pixel_rays
-from phigenesis.train.metrics import confusion_matrix, depth_errors, segmentation_scores
+from phigenesis.train.metrics import confusion_matrix, segmentation_scores
 from phigenesis.train.stage1 import clip_inputs, load_stage1
 from phigenesis.train.stage1_data import Clip, Stage1Clips
 from phigenesis.train.views import resize_images, resize_intrinsics, resize_nearest
 
 log = logging.getLogger(__name__)
 
+#: The depth pixel subsets (see the module docstring); ``all`` is the protocol's own.
+DEPTH_SUBSETS = (ALL, "lidar", "no_lidar")
+#: Dense-depth origins (:data:`~phigenesis.data.records.DENSE_ORIGINS`) that count as covered by the
+#: LiDAR: a kept measurement or the densifier's fill between measurements (not a completion).
+LIDAR_ORIGINS = ("lidar", "densified")
+
+
+def depth_key(metric: str, subset: str) -> str:
+    """The report key of a depth metric on a subset: ``abs_rel`` (all), ``abs_rel_lidar``."""
+    return metric if subset == ALL else f"{metric}_{subset}"
+
+
 #: Metric names of a section, in table order; ``HIGHER_IS_BETTER`` decides the sign of the gap.
-METRICS = ("psnr_db", "ssim", "rmse_m", "abs_rel", "delta_1_25", "miou")
+METRICS = (
+    "psnr_db",
+    "ssim",
+    *(depth_key(m, s) for s in DEPTH_SUBSETS for m in DEPTH_METRICS),
+    "miou",
+)
 HIGHER_IS_BETTER = {
     "psnr_db": True,
     "ssim": True,
-    "rmse_m": False,
-    "abs_rel": False,
-    "delta_1_25": True,
+    **{depth_key(m, s): m.startswith("delta") for s in DEPTH_SUBSETS for m in DEPTH_METRICS},
     "miou": True,
 }
 #: The oracle's opacity, logit of its true class (softmax ~ 1) and the speed above which it moves (m/s).
@@ -108,6 +145,8 @@ class Views:
         depth: [N, H, W] float32 truth z-depth, metres, 0 = none.
         semantic: [N, H, W] uint8 truth classes, 255 = unknown.
         flow: [N, H, W, 3] float32 world-frame surface velocity (m/s), or None when unknown.
+        lidar_covered: [N, H, W] bool, the pixels the cache's LiDAR-derived depth covers
+            (:func:`lidar_covered`), or None for views the cache has no depth for (shifted ones).
     """
 
     images: Tensor
@@ -117,6 +156,7 @@ class Views:
     depth: Tensor
     semantic: Tensor
     flow: Tensor | None = None
+    lidar_covered: Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.images.shape[0])
@@ -129,13 +169,20 @@ class Views:
 @dataclass(frozen=True)
 class Rendered:
     """A scene rendered into N views: ``rgb`` [N, H, W, 3] with the background composited, ``depth``
-    [N, H, W] metres (0 where nothing), ``alpha`` [N, H, W] and ``semantic`` [N, H, W] uint8 (argmax
-    of the class probabilities, sky where alpha < 0.5)."""
+    [N, H, W] metres (0 where nothing), ``alpha`` [N, H, W], ``semantic`` [N, H, W] uint8 (argmax
+    of the class probabilities, sky where alpha < 0.5) and ``entropy`` [N, H, W], nats, the entropy
+    of each ray's depth distribution when the rasterizer reports one (else None)."""
 
     rgb: Tensor
     depth: Tensor
     alpha: Tensor
     semantic: Tensor
+    entropy: Tensor | None = None
+
+
+def _mean(values: list[float]) -> float:
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
 
 
 @dataclass
@@ -144,42 +191,38 @@ class SectionScores:
 
     psnr_db: list[float] = field(default_factory=list)
     ssim: list[float] = field(default_factory=list)
-    rmse_m: list[float] = field(default_factory=list)
-    abs_rel: list[float] = field(default_factory=list)
-    delta_1_25: list[float] = field(default_factory=list)
+    depth: DepthAccumulator = field(default_factory=lambda: DepthAccumulator(DEPTH_SUBSETS[1:]))
     coverage: list[float] = field(default_factory=list)
     confusion: np.ndarray = field(default_factory=lambda: np.zeros((NUM_CLASSES, NUM_CLASSES + 1), np.int64))
 
     def add(self, rendered: Rendered, views: Views) -> None:
-        """Scores every view of ``rendered`` against ``views``' truth."""
+        """Scores every view of ``rendered`` against ``views``' truth (depth: see the module docstring)."""
         truth_rgb = views.images
         self.psnr_db += psnr(rendered.rgb, truth_rgb).tolist()
         self.ssim += ssim(rendered.rgb, truth_rgb).mean(dim=(-2, -1)).tolist()
-        for i in range(len(views)):
-            err = depth_errors(rendered.depth[i].numpy(), views.depth[i].numpy())
-            self.coverage.append(err.coverage)
-            if err.covered:
-                self.rmse_m.append(err.rmse_m)
-                self.abs_rel.append(err.abs_rel)
-                self.delta_1_25.append(err.delta_1_25)
+        pred, truth = rendered.depth.numpy(), views.depth.numpy()
+        covered = None if views.lidar_covered is None else views.lidar_covered.numpy()
+        self.depth.add(pred, truth, {"lidar": covered, "no_lidar": None if covered is None else ~covered})
+        known = (truth > 0).sum(axis=(1, 2))
+        hit = ((truth > 0) & (pred > 0)).sum(axis=(1, 2))
+        self.coverage += [
+            h / k if k else float("nan") for h, k in zip(hit.tolist(), known.tolist(), strict=True)
+        ]
         self.confusion += confusion_matrix(rendered.semantic.numpy(), views.semantic.numpy(), NUM_CLASSES)
 
     def summary(self) -> dict[str, float]:
-        """Means over images (depth errors over images with a covered pixel) and the pooled mIoU."""
-
-        def mean(values: list[float]) -> float:
-            finite = [v for v in values if math.isfinite(v)]
-            return float(np.mean(finite)) if finite else float("nan")
-
-        return {
-            "psnr_db": mean(self.psnr_db),
-            "ssim": mean(self.ssim),
-            "rmse_m": mean(self.rmse_m),
-            "abs_rel": mean(self.abs_rel),
-            "delta_1_25": mean(self.delta_1_25),
-            "miou": segmentation_scores(self.confusion).miou,
-            "depth_coverage": mean(self.coverage),
-        }
+        """The section's values (keys in the module docstring): means over images, depth under the
+        protocol per subset (per-image means, and pooled with ``_pooled``), the pooled mIoU."""
+        out = {"psnr_db": _mean(self.psnr_db), "ssim": _mean(self.ssim)}
+        pooled = self.depth.pooled()
+        for suffix, scores in (("", self.depth.image_mean()), ("_pooled", pooled)):
+            for subset in DEPTH_SUBSETS:
+                values = scores[subset]
+                out |= {depth_key(m, subset) + suffix: getattr(values, m) for m in DEPTH_METRICS}
+        out["miou"] = segmentation_scores(self.confusion).miou
+        out |= {depth_key("depth_pixels", s): float(pooled[s].pixels) for s in DEPTH_SUBSETS}
+        out["depth_coverage"] = _mean(self.coverage)
+        return out
 
 
 def gap(model: dict[str, float], oracle: dict[str, float]) -> dict[str, float]:
@@ -207,7 +250,8 @@ def render_views(scene: GaussianScene, views: Views, background: Tensor) -> Rend
     assert out.semantic_probs is not None
     labels = out.semantic_probs.argmax(-1).to(torch.uint8)
     labels = torch.where(out.alpha < SKY_ALPHA, torch.full_like(labels, SKY), labels)
-    return Rendered(rgb=rgb, depth=out.depth, alpha=out.alpha, semantic=labels)
+    entropy = getattr(out, "depth_entropy", None)
+    return Rendered(rgb=rgb, depth=out.depth, alpha=out.alpha, semantic=labels, entropy=entropy)
 
 
 def oracle_scene(views: Views, time_origin_micros: int = 0) -> GaussianScene:
@@ -339,11 +383,29 @@ class FrameTruth:
     semantic: Tensor  # [V, H, W]
     flow: Tensor | None  # [V, H, W, 3]
     has_truth_depth: bool
+    lidar_covered: Tensor | None = None  # [V, H, W] bool
+
+
+def lidar_covered(sample: dict[str, Any]) -> Tensor:
+    """[V, H, W] bool at the cache's image size: the pixels of a loaded frame that its LiDAR-derived
+    dense depth covers.
+
+    Where the sample has the per-pixel origin of the dense depth (``depth_dense_origin``, codes
+    indexing :data:`~phigenesis.data.records.DENSE_ORIGINS`), the pixels whose origin is in
+    :data:`LIDAR_ORIGINS` (kept or densified LiDAR, not completed); otherwise the pixels with a
+    dense depth > 0."""
+    dense = sample["depth_dense"]
+    origin = sample.get("depth_dense_origin")
+    if origin is None:
+        return dense > 0
+    codes = torch.tensor([i for i, name in enumerate(DENSE_ORIGINS) if name in LIDAR_ORIGINS])
+    return torch.isin(origin.long(), codes) & (dense > 0)
 
 
 def frame_truth(sample: dict[str, Any], size_hw: tuple[int, int]) -> FrameTruth:
-    """Truth depth / semantics / flow of a loaded frame (synthetic truth, else dense depth and
-    pseudo labels), resized to ``size_hw`` by nearest sampling."""
+    """Truth depth / semantics / flow and the LiDAR-covered pixels (:func:`lidar_covered`) of a
+    loaded frame (synthetic truth, else dense depth and pseudo labels), resized to ``size_hw`` by
+    nearest sampling."""
     has_depth = "truth_depth" in sample
     depth = sample["truth_depth"] if has_depth else sample["depth_dense"]
     if "truth_semantic" in sample:
@@ -360,6 +422,7 @@ def frame_truth(sample: dict[str, Any], size_hw: tuple[int, int]) -> FrameTruth:
         semantic=resize_nearest(sem, size_hw),
         flow=flow,
         has_truth_depth=has_depth,
+        lidar_covered=resize_nearest(lidar_covered(sample), size_hw),
     )
 
 
@@ -374,12 +437,16 @@ def target_views(clip: Clip, index: int, truth: FrameTruth) -> Views:
         depth=truth.depth,
         semantic=truth.semantic,
         flow=truth.flow,
+        lidar_covered=truth.lidar_covered,
     )
 
 
 def concat_views(views: list[Views]) -> Views:
-    """The views of several lists, one after another."""
-    flows = [v.flow for v in views]
+    """The views of several lists, one after another (optional maps only when every list has them)."""
+
+    def cat(maps: list[Tensor | None]) -> Tensor | None:
+        return torch.cat(maps) if all(m is not None for m in maps) else None  # type: ignore[arg-type]
+
     return Views(
         images=torch.cat([v.images for v in views]),
         world_from_camera=torch.cat([v.world_from_camera for v in views]),
@@ -387,7 +454,8 @@ def concat_views(views: list[Views]) -> Views:
         time_s=torch.cat([v.time_s for v in views]),
         depth=torch.cat([v.depth for v in views]),
         semantic=torch.cat([v.semantic for v in views]),
-        flow=torch.cat(flows) if all(f is not None for f in flows) else None,  # type: ignore[arg-type]
+        flow=cat([v.flow for v in views]),
+        lidar_covered=cat([v.lidar_covered for v in views]),
     )
 
 
@@ -521,7 +589,8 @@ def evaluate_stage1(
     Returns a dict: ``checkpoint``, ``shards``, ``model``, ``image_size``, ``offsets``, ``shifts_m``
     (those evaluated), ``clips``, ``images`` (views scored per section), ``seconds_per_clip``,
     ``clip_list`` ([scene id, start]) and ``sections``: per section name ``{"images", "model",
-    "oracle", "gap"}`` with the metrics of :data:`METRICS` (+ ``depth_coverage``); ``oracle`` and
+    "oracle", "gap"}`` with the metrics of :data:`METRICS` (model and oracle also with the pooled
+    depth metrics, ``depth_pixels*`` and ``depth_coverage``: see the module docstring); ``oracle`` and
     ``gap`` only when ``oracle``. Writes it as JSON to ``out_json`` and a PNG of the first clip to
     ``picture`` when given. Raises :class:`CheckpointError` for a checkpoint that is not a Stage 1
     model and ValueError naming the cache when it is empty, lacks dense depth or has no scene long
@@ -623,9 +692,10 @@ def picture_panels(
 ) -> tuple[list[str], list[list[np.ndarray]]]:
     """The picture's column titles and, per input view (at most 3), its panels as (H, W, 3) uint8
     RGB: input image, render, rendered depth, truth depth (both in the toolkit's depth colours,
-    :func:`phigenesis.data.colormap.depth_color`, as ``phigenesis-prep preview`` draws depth),
-    rendered semantics, and the shifted render beside its truth for the shift nearest 2 m when
-    there is one."""
+    :func:`phigenesis.data.colormap.depth_color`, as ``phigenesis-prep preview`` draws depth), the
+    rendered depth entropy when the render has one (:func:`entropy_color`, scaled to the largest
+    shown, which the title gives in nats), rendered semantics, and the shifted render beside its
+    truth for the shift nearest 2 m when there is one."""
     from phigenesis.data.colormap import depth_color
 
     def u8(rgb: np.ndarray) -> np.ndarray:
@@ -634,18 +704,26 @@ def picture_panels(
     views, render = result.views["input"], result.model["input"]
     shift = min(shifts_m, key=lambda d: abs(d - 2.0)) if shifts_m else None
     shift_name = section_name("shift", shift) if shift is not None else None
-    columns = ["input", "render", "rendered depth", "truth depth", "rendered semantics"]
+    shown = min(len(views), 3)
+    columns = ["input", "render", "rendered depth", "truth depth"]
+    entropy_high = 0.0
+    if render.entropy is not None:
+        entropy_high = max(float(render.entropy[:shown].max()), 1e-6)
+        columns.append(f"entropy 0-{entropy_high:.2g} nats")
+    columns.append("rendered semantics")
     if shift_name is not None:
         columns += [f"render {shift_name}", f"truth {shift_name}"]
     rows = []
-    for r in range(min(len(views), 3)):
+    for r in range(shown):
         panels = [
             u8(views.images[r].numpy()),
             u8(render.rgb[r].numpy()),
             depth_color(render.depth[r].numpy()),
             depth_color(views.depth[r].numpy()),
-            taxonomy.PALETTE_RGB[render.semantic[r].numpy()],
         ]
+        if render.entropy is not None:
+            panels.append(entropy_color(render.entropy[r].numpy(), entropy_high))
+        panels.append(taxonomy.PALETTE_RGB[render.semantic[r].numpy()])
         if shift_name is not None:
             panels += [
                 u8(result.model[shift_name].rgb[r].numpy()),
@@ -653,6 +731,17 @@ def picture_panels(
             ]
         rows.append(panels)
     return columns, rows
+
+
+def entropy_color(entropy_nats: np.ndarray, high_nats: float) -> np.ndarray:
+    """(..., 3) uint8 RGB of entropies (..., nats) on the stretch of the turbo map the depth panels
+    use (its dark ends left out): 0 blue to ``high_nats`` (and above) red."""
+    import cv2
+
+    u = np.clip(np.nan_to_num(np.asarray(entropy_nats, np.float64)) / high_nats, 0.0, 1.0)
+    index = np.round(20 + u * 220).astype(np.uint8)
+    turbo = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
+    return turbo[index]
 
 
 def save_picture(result: ClipResult, path: str | os.PathLike[str], shifts_m: tuple[float, ...] = ()) -> Path:

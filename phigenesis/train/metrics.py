@@ -11,6 +11,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from phigenesis.eval.depth_protocol import truth_pixels
+
 
 @dataclass(frozen=True)
 class DepthErrors:
@@ -44,13 +46,7 @@ def depth_errors(
 
     All arrays share a shape (any, e.g. (H, W) or a stack of images); depths in metres.
     """
-    pred = np.asarray(pred_m, np.float64)
-    truth = np.asarray(truth_m, np.float64)
-    if pred.shape != truth.shape:
-        raise ValueError(f"prediction {pred.shape} and truth {truth.shape} differ in shape")
-    valid = truth > 0
-    if mask is not None:
-        valid &= np.asarray(mask, bool)
+    pred, truth, valid = truth_pixels(pred_m, truth_m, None if mask is None else np.asarray(mask, bool))
     covered = valid & (pred > 0)
     n, k = int(valid.sum()), int(covered.sum())
     if k == 0:

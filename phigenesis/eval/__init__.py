@@ -1,0 +1,1 @@
+"""Evaluation protocols shared by the toolkit's evaluators (numpy only)."""
