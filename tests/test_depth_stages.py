@@ -13,7 +13,9 @@ from hypothesis import strategies as st
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import (
+    DENSE_ORIGINS,
     DEPTH_ORIGINS,
+    TRUSTED_DEPTH_CONFIDENCE,
     Boxes,
     CameraCalibration,
     CameraDepth,
@@ -456,9 +458,24 @@ def test_depth_columns_round_trip_through_the_cache_schema(waymo_frame):
         for name in ("sparse_confidence", "dense_confidence"):  # 1/255 steps
             assert np.max(np.abs(getattr(a.depth, name) - getattr(b.depth, name))) <= 0.5 / 255 + 1e-6
         assert np.array_equal(a.depth.sparse_origin, b.depth.sparse_origin)
+        assert np.array_equal(a.depth.dense_origin, b.depth.dense_origin)
         assert np.array_equal(b.depth.sparse_m > 0, b.depth.sparse_confidence > 0)
     without = frame_schema(CacheContents(camera_truth=()))
     assert "depth_dense_png" not in {f.name for f in without.field("cameras").type.value_type}
+
+
+def test_densify_marks_kept_measurements_lidar_and_the_rest_densified(waymo_frame):
+    _, frame = waymo_frame
+    frame = get_stage("densify_depth")(Scene("s", "synthetic", [], [frame]), {}).frames[0]
+    lidar, densified = DENSE_ORIGINS.index("lidar"), DENSE_ORIGINS.index("densified")
+    for cam in frame.cameras:
+        d = cam.depth
+        assert np.array_equal(d.dense_origin > 0, d.dense_m > 0)
+        assert set(np.unique(d.dense_origin)) <= {0, lidar, densified}
+        kept = d.dense_origin == lidar
+        assert np.array_equal(d.dense_m[kept], d.sparse_m[kept])
+        assert np.all(d.sparse_confidence[kept] >= TRUSTED_DEPTH_CONFIDENCE)
+        assert kept.any() and (d.dense_origin == densified).any()
 
 
 def _depth_frame(index: int, sparse_share_rows: int) -> Frame:

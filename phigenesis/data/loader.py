@@ -25,6 +25,7 @@ depth_sparse_confidence    float32 [C, H, W]             in [0, 1], 0 where dept
 depth_sparse_origin        uint8 [C, H, W]               records.DEPTH_ORIGINS index (0 = none)
 depth_dense                float32 [C, H, W]             densified depth GT, 0 = none
 depth_dense_confidence     float32 [C, H, W]             in [0, 1], 0 where depth_dense is 0
+depth_dense_origin         uint8 [C, H, W]               records.DENSE_ORIGINS index (0 = none)
 pseudo_semantic            uint8 [C, H, W]               pseudo labels, unified classes, 255 = none
 pseudo_confidence          float32 [C, H, W]             in [0, 1], 0 where no label
 pseudo_source              uint8 [C, H, W]               records.PSEUDO_SOURCES index (0 = none)
@@ -42,6 +43,10 @@ boxes_class_id             int64 [M]
 boxes_instance_id          int64 [M]
 boxes_track_id             list[str] (M)
 =========================  ===========================  ==========================================
+
+``depth_dense_origin`` says what each dense depth came from: 1 a LiDAR measurement, 2 the densifier, 3 a
+plane of its image segment and 4 a thin vertical structure (both from ``complete_depth``, at lower
+confidence); weigh or mask the depth loss by it.
 
 Choose groups with ``fields`` ("images", "cameras", "truth", "depth", "pseudo", "lidar", "boxes"); only
 what is asked for is read, checked and decoded. Label maps stay compact (uint8 classes, int32 instances);
@@ -176,6 +181,7 @@ _DEPTH_JOBS = (
     _MapJob(
         "depth_dense_confidence", "depth_dense_confidence_png", codec.decode_confidence, np.float32, None
     ),
+    _MapJob("depth_dense_origin", "depth_dense_origin_png", codec.decode_semantic, np.uint8, None),
 )
 _PSEUDO_JOBS = (
     _MapJob("pseudo_semantic", "pseudo_semantic_png", codec.decode_semantic, np.uint8, None),

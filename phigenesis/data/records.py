@@ -409,6 +409,11 @@ DEPTH_ORIGINS: tuple[str, ...] = ("none", "static_map", "rigid_object", "non_rig
 #: Sparse depths with at least this confidence are the ones to train on: densification seeds only
 #: from them and the depth benchmark scores them (pixels at depth edges fall below it).
 TRUSTED_DEPTH_CONFIDENCE = 0.5
+#: What a dense depth pixel came from (:attr:`CameraDepth.dense_origin`): "lidar", a trusted
+#: measurement kept as measured; "densified", filled or corrected by ``densify_depth``; "plane",
+#: a plane of its image segment (``complete_depth``); "vertical", a thin vertical structure at its
+#: base's depth (``complete_depth``).
+DENSE_ORIGINS: tuple[str, ...] = ("none", "lidar", "densified", "plane", "vertical")
 
 
 @dataclass
@@ -423,8 +428,12 @@ class CameraDepth:
             (nearest point per pixel, after the visibility test).
         sparse_confidence: float32 confidence of ``sparse_m``.
         sparse_origin: uint8 index into :data:`DEPTH_ORIGINS` per pixel (what the point came from).
-        dense_m: float32 densified depth, or None before densification.
+        dense_m: float32 densified (and completed) depth, or None before densification.
         dense_confidence: float32 confidence of ``dense_m`` (None with it).
+        dense_origin: uint8 index into :data:`DENSE_ORIGINS` per pixel, 0 exactly where
+            ``dense_m`` is 0 (None with it). Given as None with a ``dense_m``, it is derived:
+            "lidar" where ``dense_m`` equals a sparse depth of positive confidence, "densified"
+            at every other pixel with a depth (:func:`dense_origin_of`).
     """
 
     sparse_m: NDArray[np.float32]
@@ -432,6 +441,7 @@ class CameraDepth:
     sparse_origin: NDArray[np.uint8]
     dense_m: NDArray[np.float32] | None = None
     dense_confidence: NDArray[np.float32] | None = None
+    dense_origin: NDArray[np.uint8] | None = None
 
     def __post_init__(self) -> None:
         self.sparse_m = _check_array("sparse_m", self.sparse_m, (None, None), np.float32)
@@ -440,15 +450,44 @@ class CameraDepth:
         self.sparse_origin = _check_array("sparse_origin", self.sparse_origin, shape, np.uint8)
         if (self.dense_m is None) != (self.dense_confidence is None):
             raise InvalidRecord("dense_m", "and dense_confidence come together (both or neither)")
-        if self.dense_m is not None:
-            self.dense_m = _check_array("dense_m", self.dense_m, shape, np.float32)
-            self.dense_confidence = _check_array("dense_confidence", self.dense_confidence, shape, np.float32)
+        if self.dense_m is None:
+            if self.dense_origin is not None:
+                raise InvalidRecord("dense_origin", "is given without dense_m")
+            return
+        self.dense_m = _check_array("dense_m", self.dense_m, shape, np.float32)
+        self.dense_confidence = _check_array("dense_confidence", self.dense_confidence, shape, np.float32)
+        if self.dense_origin is None:
+            self.dense_origin = dense_origin_of(self.sparse_m, self.sparse_confidence, self.dense_m)
+            return
+        self.dense_origin = _check_array("dense_origin", self.dense_origin, shape, np.uint8)
+        if self.dense_origin.size and int(self.dense_origin.max()) >= len(DENSE_ORIGINS):
+            raise InvalidRecord(
+                "dense_origin",
+                f"holds code {int(self.dense_origin.max())}; codes are 0..{len(DENSE_ORIGINS) - 1} "
+                f"{DENSE_ORIGINS}",
+            )
+        mismatched = int(np.count_nonzero((self.dense_origin == 0) != (self.dense_m <= 0)))
+        if mismatched:
+            raise InvalidRecord(
+                "dense_origin", f"is 0 ('none') at {mismatched} pixels where dense_m is not 0, or the reverse"
+            )
 
     @classmethod
     def empty(cls, height: int, width: int) -> CameraDepth:
         """No depth anywhere (zero confidence): what an image without LiDAR gets."""
         zeros = np.zeros((height, width), np.float32)
         return cls(zeros, zeros.copy(), np.zeros((height, width), np.uint8))
+
+
+def dense_origin_of(
+    sparse_m: NDArray[np.float32], sparse_confidence: NDArray[np.float32], dense_m: NDArray[np.float32]
+) -> NDArray[np.uint8]:
+    """(H, W) uint8 :data:`DENSE_ORIGINS` codes of a densified depth: "lidar" where ``dense_m``
+    is exactly a sparse depth of positive confidence (kept as measured), "densified" at every
+    other pixel with a depth, "none" where ``dense_m`` is 0."""
+    measured = (sparse_m > 0) & (sparse_confidence > 0) & (dense_m == sparse_m)
+    code = np.where(measured, DENSE_ORIGINS.index("lidar"), DENSE_ORIGINS.index("densified"))
+    return (code * (dense_m > 0)).astype(np.uint8)
 
 
 #: Where a pseudo-semantic label came from (:attr:`CameraSemantics.source`).

@@ -35,7 +35,7 @@ from phigenesis.data.records import (
     LidarSweep,
 )
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 TRUTH_MAPS = ("depth", "semantic", "instance", "flow")
 
 
@@ -253,6 +253,16 @@ class CameraColumns:
         pa.binary(),
         "confidence of depth_dense_png, 8-bit PNG, value / 255, 0 where unknown",
         "1/255",
+        "",
+        "depth",
+        True,
+    )
+    depth_dense_origin_png: bytes = col(
+        pa.binary(),
+        "what each dense depth came from, 8-bit PNG (records.DENSE_ORIGINS): 0 none, 1 lidar (a trusted "
+        "measurement kept as measured), 2 densified, 3 plane of its image segment, 4 thin vertical "
+        "structure at its base's depth (3 and 4: stage complete_depth)",
+        "",
         "",
         "depth",
         True,
@@ -555,6 +565,9 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
         "depth_dense_confidence_png": png(
             "depth_dense_confidence_png", codec.encode_confidence, "depth", "dense_confidence"
         ),
+        "depth_dense_origin_png": png(
+            "depth_dense_origin_png", codec.encode_semantic, "depth", "dense_origin"
+        ),
         "pseudo_semantic_png": png("pseudo_semantic_png", codec.encode_semantic, "pseudo", "semantic"),
         "pseudo_semantic_confidence_png": png(
             "pseudo_semantic_confidence_png", codec.encode_confidence, "pseudo", "confidence"
@@ -715,6 +728,7 @@ def _camera_depth(cf: dict[str, pa.Array], i: int) -> CameraDepth | None:
         sparse_origin=get("depth_sparse_origin_png", codec.decode_semantic),
         dense_m=get("depth_dense_png", codec.decode_depth),
         dense_confidence=get("depth_dense_confidence_png", codec.decode_confidence),
+        dense_origin=get("depth_dense_origin_png", codec.decode_semantic),
     )
 
 

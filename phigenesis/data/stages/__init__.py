@@ -18,7 +18,15 @@ Stage = Callable[[Scene, dict[str, Any]], Scene]
 P = TypeVar("P")
 STAGES: dict[str, Stage] = {}
 #: Modules of the built-in stages, imported (and so registered) on the first lookup.
-BUILTIN_STAGE_MODULES = ("aggregate", "project", "densify", "interpolate", "semantics", "rangeview")
+BUILTIN_STAGE_MODULES = (
+    "aggregate",
+    "project",
+    "densify",
+    "complete",
+    "interpolate",
+    "semantics",
+    "rangeview",
+)
 
 
 def register_stage(name: str) -> Callable[[Stage], Stage]:

@@ -87,7 +87,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
-from phigenesis.data.records import TRUSTED_DEPTH_CONFIDENCE, CameraImage, Frame, LazyFrames, Scene
+from phigenesis.data.records import (
+    TRUSTED_DEPTH_CONFIDENCE,
+    CameraImage,
+    Frame,
+    LazyFrames,
+    Scene,
+    dense_origin_of,
+)
 from phigenesis.data.stages import register_stage
 
 log = logging.getLogger("phigenesis.prep")
@@ -211,9 +218,9 @@ def densify(
     """
     fn = get_densifier(method)
     check_params(method, params)
-    sparse, conf = _check_sparse(sparse_m, sparse_confidence)
+    sparse, conf = check_depth_maps(sparse_m, sparse_confidence)
     if rgb is not None:
-        rgb = _check_rgb(rgb, sparse.shape)
+        rgb = check_rgb(rgb, sparse.shape)
     elif method in _NEEDS_RGB:
         raise ValueError(f"densifier {method!r} needs the RGB image, got rgb=None")
     focal_px = float(focal_px)
@@ -231,10 +238,14 @@ def _readonly(arr: np.ndarray) -> np.ndarray:
     return view
 
 
-def _check_sparse(sparse_m: Any, sparse_confidence: Any) -> tuple[F32, F32]:
-    """Validates the sparse inputs; returns them as read-only float32 (converted copies if needed)."""
+def check_depth_maps(
+    depth_m: Any, confidence: Any, names: tuple[str, str] = ("sparse_m", "sparse_confidence")
+) -> tuple[F32, F32]:
+    """Validates a depth map and its confidence (2-D, float, finite, same shape, depths >= 0,
+    confidences in [0, 1]; ``names`` name them in errors); returns them as read-only float32
+    (converted copies if needed)."""
     arrays = []
-    for name, value in (("sparse_m", sparse_m), ("sparse_confidence", sparse_confidence)):
+    for name, value in zip(names, (depth_m, confidence), strict=True):
         arr = np.asarray(value)
         if arr.ndim != 2:
             raise ValueError(f"{name} must be a 2-D (H, W) array, got shape {arr.shape}")
@@ -246,19 +257,21 @@ def _check_sparse(sparse_m: Any, sparse_confidence: Any) -> tuple[F32, F32]:
         arrays.append(_readonly(arr.astype(np.float32, copy=False)))
     sparse, conf = arrays
     if conf.shape != sparse.shape:
-        raise ValueError(f"sparse_confidence has shape {conf.shape}, sparse_m has {sparse.shape}")
+        raise ValueError(f"{names[1]} has shape {conf.shape}, {names[0]} has {sparse.shape}")
     negative = int(np.count_nonzero(sparse < 0))
     if negative:
-        raise ValueError(f"sparse_m has {negative} negative depths (0 marks unknown)")
+        raise ValueError(f"{names[0]} has {negative} negative depths (0 marks unknown)")
     if np.any((conf < 0) | (conf > 1)):
-        raise ValueError(f"sparse_confidence must lie in [0, 1], got [{conf.min()}, {conf.max()}]")
+        raise ValueError(f"{names[1]} must lie in [0, 1], got [{conf.min()}, {conf.max()}]")
     return sparse, conf
 
 
-def _check_rgb(rgb: Any, shape: tuple[int, ...]) -> NDArray[np.uint8]:
+def check_rgb(rgb: Any, shape: tuple[int, ...], like: str = "sparse_m") -> NDArray[np.uint8]:
+    """Validates an (H, W, 3) uint8 image of ``shape`` (that of the map named ``like``); returns a
+    read-only view."""
     arr = np.asarray(rgb)
     if arr.shape != (*shape, 3):
-        raise ValueError(f"rgb must have shape {(*shape, 3)} (H, W, 3, as sparse_m), got {arr.shape}")
+        raise ValueError(f"rgb must have shape {(*shape, 3)} (H, W, 3, as {like}), got {arr.shape}")
     if arr.dtype != np.uint8:
         raise ValueError(f"rgb must be uint8, got dtype {arr.dtype}")
     return _readonly(arr)
@@ -930,7 +943,8 @@ def _try_on_a_tiny_image(method: str, params: dict[str, Any]) -> None:
 
 @register_stage("densify_depth")
 def densify_depth(scene: Scene, params: dict[str, Any]) -> Scene:
-    """Fills ``dense_m`` / ``dense_confidence`` of every camera that has a :class:`CameraDepth`.
+    """Fills ``dense_m`` / ``dense_confidence`` / ``dense_origin`` (lidar or densified,
+    :func:`~phigenesis.data.records.dense_origin_of`) of every camera that has a :class:`CameraDepth`.
 
     Params: ``method`` (default :data:`DEFAULT_DENSIFIER`), ``fallback`` (default
     :data:`DEFAULT_FALLBACK`: what runs on a camera without an image when the method needs one;
@@ -984,7 +998,12 @@ def densify_depth(scene: Scene, params: dict[str, Any]) -> Scene:
         depth = cam.depth
         seeds = np.where(depth.sparse_confidence >= min_confidence, depth.sparse_confidence, 0.0)
         result = densify(depth.sparse_m, seeds, rgb, focal_px=camera_focal_px(cam), method=name, **kwargs)
-        dense = dataclasses.replace(depth, dense_m=result.depth_m, dense_confidence=result.confidence)
+        dense = dataclasses.replace(
+            depth,
+            dense_m=result.depth_m,
+            dense_confidence=result.confidence,
+            dense_origin=dense_origin_of(depth.sparse_m, seeds.astype(np.float32), result.depth_m),
+        )
         return dataclasses.replace(cam, depth=dense)
 
     coverage = DepthCoverage(scene.scene_id, len(scene.frames), min_sparse_coverage)

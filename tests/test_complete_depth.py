@@ -1,0 +1,402 @@
+"""Depth completion (stage ``complete_depth``): exact answers on synthetic planes seen by a pinhole,
+what must stay empty, hostile inputs, the vectorised plane fit against a plain per-group
+reference, and the stage on a small synthetic scene."""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+import pytest
+
+from phigenesis import geometry
+from phigenesis.data import taxonomy as tx
+from phigenesis.data.records import DENSE_ORIGINS, CameraDepth, InvalidRecord, Scene
+from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene
+from phigenesis.data.sources.synthetic.rigs import LidarSpec
+from phigenesis.data.stages import get_stage
+from phigenesis.data.stages.complete import (
+    KIND_GROUND,
+    KIND_VERTICAL,
+    CompletionParams,
+    complete_depth_map,
+    fit_planes,
+)
+
+H, W, F = 120, 180, 150.0
+PLANE, VERTICAL, DENSIFIED = (DENSE_ORIGINS.index(k) for k in ("plane", "vertical", "densified"))
+UP = np.array([0.0, -1.0, 0.0])  # a level camera: OpenCV y points down
+SKY_RGB = (120, 170, 230)
+
+
+def rays(height: int = H, width: int = W, f: float = F) -> np.ndarray:
+    """(H * W, 3) z = 1 rays of a pinhole with the principal point at the image centre."""
+    k = geometry.intrinsic_matrix(f, f, (width - 1) / 2, (height - 1) / 2)
+    return geometry.unproject_pixels(geometry.pixel_grid(width, height), k)
+
+
+def plane_depth(r: np.ndarray, normal, offset: float, shape=(H, W)) -> np.ndarray:
+    """Reference z-depth of the plane ``normal . p + offset = 0`` along each ray, a plain loop."""
+    n = np.asarray(normal, np.float64)
+    out = np.zeros(len(r))
+    for i, ray in enumerate(r):
+        out[i] = -offset / float(n @ ray)
+    return out.reshape(shape)
+
+
+def textured(shape, colour, seed: int) -> np.ndarray:
+    """An (H, W, 3) uint8 patch of ``colour`` with a faint smooth texture and a little pixel noise
+    (a rendered material)."""
+    rng = np.random.default_rng(seed)
+    smooth = cv2.GaussianBlur(rng.normal(0, 60, shape).astype(np.float32), (0, 0), 4)
+    noise = rng.normal(0, 1, (*shape, 3))
+    return np.clip(np.array(colour) + smooth[..., None] + noise, 0, 255).astype(np.uint8)
+
+
+def facade_scene(windows: bool = False, noise_m: float = 0.0):
+    """A facade 12 m ahead, turned 25 deg, seen by a level pinhole: rows >= ``roof`` are facade
+    (its lower rows >= ``known_from`` have depth, as a LiDAR would give), the sky above."""
+    normal = np.array([np.sin(np.radians(25)), 0.0, -np.cos(np.radians(25))])
+    offset = 12.0 * np.cos(np.radians(25))
+    r = rays()
+    truth = plane_depth(r, normal, offset)
+    roof, known_from = 20, 80
+    rgb = textured((H, W), (200, 180, 150), 0)
+    rgb[:roof] = SKY_RGB
+    if windows:
+        for top in (30, 55):
+            for left in range(20, W - 20, 35):
+                rgb[top : top + 12, left : left + 14] = (40, 50, 60)
+    depth = np.zeros((H, W), np.float32)
+    depth[known_from:] = truth[known_from:]
+    if noise_m:
+        depth[known_from:] += np.random.default_rng(1).normal(0, noise_m, depth[known_from:].shape)
+    conf = (depth > 0).astype(np.float32) * 0.9
+    sky = np.zeros((H, W), bool)
+    sky[:roof] = True
+    return depth, conf, rgb, truth.astype(np.float32), sky, roof, known_from, (normal, offset)
+
+
+def complete(depth, conf, rgb, **kwargs):
+    return complete_depth_map(depth, conf, rgb, rays_cam=rays(), up_cam=UP, focal_px=F, **kwargs)
+
+
+# ------------------------------------------------------------------------------------------
+# Exact answers
+
+
+@pytest.mark.parametrize("with_sky_labels", [True, False])
+def test_a_facade_is_completed_to_the_truth_up_to_the_roofline(with_sky_labels):
+    depth, conf, rgb, truth, sky, roof, known_from, _ = facade_scene()
+    out = complete(depth, conf, rgb, sky=sky if with_sky_labels else None)
+    upper = slice(roof, known_from)
+    assert np.all(out.origin[upper] == PLANE)
+    # Exact on an exact plane (float32 depths, the fit from float32 data).
+    np.testing.assert_allclose(out.depth_m[upper], truth[upper], rtol=1e-4)
+    assert not np.any(out.depth_m[:roof]), "the sky stays empty"
+    assert np.array_equal(out.depth_m[known_from:], depth[known_from:]), "known depths are kept"
+    assert np.all(out.origin[known_from:] == DENSIFIED)
+    completed = out.confidence[upper]
+    assert completed.min() > 0 and completed.max() <= CompletionParams().max_confidence
+    assert completed.max() < conf[known_from:].min(), "never above the data it extends"
+    # Farther from the data, lower confidence.
+    assert out.confidence[roof, W // 2] < out.confidence[known_from - 1, W // 2]
+
+
+def test_a_noisy_facade_stays_within_the_stated_extrapolation_error():
+    sigma = 0.02
+    depth, conf, rgb, truth, sky, roof, known_from, (normal, _) = facade_scene(noise_m=sigma)
+    out = complete(depth, conf, rgb, sky=sky)
+    # The module's error model: a pixel H metres beyond data spanning h metres is off by about
+    # sigma * H / h along the normal (3 sigma here), plus the in-plane noise of the fit itself.
+    r = rays().reshape(H, W, 3)
+    height = -(r[..., 1] * truth)  # metres above the camera (y down)
+    h_data = np.ptp(height[known_from:])
+    beyond = np.abs(height[roof:known_from] - height[known_from:].mean()) + 0.5 * h_data
+    along_normal = np.abs(r[roof:known_from] @ normal)  # z error per metre of offset along the normal
+    bound = (3 * sigma * beyond / h_data + 3 * sigma) / along_normal
+    err = np.abs(out.depth_m[roof:known_from] - truth[roof:known_from])
+    assert np.all(out.origin[roof:known_from] == PLANE)
+    assert np.all(err <= bound), float((err - bound).max())
+
+
+def test_windows_in_a_facade_take_its_plane():
+    depth, conf, rgb, truth, sky, *_ = facade_scene(windows=True)
+    out = complete(depth, conf, rgb, sky=sky)
+    window = (slice(30, 42), slice(20, 34))
+    assert np.all(out.origin[window] == PLANE)
+    np.testing.assert_allclose(out.depth_m[window], truth[window], rtol=1e-4)
+    # Holes get a lower confidence than the facade beside them.
+    assert out.confidence[window].max() < out.confidence[30:42, 16:19].min()
+
+
+def test_a_pole_is_filled_up_at_its_base_depth_and_nothing_else():
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[:] = SKY_RGB
+    rgb[100:] = textured((H - 100, W), (90, 90, 90), 2)  # road
+    z_pole, cols = 8.0, slice(88, 93)
+    rgb[15:100, cols] = (60, 60, 60)
+    depth = np.zeros((H, W), np.float32)
+    depth[100:] = 15.0  # something at the bottom: the road, roughly
+    depth[75:100, cols] = z_pole  # the LiDAR reaches the pole's foot only
+    conf = (depth > 0).astype(np.float32)
+    out = complete(depth, conf, rgb, sky=np.zeros((H, W), bool))
+    assert np.all(out.origin[15:75, cols] == VERTICAL)
+    # A flat strip facing the camera: exact.
+    np.testing.assert_allclose(out.depth_m[15:75, cols], z_pole, rtol=1e-4)
+    assert out.confidence[15:75, cols].max() <= CompletionParams().vertical_confidence
+    assert not np.any(out.depth_m[:100, : cols.start - 1]) and not np.any(out.depth_m[:100, cols.stop + 1 :])
+
+
+def test_a_grazing_plane_is_not_extended_into_huge_depths():
+    # A wall along the line of sight (x = 1 m, to the right), seen almost edge-on by the centre
+    # columns: the ray meets it at less than min_incidence_deg there.
+    normal = np.array([1.0, 0.0, 0.0])
+    r = rays()
+    with np.errstate(divide="ignore"):
+        truth = np.where(r[:, 0] > 0.02, 1.0 / np.maximum(r[:, 0], 1e-9), 0.0).reshape(H, W)
+    rgb = textured((H, W), (180, 160, 140), 3)
+    rgb[:, : W // 2 + 2] = textured((H, W // 2 + 2), (60, 120, 60), 4)
+    depth = np.where(truth < 12.0, truth, 0).astype(np.float32)  # data only where the wall is near
+    depth[:, : W // 2 + 2] = 0
+    conf = (depth > 0).astype(np.float32)
+    p = CompletionParams(max_depth_m=1000.0)
+    out = complete(depth, conf, rgb, params=p)
+    filled = out.origin == PLANE
+    assert filled.any()
+    sin_incidence = np.abs(r @ normal) / np.linalg.norm(r, axis=1)
+    assert np.all(sin_incidence.reshape(H, W)[filled] >= np.sin(np.radians(p.min_incidence_deg)) - 1e-9)
+    np.testing.assert_allclose(out.depth_m[filled], truth[filled], rtol=1e-4)
+    assert out.depth_m.max() <= 1.0 / np.sin(np.radians(p.min_incidence_deg)) + 1e-3
+    assert np.all(np.isfinite(out.depth_m))
+
+
+def test_empty_and_sky_regions_stay_empty():
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[:] = SKY_RGB
+    zeros = np.zeros((H, W), np.float32)
+    out = complete(zeros, zeros, rgb)
+    assert not out.depth_m.any() and not out.confidence.any() and not out.origin.any()
+    # A textured region with no depth anywhere near it stays empty too.
+    depth, conf, rgb, _, sky, *_ = facade_scene()
+    rgb[:, : W // 3] = textured((H, W // 3), (30, 140, 40), 5)
+    depth[:, : W // 3] = 0
+    conf[:, : W // 3] = 0
+    out = complete(depth, conf, rgb, sky=sky)
+    assert not np.any(out.origin[:, : W // 3 - 1] >= PLANE)
+
+
+def test_a_large_image_is_completed_on_a_coarse_grid_with_exact_depths():
+    depth, conf, rgb, truth, sky, roof, known_from, _ = facade_scene()
+    big = CompletionParams(max_side_px=90)  # the 180-pixel image runs on a 90 x 60 grid
+    out = complete(depth, conf, rgb, sky=sky, params=big)
+    upper = (slice(roof + 2, known_from), slice(2, W - 2))
+    assert np.mean(out.origin[upper] == PLANE) > 0.97
+    done = out.origin == PLANE
+    np.testing.assert_allclose(out.depth_m[done], truth[done], rtol=1e-4)
+    assert not np.any(out.depth_m[:roof])
+
+
+def test_segments_labelled_people_are_not_completed():
+    depth, conf, rgb, _, sky, roof, known_from, _ = facade_scene()
+    classes = np.full((H, W), tx.IGNORE_ID, np.uint8)
+    classes[known_from:] = tx.PERSON
+    out = complete(depth, conf, rgb, sky=sky, classes=classes)
+    assert not np.any(out.origin >= PLANE)
+    keep_out = np.zeros((H, W), bool)
+    keep_out[roof : roof + 10] = True
+    out = complete(depth, conf, rgb, sky=sky, keep_out=keep_out)
+    assert not out.depth_m[roof : roof + 10].any() and out.depth_m[roof + 10 : known_from].all()
+
+
+# ------------------------------------------------------------------------------------------
+# Hostile inputs
+
+
+def test_hostile_inputs_are_refused_with_a_clear_message():
+    depth, conf, rgb, *_ = facade_scene()
+    bad = depth.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="depth_m has 1 NaN or infinite"):
+        complete(bad, conf, rgb)
+    bad[0, 0] = np.inf
+    with pytest.raises(ValueError, match="depth_m has 1 NaN or infinite"):
+        complete(bad, conf, rgb)
+    with pytest.raises(ValueError, match=r"confidence has shape \(120, 179\), depth_m has \(120, 180\)"):
+        complete(depth, conf[:, 1:], rgb)
+    with pytest.raises(ValueError, match=r"rgb must have shape \(120, 180, 3\)"):
+        complete(depth, conf, rgb[1:])
+    with pytest.raises(ValueError, match="negative depths"):
+        complete(-depth, conf, rgb)
+    with pytest.raises(ValueError, match=r"confidence must lie in \[0, 1\]"):
+        complete(depth, conf * 2, rgb)
+    with pytest.raises(ValueError, match="floating-point"):
+        complete(depth.astype(np.int32), conf, rgb)
+    with pytest.raises(ValueError, match="rays_cam must have shape"):
+        complete_depth_map(depth, conf, rgb, rays_cam=rays()[1:], up_cam=UP, focal_px=F)
+    with pytest.raises(ValueError, match="rays_cam must have z = 1"):
+        complete_depth_map(depth, conf, rgb, rays_cam=2 * rays(), up_cam=UP, focal_px=F)
+    with pytest.raises(ValueError, match="up_cam must not be the zero vector"):
+        complete_depth_map(depth, conf, rgb, rays_cam=rays(), up_cam=np.zeros(3), focal_px=F)
+    with pytest.raises(ValueError, match="focal_px must be a positive"):
+        complete_depth_map(depth, conf, rgb, rays_cam=rays(), up_cam=UP, focal_px=float("nan"))
+    with pytest.raises(ValueError, match="sky must be a bool mask"):
+        complete(depth, conf, rgb, sky=np.zeros((H, W), np.uint8))
+    with pytest.raises(ValueError, match=r"keep_out must have shape \(120, 180\)"):
+        complete(depth, conf, rgb, keep_out=np.zeros((H, W + 1), bool))
+    with pytest.raises(ValueError, match="sparse_m and sparse_confidence come together"):
+        complete(depth, conf, rgb, sparse_m=depth)
+    sparse = depth.copy()
+    sparse[5, 5] = np.nan
+    with pytest.raises(ValueError, match="sparse_m has 1 NaN"):
+        complete(depth, conf, rgb, sparse_m=sparse, sparse_confidence=conf)
+    with pytest.raises(ValueError, match="origin holds code 9"):
+        complete(depth, conf, rgb, origin=np.full((H, W), 9, np.uint8))
+
+
+def test_bad_parameters_name_the_stage():
+    with pytest.raises(ValueError, match="complete_depth: unknown parameters"):
+        get_stage("complete_depth")(Scene("s", "x", [], []), {"max_depht_m": 10})
+    with pytest.raises(ValueError, match="complete_depth: max_sky_share must be in"):
+        CompletionParams(max_sky_share=2.0)
+    with pytest.raises(ValueError, match="complete_depth: min_depth_m"):
+        CompletionParams(min_depth_m=200.0)
+    with pytest.raises(ValueError, match="complete_depth: min_inliers must be an integer"):
+        CompletionParams(min_inliers=2.5)
+    with pytest.raises(ValueError, match="complete_depth: inlier_tol_m must be a finite number"):
+        CompletionParams(inlier_tol_m=float("nan"))
+
+
+def test_dense_origin_must_match_the_dense_depth():
+    zeros = np.zeros((4, 5), np.float32)
+    dense = zeros.copy()
+    dense[0, 0] = 3.0
+    with pytest.raises(InvalidRecord, match="dense_origin"):
+        CameraDepth(zeros, zeros, zeros.astype(np.uint8), dense, dense / 3, np.zeros((4, 5), np.uint8))
+    with pytest.raises(InvalidRecord, match="holds code 7"):
+        CameraDepth(zeros, zeros, zeros.astype(np.uint8), dense, dense / 3, (dense > 0).astype(np.uint8) * 7)
+    with pytest.raises(InvalidRecord, match="without dense_m"):
+        CameraDepth(zeros, zeros, zeros.astype(np.uint8), dense_origin=np.zeros((4, 5), np.uint8))
+    # Derived when not given: the measured pixel is "lidar", the rest "densified".
+    sparse = dense.copy()
+    dense[1, 1] = 4.0
+    derived = CameraDepth(sparse, (sparse > 0).astype(np.float32), zeros.astype(np.uint8), dense, dense / 4)
+    assert derived.dense_origin[0, 0] == DENSE_ORIGINS.index("lidar")
+    assert derived.dense_origin[1, 1] == DENSIFIED
+    assert np.count_nonzero(derived.dense_origin) == 2
+
+
+# ------------------------------------------------------------------------------------------
+# The vectorised fit against a plain per-group reference
+
+
+def _reference_plane(points: np.ndarray) -> np.ndarray:
+    """The least-squares plane of (N, 3) points, a plain SVD: its unit normal."""
+    centred = points - points.mean(axis=0)
+    return np.linalg.svd(centred)[2][-1]
+
+
+def test_fit_planes_agrees_with_a_plain_per_group_fit():
+    rng = np.random.default_rng(0)
+    up = np.array([0.0, -1.0, 0.0])
+    groups, points, truths, kinds, clean = [], [], [], [], []
+    for g in range(6):
+        vertical = g % 2 == 0
+        a, b = rng.uniform(-8, 8, 200), rng.uniform(-1.5, 3.0, 200)
+        if vertical:  # a facade: normal horizontal
+            yaw = rng.uniform(-0.6, 0.6)
+            n = np.array([np.sin(yaw), 0.0, -np.cos(yaw)])
+            along = np.array([np.cos(yaw), 0.0, np.sin(yaw)])
+            pts = 15.0 * -n + a[:, None] * along + b[:, None] * np.array([0.0, -1.0, 0.0])
+        else:  # the ground 1.6 m below the camera
+            pts = np.stack([a, np.full(200, 1.6), 10 + 2 * np.abs(b) * 4], axis=1)
+            n = np.array([0.0, -1.0, 0.0])
+        pts = pts + rng.normal(0, 0.005, pts.shape)
+        outliers = rng.random(200) < 0.15
+        pts[outliers] += rng.uniform(-3, 3, (outliers.sum(), 3))
+        groups.append(np.full(200, g))
+        points.append(pts)
+        truths.append(n)
+        kinds.append(KIND_VERTICAL if vertical else KIND_GROUND)
+        clean.append(1 - outliers.mean())
+    groups, points = np.concatenate(groups), np.concatenate(points)
+    p = CompletionParams()
+    fits, inlier = fit_planes(groups, points, np.ones(len(points)), 6, up, p, np.random.default_rng(1))
+    for g in range(6):
+        assert fits.kind[g] == kinds[g]
+        mine = groups == g
+        reference = _reference_plane(points[mine & inlier])
+        assert abs(abs(fits.normal[g] @ reference) - 1) < 1e-4  # the same plane as the plain fit
+        assert abs(abs(fits.normal[g] @ truths[g]) - 1) < 1e-3
+        assert clean[g] - 0.01 <= fits.share[g] <= clean[g] + 0.03  # outliers rarely land on it
+    # A row of ground points is no facade, and two points no plane at all.
+    row = np.stack([np.linspace(-5, 5, 50), np.full(50, 1.6), np.full(50, 10.0)], axis=1)
+    fits, _ = fit_planes(np.zeros(50, np.intp), row, np.ones(50), 1, up, p, np.random.default_rng(2))
+    assert fits.kind[0] == 0
+
+
+# ------------------------------------------------------------------------------------------
+# The stage on a small synthetic scene
+
+
+@pytest.fixture(scope="module")
+def completed_scene() -> tuple[Scene, Scene]:
+    cfg = SyntheticConfig(
+        scenes=1, frames=4, seed=5, height=72, width=108, lidar=LidarSpec(beams=32, columns=512, sectors=8)
+    )
+    scene = SyntheticScene(cfg, 0).scene()
+    for name in ("aggregate_lidar", "project_depth", "densify_depth", "pseudo_semantics"):
+        scene = get_stage(name)(scene, {})
+    before = [f for f in scene.frames]
+    after = get_stage("complete_depth")(Scene(scene.scene_id, scene.source, scene.calibrations, before), {})
+    return Scene(scene.scene_id, scene.source, scene.calibrations, before), after
+
+
+def test_the_stage_adds_completed_pixels_with_their_own_codes(completed_scene):
+    before, after = completed_scene
+    gained, errors = 0, []
+    for fb, fa in zip(before.frames, after.frames, strict=True):
+        for cb, ca in zip(fb.cameras, fa.cameras, strict=True):
+            db, da = cb.depth, ca.depth
+            assert set(np.unique(db.dense_origin)) <= {0, 1, 2}
+            assert np.array_equal(da.dense_m[db.dense_m > 0], db.dense_m[db.dense_m > 0])
+            assert np.array_equal((da.dense_origin > 0), da.dense_m > 0)
+            new = da.dense_origin >= PLANE
+            assert not np.any(db.dense_m[new])
+            assert np.all(da.dense_confidence[new] <= CompletionParams().max_confidence)
+            truth = ca.truth.depth_m
+            gained += int(np.count_nonzero(new & (truth > 0)))
+            assert np.count_nonzero(new & (ca.truth.semantic == tx.SKY)) <= 0.01 * max(new.sum(), 1) + 3
+            ok = new & (truth > 0)
+            errors.append(np.abs(da.dense_m[ok] - truth[ok]) / truth[ok])
+            assert np.all(np.isfinite(da.dense_m))
+    assert gained > 0
+    assert np.mean(np.concatenate(errors)) < 0.05
+
+
+def test_the_origin_map_round_trips_through_the_cache_schema(completed_scene):
+    from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch, row_to_frame
+
+    _, after = completed_scene
+    frame = after.frames[1]
+    schema = frame_schema(CacheContents(camera_truth=(), depth=True))
+    assert "depth_dense_origin_png" in {f.name for f in schema.field("cameras").type.value_type}
+    back = row_to_frame(frame_to_batch(frame, "synthetic", schema))
+    for a, b in zip(frame.cameras, back.cameras, strict=True):
+        assert np.array_equal(a.depth.dense_origin, b.depth.dense_origin)
+
+
+def test_the_stage_without_pseudo_labels_warns_once(caplog):
+    cfg = SyntheticConfig(
+        scenes=1, frames=2, seed=2, height=36, width=54, lidar=LidarSpec(beams=16, columns=256)
+    )
+    scene = SyntheticScene(cfg, 0).scene()
+    for name in ("project_depth", "densify_depth"):
+        scene = get_stage(name)(scene, {})
+    with caplog.at_level(logging.WARNING, logger="phigenesis.prep"):
+        out = get_stage("complete_depth")(scene, {})
+        frames = list(out.frames)
+    warnings = [r for r in caplog.records if "no pseudo-semantic labels" in r.getMessage()]
+    assert len(warnings) == 1
+    assert all(c.depth.dense_origin is not None for f in frames for c in f.cameras)
