@@ -509,8 +509,8 @@ def test_the_readme_commands_make_only_paths_git_ignores() -> None:
 def test_the_readme_says_how_to_make_the_held_out_cache_as_the_benchmark_does() -> None:
     (line,) = [m for m in re.findall(r"(\S*phigenesis-prep synthetic [^\n`]*)", README) if "heldout" in m]
     bench = (ROOT / "benchmarks" / "stage1.py").read_text()
-    assert "_cache(eval_cache, args.eval_scenes, 100)" in bench
-    assert "frames=40, seed=seed, height=96, width=144" in bench
+    assert "_cache(eval_cache, args.eval_scenes, 100, 40)" in bench
+    assert "frames=frames, seed=seed, height=96, width=144" in bench
     for flag in ("--seed 100", "--height 96", "--width 144", "--out heldout-cache/"):
         assert flag in line, line
 

@@ -3,6 +3,8 @@ torchrun), its clear errors, and the PLY export of a trained model."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 import os
 import subprocess
@@ -31,9 +33,10 @@ from phigenesis.models.stage1 import (
     range_view_order,
 )
 from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
-from phigenesis.train.runner import latest_checkpoint, read_metrics
+from phigenesis.train.runner import ProcessGroup, latest_checkpoint, read_metrics
 from phigenesis.train.stage1 import (
     Stage1TrainConfig,
+    _draw_clips,
     load_stage1,
     stage1_losses,
     train_stage1,
@@ -402,3 +405,115 @@ def test_edge_aware_smoothness_prefers_depth_edges_at_image_edges():
     assert flat > 0 and at_edge < 0.05 * flat  # exp(-10 * 0.4) = 0.018
     # Scale-free: the whole scene twice as far costs the same.
     assert float(edge_aware_smoothness(2 * step, image)) == pytest.approx(flat, rel=1e-6)
+
+
+# --------------------------------------------------------------------------------------------
+# Depth bins head, latents in, checkpoints made before the bins head
+
+
+def _bins_model(bins: int = 16) -> Stage1Model:
+    torch.manual_seed(0)
+    model = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16, "depth_bins": bins})
+    # A head that is not zero, so the outputs depend on the features and the entropy varies.
+    torch.nn.init.normal_(model.adapter.head[-1].weight, std=0.05)
+    return model
+
+
+def test_registered_configs_classify_depth():
+    assert create_model("stage1_tiny").config.adapter_config.depth_bins == 64
+    assert create_model("stage1_base").config.adapter_config.depth_bins == 200
+
+
+def test_latents_in_equal_images_in():
+    model = _bins_model()
+    images, k, poses, times = _inputs(model)
+    with torch.no_grad():
+        from_images = model(images, k, poses, times)
+        latents = model.encode(images)
+        from_latents = model.forward_latents(latents, k, poses, times, images)
+        decoded = model.forward_latents(latents, k, poses, times)  # colours: the VAE's decoding
+    for name in ("means", "quats", "velocity", "dynamic_prob"):
+        assert torch.equal(getattr(from_images, name), getattr(from_latents, name)), name
+    assert torch.equal(from_images.pixels.depth_entropy, from_latents.pixels.depth_entropy)
+    # Without images, the pixel colours the adapter sees and corrects are the VAE's decoding.
+    with torch.no_grad():
+        explicit = model.forward_latents(latents, k, poses, times, model.decode(latents))
+    assert torch.equal(decoded.means, explicit.means)
+    assert torch.equal(decoded.pixels.colour, explicit.pixels.colour)
+    with pytest.raises(ValueError, match="do not match latents"):
+        model.forward_latents(latents, k, poses, times, images[:, :, :3])
+
+
+def test_bins_head_depth_and_entropy_render():
+    model = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16, "depth_bins": 16})
+    images, k, poses, times = _inputs(model)
+    with torch.no_grad():
+        pred = model(images, k, poses, times)
+    c = model.config.adapter_config
+    # The zero-initialised head: uniform bins, the geometric middle of [near, far], entropy log K.
+    np.testing.assert_allclose(pred.pixels.depth.numpy(), math.sqrt(c.near_m * c.far_m), rtol=1e-5)
+    np.testing.assert_allclose(pred.pixels.depth_entropy.numpy(), math.log(16), rtol=1e-5)
+    scene = pred.scene(0, keep=torch.ones(pred.pixels.depth.shape[1:], dtype=torch.bool))
+    out = scene.render(poses[0, 0].float(), k[0], SIZE[1], SIZE[0], 0.0, entropy=True)
+    covered = out.alpha > 0.5
+    assert covered.float().mean() > 0.9
+    np.testing.assert_allclose(out.depth_entropy[covered].numpy(), math.log(16), rtol=1e-4)
+    with pytest.raises(ValueError, match="no depth_entropy"):
+        dataclasses.replace(scene, depth_entropy=None).render(
+            poses[0, 0].float(), k[0], 8, 8, 0.0, entropy=True
+        )
+
+
+def test_checkpoint_made_before_the_bins_head_still_loads(tmp_path):
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    torch.manual_seed(0)
+    old = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16})
+    path = save_checkpoint(tmp_path / "new.safetensors", old)
+    with safe_open(str(path), "pt") as f:
+        header, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118
+    config = json.loads(header["config"])
+    del config["adapter"]["depth_bins"]  # what a checkpoint written before the bins head holds
+    header["config"] = json.dumps(config)
+    save_file(tensors, str(tmp_path / "old.safetensors"), metadata=header)
+    loaded = load_stage1(tmp_path / "old.safetensors")
+    assert loaded.config.adapter_config.depth_bins == 0
+    images, k, poses, times = _inputs(loaded)
+    with torch.no_grad():
+        assert torch.equal(loaded(images, k, poses, times).means, old.eval()(images, k, poses, times).means)
+    # A config that says bins with weights of the regression head: the error names the head.
+    config["adapter"]["depth_bins"] = 16
+    header["config"] = json.dumps(config)
+    save_file(tensors, str(tmp_path / "mixed.safetensors"), metadata=header)
+    with pytest.raises(CheckpointError, match=r"mixed\.safetensors: weights do not fit .*adapter\.head"):
+        load_stage1(tmp_path / "mixed.safetensors")
+
+
+def test_losses_with_the_bins_head_and_several_targets(tiny_cache):
+    cfg = tiny_train_config(
+        model_overrides={"image_size": list(SIZE), "adapter": {"width": 16, "depth_bins": 16}},
+        targets_per_clip=2,
+    )
+    model = create_model(cfg.model, **cfg.model_overrides)
+    data = Stage1Clips(tiny_cache, SIZE, 1)
+    clips = _draw_clips(data, cfg, 0, ProcessGroup(0, 1))
+    assert len(clips[0].target_indices) == 1 + 2
+    assert len(set(clips[0].target_indices)) == 3 or data.scene_length(clips[0].scene_id) < 4
+    terms, _ = stage1_losses(model, clips)
+    # Uniform bins at the start: the cross-entropy is log K wherever the cache has depth.
+    np.testing.assert_allclose(float(terms["depth_ce"]), math.log(16), rtol=1e-4)
+    assert 0 < float(terms["target_semantic"]) < 20
+    with pytest.raises(ValueError, match="targets_per_clip"):
+        tiny_train_config(targets_per_clip=3)  # target_offset 1: only 2 distinct frames
+
+
+def test_time_limit_ends_the_run_with_its_weights(tiny_cache, tmp_path):
+    run = train_stage1(
+        tiny_cache, tmp_path / "run", tiny_train_config(steps=50), progress=False, time_limit_s=0.0
+    )
+    assert run.stopped_by_time and run.steps_done == 1
+    assert run.checkpoint is not None and run.checkpoint.is_file()
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["steps"] == 1 and summary["planned_steps"] == 50 and summary["stopped_by_time"]
+    assert load_stage1(run.checkpoint).config.image_size == SIZE

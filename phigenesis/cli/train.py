@@ -74,6 +74,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--threads", type=positive, help="torch CPU threads per process (overrides the config)")
     g.add_argument("--resume", action="store_true", help="continue --out from its newest checkpoint")
     g.add_argument("--stop-after", type=positive, help="leave after this many steps (then --resume)")
+    g.add_argument(
+        "--time-limit-min",
+        type=float,
+        help="wall-clock budget in minutes: end (and write the final weights) after the step that passes it",
+    )
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -91,6 +96,7 @@ def _train_stage1(args: argparse.Namespace) -> int:
         resume=args.resume,
         stop_after=args.stop_after,
         progress=not args.no_progress,
+        time_limit_s=None if args.time_limit_min is None else 60.0 * args.time_limit_min,
     )
     if os.environ.get("RANK", "0") != "0":  # torchrun: rank 0 reports
         return 0
@@ -100,7 +106,8 @@ def _train_stage1(args: argparse.Namespace) -> int:
     losses = ", ".join(
         f"{k} {result.last[k]:.4f}" for k in ("loss", "rgb", "depth", "semantic") if k in result.last
     )
-    print(f"{result.steps_done} steps in {result.seconds / 60:.1f} min; last step: {losses}")
+    limit = " (the time limit ended it before the planned steps)" if result.stopped_by_time else ""
+    print(f"{result.steps_done} steps in {result.seconds / 60:.1f} min{limit}; last step: {losses}")
     print(f"final checkpoint: {result.checkpoint}")
     return 0
 

@@ -9,7 +9,11 @@ convolution blocks at the finest level predict per pixel, with bounded activatio
 ======================  =====  =====================================================================
 output                  ch.    activation
 ======================  =====  =====================================================================
-depth                   1      camera z in ``[near_m, far_m]``, log-uniform: ``near (far/near)^sigmoid``
+depth                   1      regression head (``depth_bins = 0``): camera z in ``[near_m, far_m]``,
+                               log-uniform: ``near (far/near)^sigmoid``; bins head: the residual
+depth bins              K      bins head (``depth_bins = K > 0``): logits over K log-spaced bins
+                               (:mod:`~phigenesis.models.depth_bins`); z = exp(expected log-depth
+                               + residual), and the distribution's entropy is an output
 opacity                 1      ``sigmoid(x + opacity_bias)``
 scale                   3      ``min(0.6 * footprint * exp(clamp(x, -4, 4)), max_scale_m)``, where
                                the footprint ``z / f`` is the size of one pixel at that depth (m)
@@ -34,6 +38,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from phigenesis.models.depth_bins import DepthBins
+
 #: Channels of the head's outputs, in order (``semantic`` has ``num_classes``).
 HEAD_CHANNELS = {"depth": 1, "opacity": 1, "scale": 3, "rotation": 4, "colour": 3, "motion": 3, "dynamic": 1}
 
@@ -54,6 +60,9 @@ class AdapterConfig:
         opacity_bias: added before the opacity sigmoid (2.0: opacities start near 0.88).
         max_speed_mps: bound of each velocity component (m/s).
         norm_groups: GroupNorm groups of the fusion blocks (must divide ``width``).
+        depth_bins: 0 for the regression depth head (one channel; what checkpoints made before the
+            bins head hold, so their configs, which lack this field, still load), or the number
+            of log-spaced depth bins of the classification head.
     """
 
     feature_channels: tuple[int, ...] = (64, 32, 16)
@@ -65,6 +74,7 @@ class AdapterConfig:
     opacity_bias: float = 2.0
     max_speed_mps: float = 30.0
     norm_groups: int = 8
+    depth_bins: int = 0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "feature_channels", tuple(int(c) for c in self.feature_channels))
@@ -74,10 +84,19 @@ class AdapterConfig:
             raise ValueError(
                 f"AdapterConfig: width {self.width} does not divide by {self.norm_groups} groups"
             )
+        if self.depth_bins < 0 or self.depth_bins == 1:
+            raise ValueError(
+                f"AdapterConfig: depth_bins must be 0 (regression) or >= 2, got {self.depth_bins}"
+            )
 
     @property
     def out_channels(self) -> int:
-        return sum(HEAD_CHANNELS.values()) + self.num_classes
+        return sum(HEAD_CHANNELS.values()) + self.num_classes + self.depth_bins
+
+    @property
+    def bins(self) -> DepthBins | None:
+        """The depth bins of the classification head (None for the regression head)."""
+        return DepthBins(self.near_m, self.far_m, self.depth_bins) if self.depth_bins else None
 
     def to_dict(self) -> dict[str, object]:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
@@ -100,6 +119,8 @@ class PixelGaussians:
     semantic_logits: Tensor  # (..., V, H, W, K)
     velocity: Tensor  # (..., V, H, W, 3) camera axes, m/s
     dynamic_logit: Tensor  # (..., V, H, W)
+    depth_logits: Tensor | None = None  # (..., V, H, W, K) bin logits (bins head only)
+    depth_entropy: Tensor | None = None  # (..., V, H, W) nats, entropy of the bins (bins head only)
 
 
 class RangeViewAdapter(nn.Module):
@@ -159,12 +180,18 @@ class RangeViewAdapter(nn.Module):
 
     def _activate(self, raw: Tensor, rgb: Tensor, focal_px: Tensor) -> PixelGaussians:
         c = self.config
-        names = list(HEAD_CHANNELS)
-        sizes = [HEAD_CHANNELS[k] for k in names] + [c.num_classes]
-        parts = dict(zip([*names, "semantic"], raw.split(sizes, dim=-1), strict=True))
-        log_near, log_far = math.log(c.near_m), math.log(c.far_m)
-        # Zero-initialised head: depth starts at the geometric middle of the range.
-        depth = torch.exp(log_near + torch.sigmoid(parts["depth"][..., 0]) * (log_far - log_near))
+        names = [*HEAD_CHANNELS, "semantic", "depth_bins"]
+        sizes = [*HEAD_CHANNELS.values(), c.num_classes, c.depth_bins]
+        parts = dict(zip(names, raw.split(sizes, dim=-1), strict=True))
+        bins = c.bins
+        logits = entropy = None
+        # Zero-initialised head: depth starts at the geometric middle of the range (both heads).
+        if bins is None:
+            log_near, log_far = math.log(c.near_m), math.log(c.far_m)
+            depth = torch.exp(log_near + torch.sigmoid(parts["depth"][..., 0]) * (log_far - log_near))
+        else:
+            logits = parts["depth_bins"]
+            depth, entropy = bins.decode_logits(logits, parts["depth"][..., 0])
         footprint = depth / focal_px[:, None, None]  # metres per pixel at that depth
         scale = (0.6 * footprint[..., None] * torch.exp(parts["scale"].clamp(-4.0, 4.0))).clamp(
             max=c.max_scale_m
@@ -181,4 +208,6 @@ class RangeViewAdapter(nn.Module):
             semantic_logits=parts["semantic"],
             velocity=c.max_speed_mps * torch.tanh(parts["motion"]),
             dynamic_logit=parts["dynamic"][..., 0] + DYNAMIC_BIAS,
+            depth_logits=logits,
+            depth_entropy=entropy,
         )

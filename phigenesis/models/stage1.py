@@ -178,6 +178,7 @@ class Stage1Prediction:
             dynamic=dynamic[keep],
             time_s=time_s[keep],
             time_origin_micros=time_origin_micros,
+            depth_entropy=None if p.depth_entropy is None else p.depth_entropy[b][keep],
         )
 
 
@@ -211,13 +212,39 @@ class Stage1Model(nn.Module):
         dirs = torch.einsum("...ij,...jhw->...hwi", world_from_camera[..., :3, :3].to(rays.dtype), rays)
         return self.sky(F.normalize(dirs, dim=-1).float())
 
-    def features(self, images: Tensor) -> list[Tensor]:
-        """The frozen decoder's multi-scale features of [B, T, V, 3, H, W] images, each level as
-        [B, T, V, C_i, H_i, W_i] (coarse levels repeated over the frames they cover)."""
+    def encode(self, images: Tensor) -> Tensor:
+        """The frozen VAE's latents (the posterior's mode) of [B, T, V, 3, H, W] images in [0, 1],
+        as [B, V, C_z, T_z, H_z, W_z]: what :meth:`forward_latents` takes."""
         b, t, v = images.shape[:3]
         video = (images * 2 - 1).permute(0, 2, 3, 1, 4, 5).reshape(b * v, 3, t, *images.shape[-2:])
         with torch.no_grad():
-            feats = self.vae.decode_features(self.vae.encode(video).mode())
+            latents = self.vae.encode(video).mode()
+        return latents.reshape(b, v, *latents.shape[1:])
+
+    def decode(self, latents: Tensor) -> Tensor:
+        """[B, T, V, 3, H, W] images in [0, 1] that the frozen VAE decodes from [B, V, C_z, T_z,
+        H_z, W_z] latents (T frames: 1 + (T_z - 1) x the VAE's temporal compression)."""
+        b, v = latents.shape[:2]
+        with torch.no_grad():
+            video = self.vae.decode(latents.flatten(0, 1))  # [B*V, 3, T, H, W] in [-1, 1]
+        video = ((video + 1) / 2).clamp(0.0, 1.0)
+        return video.reshape(b, v, *video.shape[1:]).permute(0, 3, 1, 2, 4, 5)
+
+    def features(self, images: Tensor) -> list[Tensor]:
+        """The frozen decoder's multi-scale features of [B, T, V, 3, H, W] images, each level as
+        [B, T, V, C_i, H_i, W_i] (coarse levels repeated over the frames they cover)."""
+        return self.latent_features(self.encode(images))
+
+    def latent_frames(self, latents: Tensor) -> int:
+        """Frames of the clip that [B, V, C_z, T_z, H_z, W_z] latents decode to (causal VAE)."""
+        return 1 + (int(latents.shape[3]) - 1) * self.vae.config.temporal_compression
+
+    def latent_features(self, latents: Tensor) -> list[Tensor]:
+        """:meth:`features` from [B, V, C_z, T_z, H_z, W_z] latents."""
+        b, v = latents.shape[:2]
+        t = self.latent_frames(latents)
+        with torch.no_grad():
+            feats = self.vae.decode_features(latents.flatten(0, 1))
         out = []
         for f in feats:
             t_i = f.shape[2]
@@ -231,12 +258,37 @@ class Stage1Model(nn.Module):
     def forward(
         self, images: Tensor, intrinsics: Tensor, world_from_camera: Tensor, time_s: Tensor
     ) -> Stage1Prediction:
+        """Per-pixel Gaussians of [B, T, V, 3, H, W] images: :meth:`forward_latents` of their
+        latents (:meth:`encode`), with the images themselves as the pixel colours."""
+        return self.forward_latents(self.encode(images), intrinsics, world_from_camera, time_s, images)
+
+    def forward_latents(
+        self,
+        latents: Tensor,
+        intrinsics: Tensor,
+        world_from_camera: Tensor,
+        time_s: Tensor,
+        images: Tensor | None = None,
+    ) -> Stage1Prediction:
+        """Per-pixel Gaussians of clips given as VAE latents [B, V, C_z, T_z, H_z, W_z] (what
+        Stage 2 generates): the decoder's features of the latents feed the adapter, and the pixel
+        colours it corrects are ``images`` [B, T, V, 3, H, W] when given, else the VAE's decoding
+        of the latents (:meth:`decode`). ``intrinsics`` [B, V, 3, 3], ``world_from_camera``
+        [B, T, V, 4, 4] and ``time_s`` [B, T, V] as for :meth:`forward`, which is this method on
+        the latents of its images."""
+        if images is None:
+            images = self.decode(latents)
         b, t, _, _, h, w = images.shape
+        if t != self.latent_frames(latents) or images.shape[:3:2] != latents.shape[:2]:
+            raise ValueError(
+                f"images {tuple(images.shape)} do not match latents {tuple(latents.shape)} "
+                f"({self.latent_frames(latents)} frames, [B, V] = {list(latents.shape[:2])})"
+            )
         if (h, w) != tuple(self.config.image_size):
             raise ValueError(f"Stage 1 model runs at {self.config.image_size}, got images of {h}x{w}")
         order = range_view_order(world_from_camera[0, 0])
         inverse = torch.argsort(order)
-        feats = [f[:, :, order].flatten(0, 1) for f in self.features(images)]  # [B*T, V, C, h, w]
+        feats = [f[:, :, order].flatten(0, 1) for f in self.latent_features(latents)]  # [B*T, V, C, h, w]
         k = intrinsics[:, order]  # [B, V, 3, 3]
         rays = pixel_rays(k[0], h, w)  # [V, 3, H, W]; the rig is the same over the batch
         focal = 0.5 * (k[0, :, 0, 0] + k[0, :, 1, 1])
@@ -245,7 +297,12 @@ class Stage1Model(nn.Module):
         def restore(x: Tensor) -> Tensor:  # [B*T, V', ...] in range order -> [B, T, V, ...] input order
             return x.reshape(b, t, *x.shape[1:])[:, :, inverse]
 
-        px = PixelGaussians(**{f.name: restore(getattr(px, f.name)) for f in dataclasses.fields(px)})
+        px = PixelGaussians(
+            **{
+                f.name: None if (x := getattr(px, f.name)) is None else restore(x)
+                for f in dataclasses.fields(px)
+            }
+        )
         rays_in = pixel_rays(intrinsics, h, w).permute(0, 1, 3, 4, 2)  # [B, V, H, W, 3]
         pts_cam = rays_in[:, None] * px.depth[..., None]  # [B, T, V, H, W, 3]
         rot = world_from_camera[..., :3, :3].to(pts_cam.dtype)[:, :, :, None, None]  # [B, T, V, 1, 1, 3, 3]
@@ -293,11 +350,17 @@ class Stage1Model(nn.Module):
 
 
 CONFIGS = {
-    # CPU: vae_tiny (4x spatial, 4x temporal), 32-wide pyramid, single frames at 48 x 72.
-    "stage1_tiny": Stage1Config(vae_name="vae_tiny", adapter={"width": 32}, image_size=(48, 72), frames=1),
-    # GPUs: vae_base (8x spatial, 4x temporal), 128-wide pyramid, 5-frame clips at 160 x 240 (STORM's size).
+    # CPU: vae_tiny (4x spatial, 4x temporal), 32-wide pyramid, 64 depth bins, single frames at 48 x 72.
+    "stage1_tiny": Stage1Config(
+        vae_name="vae_tiny", adapter={"width": 32, "depth_bins": 64}, image_size=(48, 72), frames=1
+    ),
+    # GPUs: vae_base (8x spatial, 4x temporal), 128-wide pyramid, 200 depth bins (DrivingRecon's),
+    # 5-frame clips at 160 x 240 (STORM's size).
     "stage1_base": Stage1Config(
-        vae_name="vae_base", adapter={"width": 128, "norm_groups": 32}, image_size=(160, 240), frames=5
+        vae_name="vae_base",
+        adapter={"width": 128, "norm_groups": 32, "depth_bins": 200},
+        image_size=(160, 240),
+        frames=5,
     ),
 }
 

@@ -9,6 +9,12 @@ no Gaussian covers) and minimises:
 - ``depth``: confidence-weighted ``|log z - log z_gt|`` of the rendered depth and of the per-pixel
   depth against the cache's dense depth; ``smooth``: edge-aware smoothness of the per-pixel inverse
   depth (it carries depth to pixels the LiDAR never reached);
+- ``depth_ce`` (bins head only): confidence-weighted cross-entropy of the per-pixel depth-bin
+  logits against the bin of the dense depth (DrivingRecon's classification loss; the residual is
+  trained by ``pixel_depth``);
+- ``target_semantic``: cross-entropy of the rendered class probabilities (normalised by alpha) at
+  the target views against their labels, on pixels the render covers (alpha >= 0.5): a target
+  frame the model did not see is only right where the geometry puts each Gaussian where it belongs;
 - ``semantic``: cross-entropy of the per-pixel logits against the labels (synthetic truth where the
   cache has it, else the pseudo labels), plus ``-log(1 - p_sky)`` on unlabelled pixels that have a
   dense depth (a surface is never sky);
@@ -63,7 +69,19 @@ from phigenesis.train.stage1_data import Clip, Stage1Clips, ViewSet
 
 log = logging.getLogger(__name__)
 
-LOSS_NAMES = ("rgb", "depth", "pixel_depth", "smooth", "semantic", "dynamic", "velocity", "motion", "opacity")
+LOSS_NAMES = (
+    "rgb",
+    "depth",
+    "pixel_depth",
+    "depth_ce",
+    "smooth",
+    "semantic",
+    "target_semantic",
+    "dynamic",
+    "velocity",
+    "motion",
+    "opacity",
+)
 LOG_COLUMNS = ("loss", *LOSS_NAMES, "lr", "grad_norm", "gaussians", "seconds")
 
 
@@ -77,7 +95,9 @@ class Stage1TrainConfig:
             VAE; None keeps the VAE at its initialisation (only for tests).
         steps, batch_size: optimiser steps and clips per step (over all processes).
         lr, weight_decay, warmup_steps, final_lr_ratio, grad_clip: AdamW with warm-up + cosine.
-        target_offset: targets include one frame up to this many frames before or after the clip.
+        target_offset: targets are the context frames and ``targets_per_clip`` other frames, each
+            up to this many frames before or after the clip's last context frame.
+        targets_per_clip: frames besides the context drawn as targets per clip (distinct offsets).
         semantic_target: "auto" (synthetic truth where the cache has it, else the pseudo labels, as
             ``phigenesis-train segmenter --labels auto`` prefers the best labels), "pseudo" or "truth".
         weights: weight of each loss term (``LOSS_NAMES``).
@@ -97,14 +117,17 @@ class Stage1TrainConfig:
     final_lr_ratio: float = 0.05
     grad_clip: float = 1.0
     target_offset: int = 3
+    targets_per_clip: int = 1
     semantic_target: str = "auto"
     weights: dict = field(
         default_factory=lambda: {
             "rgb": 1.0,
             "depth": 0.5,
             "pixel_depth": 0.5,
+            "depth_ce": 0.05,
             "smooth": 0.2,
             "semantic": 0.2,
+            "target_semantic": 0.1,
             "dynamic": 0.2,
             "velocity": 0.05,
             "motion": 0.005,
@@ -123,6 +146,13 @@ class Stage1TrainConfig:
         object.__setattr__(self, "weights", {k: float(self.weights.get(k, 0.0)) for k in LOSS_NAMES})
         if self.steps < 1 or self.batch_size < 1:
             raise ValueError("Stage1TrainConfig: steps and batch_size must be positive")
+        if self.targets_per_clip < 0 or (
+            self.target_offset and self.targets_per_clip > 2 * self.target_offset
+        ):
+            raise ValueError(
+                f"Stage1TrainConfig: targets_per_clip {self.targets_per_clip} must be between 0 and "
+                f"2 x target_offset ({2 * self.target_offset}): each target is a distinct frame"
+            )
         if self.semantic_target not in ("auto", "pseudo", "truth"):
             raise ValueError(f"Stage1TrainConfig: semantic_target {self.semantic_target!r}")
 
@@ -154,6 +184,7 @@ class Stage1Run:
     steps_done: int
     last: dict[str, float]
     seconds: float
+    stopped_by_time: bool = False
 
 
 def build_model(config: Stage1TrainConfig) -> Stage1Model:
@@ -183,6 +214,18 @@ def load_stage1(path: str | os.PathLike[str]) -> Stage1Model:
     return ckpt.model
 
 
+def config_differences(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
+    """Dotted names of the (nested) config fields whose values differ between ``a`` and ``b``."""
+    out = []
+    for key in sorted(set(a) | set(b)):
+        x, y = a.get(key), b.get(key)
+        if isinstance(x, dict) and isinstance(y, dict):
+            out += config_differences(x, y, f"{prefix}{key}.")
+        elif x != y:
+            out.append(f"{prefix}{key}")
+    return out
+
+
 def clip_inputs(clips: list[Clip]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """(images, intrinsics, world_from_camera, time_s) of a batch of clips, as the model takes them."""
     return (
@@ -199,18 +242,59 @@ def training_scene(pred: Stage1Prediction, b: int, clip: Clip, model: Stage1Mode
     return pred.scene(b, keep=keep, hard=False, time_origin_micros=clip.time_origin_micros)
 
 
-def render_targets(model: Stage1Model, scene: GaussianScene, clip: Clip) -> tuple[Tensor, Tensor, Tensor]:
-    """(rgb [S, V, H, W, 3] with sky, depth [S, V, H, W], alpha [S, V, H, W]) at every target view."""
+@dataclass(frozen=True)
+class TargetRenders:
+    """A clip's Gaussians rendered at its S target frames (V views of H x W each)."""
+
+    rgb: Tensor  # [S, V, H, W, 3] with the sky model behind
+    depth: Tensor  # [S, V, H, W] metres, 0 where nothing
+    alpha: Tensor  # [S, V, H, W]
+    semantic_probs: Tensor | None  # [S, V, H, W, K] premultiplied class probabilities, if asked for
+
+
+def render_targets(
+    model: Stage1Model, scene: GaussianScene, clip: Clip, semantics: bool = False
+) -> TargetRenders:
+    """Renders ``scene`` at every target view of ``clip`` at its own capture time."""
     h, w = clip.context.images.shape[-2:]
-    rgbs, depths, alphas = [], [], []
+    rgbs, depths, alphas, probs = [], [], [], []
     for s in range(clip.targets.images.shape[0]):
         wfc = clip.targets.world_from_camera[s]
-        r = scene.render(wfc.float(), clip.intrinsics, w, h, clip.targets.time_s[s])
+        r = scene.render(wfc.float(), clip.intrinsics, w, h, clip.targets.time_s[s], semantics=semantics)
         sky = model.background(wfc.float(), clip.intrinsics, h, w)
         rgbs.append(r.rgb + (1 - r.alpha[..., None]) * sky)
         depths.append(r.depth)
         alphas.append(r.alpha)
-    return torch.stack(rgbs), torch.stack(depths), torch.stack(alphas)
+        probs.append(r.semantic_probs)
+    return TargetRenders(
+        torch.stack(rgbs),
+        torch.stack(depths),
+        torch.stack(alphas),
+        torch.stack(probs) if semantics else None,  # type: ignore[arg-type]
+    )
+
+
+def rendered_semantic_loss(probs: Tensor, alpha: Tensor, labels: Tensor, min_alpha: float = 0.5) -> Tensor:
+    """Mean ``-log q_label`` of rendered (..., K) premultiplied class probabilities, ``q = probs /
+    alpha``, over pixels whose label is known and whose alpha reaches ``min_alpha``."""
+    use = (labels != IGNORE_ID) & (alpha >= min_alpha)
+    if not use.any():
+        return probs.sum() * 0.0
+    q = probs[use] / alpha[use][:, None]
+    picked = q.gather(1, labels[use].long()[:, None])[:, 0]
+    return -torch.log(picked.clamp(min=1e-6)).mean()
+
+
+def depth_bin_loss(logits: Tensor, model: Stage1Model, depth: Tensor, confidence: Tensor) -> Tensor:
+    """Confidence-weighted mean cross-entropy of (..., K) depth-bin logits against the bin of
+    ``depth`` (metres, > 0 where known); 0 without the bins head."""
+    bins = model.config.adapter_config.bins
+    known = depth > 0
+    if bins is None or not known.any():
+        return logits.sum() * 0.0 if logits is not None else depth.sum() * 0.0
+    weight = confidence[known]
+    ce = F.cross_entropy(logits[known], bins.index(depth[known]), reduction="none")
+    return (weight * ce).sum() / weight.sum().clamp(min=1e-6)
 
 
 def stage1_losses(model: Stage1Model, clips: list[Clip]) -> tuple[dict[str, Tensor], int]:
@@ -222,14 +306,18 @@ def stage1_losses(model: Stage1Model, clips: list[Clip]) -> tuple[dict[str, Tens
     for b, clip in enumerate(clips):
         scene = training_scene(pred, b, clip, model)
         gaussians += len(scene)
-        rgb, depth, alpha = render_targets(model, scene, clip)
+        r = render_targets(model, scene, clip, semantics=True)
         tg = clip.targets
-        terms["rgb"].append(photometric_loss(rgb, tg.images.permute(0, 1, 3, 4, 2)))
-        terms["depth"].append(log_depth_loss(depth, tg.depth, tg.depth_confidence))
+        terms["rgb"].append(photometric_loss(r.rgb, tg.images.permute(0, 1, 3, 4, 2)))
+        terms["depth"].append(log_depth_loss(r.depth, tg.depth, tg.depth_confidence))
+        assert r.semantic_probs is not None
+        terms["target_semantic"].append(rendered_semantic_loss(r.semantic_probs, r.alpha, tg.semantic))
         sky = (tg.semantic == SKY).float()
-        terms["opacity"].append((alpha * sky).sum() / sky.sum().clamp(min=1.0))
+        terms["opacity"].append((r.alpha * sky).sum() / sky.sum().clamp(min=1.0))
         px, ctx = pred.pixels, clip.context
         terms["pixel_depth"].append(log_depth_loss(px.depth[b], ctx.depth, ctx.depth_confidence))
+        logits = None if px.depth_logits is None else px.depth_logits[b]
+        terms["depth_ce"].append(depth_bin_loss(logits, model, ctx.depth, ctx.depth_confidence))
         terms["smooth"].append(edge_aware_smoothness(px.depth[b], ctx.images.permute(0, 1, 3, 4, 2)))
         terms["semantic"].append(
             semantic_loss(px.semantic_logits[b], ctx.semantic) + _not_sky(px.semantic_logits[b], ctx)
@@ -265,11 +353,13 @@ def _draw_clips(data: Stage1Clips, cfg: Stage1TrainConfig, step: int, group: Pro
     g = step_generator(cfg.seed, step, group.rank)
     windows = data.windows()
     clips = []
+    # Offsets -k..-1, 1..k of the last context frame; each clip draws targets_per_clip distinct ones.
+    offsets = [o for o in range(-cfg.target_offset, cfg.target_offset + 1) if o]
+    count = min(cfg.targets_per_clip, len(offsets))
     for _ in range(per_rank):
         scene, start = windows[int(torch.randint(len(windows), (1,), generator=g))]
-        offset = int(torch.randint(1, cfg.target_offset + 1, (1,), generator=g)) if cfg.target_offset else 0
-        sign = 1 if int(torch.randint(2, (1,), generator=g)) else -1
-        clips.append(data.clip(scene, start, [sign * offset] if offset else []))
+        picked = torch.randperm(len(offsets), generator=g)[:count].tolist() if count else []
+        clips.append(data.clip(scene, start, [offsets[i] for i in picked]))
     return clips
 
 
@@ -298,20 +388,25 @@ def train_stage1(
     resume: bool = False,
     stop_after: int | None = None,
     progress: bool = True,
+    time_limit_s: float | None = None,
 ) -> Stage1Run:
     """Trains a Stage 1 adapter on the cache ``shards`` into the run folder ``out``.
 
     ``config``: a :class:`Stage1TrainConfig` or a YAML path. ``resume``: continue from the run's
     newest checkpoint. ``stop_after``: end this process after that many steps in total (as if
-    killed; for tests of resuming). Returns the run's summary; the final weights are
-    ``out/model.safetensors`` (written when all ``steps`` are done).
+    killed; for tests of resuming). ``time_limit_s``: a wall-clock budget for this call's steps
+    (seconds from the first step): once a step ends past it, training ends there and the final
+    weights are written as if ``steps`` had been that step (the learning-rate schedule stays the
+    one of ``steps``, so it has not decayed all the way; ``Stage1Run.stopped_by_time`` says so).
+    Returns the run's summary; the final weights are ``out/model.safetensors`` (written when all
+    ``steps`` are done or the time limit ends the run).
     """
     cfg = config if isinstance(config, Stage1TrainConfig) else Stage1TrainConfig.load(config)
     out = Path(out)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     with process_group() as group:
-        return _train(Path(shards), out, cfg, group, resume, stop_after, progress)
+        return _train(Path(shards), out, cfg, group, resume, stop_after, progress, time_limit_s)
 
 
 def _train(
@@ -322,6 +417,7 @@ def _train(
     resume: bool,
     stop_after: int | None,
     progress: bool,
+    time_limit_s: float | None = None,
 ) -> Stage1Run:
     out.mkdir(parents=True, exist_ok=True)
     resume_from = _check_run_folder(out, cfg, resume)
@@ -333,7 +429,11 @@ def _train(
     if resume_from is not None:
         loaded = load_checkpoint(resume_from / "model.safetensors").model
         if loaded.config != model.config:
-            raise CheckpointError(f"{resume_from}: checkpoint of another model config than {cfg.model}")
+            changed = config_differences(loaded.config.to_dict(), model.config.to_dict())
+            raise CheckpointError(
+                f"{resume_from}: checkpoint of another model config than {cfg.model} "
+                f"(differs in {', '.join(changed)})"
+            )
         model.load_state_dict(loaded.state_dict())
         state = load_training_state(resume_from)
         restore_optimizer(optimizer, state)
@@ -348,6 +448,7 @@ def _train(
     metrics = MetricsLog(out, LOG_COLUMNS, resume_step=resume_step) if group.is_main else None
     model.train()
     last: dict[str, float] = {}
+    stopped_by_time = False
     t_start = time.perf_counter()
     end = cfg.steps if stop_after is None else min(cfg.steps, stop_after)
     bar = tqdm(range(start, end), initial=start, total=cfg.steps, disable=not (progress and group.is_main))
@@ -366,8 +467,15 @@ def _train(
             loss.backward()
             grad_norm = torch.nn.utils.clip_grad_norm_(model.trainable_parameters(), cfg.grad_clip)
             optimizer.step()
-            values = torch.stack([loss.detach(), *[terms[k].detach() for k in LOSS_NAMES]])
-            values = group.mean(values)
+            late = time_limit_s is not None and time.perf_counter() - t_start >= time_limit_s
+            values = torch.stack(
+                [loss.detach(), *[terms[k].detach() for k in LOSS_NAMES], torch.tensor(float(late))]
+            )
+            values, late = group.mean(values), False
+            if float(values[-1]) > 0:  # any rank past the limit: all stop after this step
+                late, values = True, values[:-1]
+            else:
+                values = values[:-1]
             last = {
                 "loss": float(values[0]),
                 **{k: float(v) for k, v in zip(LOSS_NAMES, values[1:], strict=True)},
@@ -381,20 +489,28 @@ def _train(
             if metrics is not None:
                 metrics.log(step + 1, last)
             bar.set_postfix(loss=f"{last['loss']:.4f}")
-            if group.is_main and ((step + 1) % cfg.checkpoint_every == 0 or step + 1 == cfg.steps):
+            if group.is_main and ((step + 1) % cfg.checkpoint_every == 0 or step + 1 == cfg.steps or late):
                 save_training_state(out, step + 1, model, optimizer, {"config": cfg.to_dict()})
             group.barrier()
+            if late:
+                stopped_by_time, end = True, step + 1
+                log.info("time limit of %.0f s reached after step %d of %d", time_limit_s, end, cfg.steps)
+                break
     finally:
         if metrics is not None:
             metrics.close()
     final = None
-    if group.is_main and end == cfg.steps:
-        final = save_checkpoint(
-            out / "model.safetensors", model, {"steps": cfg.steps, "train": cfg.to_dict()}
-        )
-        write_text_atomic(out / "summary.json", json.dumps({"steps": cfg.steps, "last": last}, indent=2))
+    if group.is_main and (end == cfg.steps or stopped_by_time):
+        summary = {"steps": end, "planned_steps": cfg.steps, "stopped_by_time": stopped_by_time}
+        final = save_checkpoint(out / "model.safetensors", model, summary | {"train": cfg.to_dict()})
+        write_text_atomic(out / "summary.json", json.dumps(summary | {"last": last}, indent=2))
     return Stage1Run(
-        out=out, checkpoint=final, steps_done=end, last=last, seconds=time.perf_counter() - t_start
+        out=out,
+        checkpoint=final,
+        steps_done=end,
+        last=last,
+        seconds=time.perf_counter() - t_start,
+        stopped_by_time=stopped_by_time,
     )
 
 
@@ -409,6 +525,10 @@ class _Forward(torch.nn.Module):
 
     def forward(self, *args: Any) -> Stage1Prediction:
         return self.ddp(*args)
+
+    @property
+    def config(self) -> Any:
+        return self.model.config
 
     def background(self, *args: Any) -> Tensor:
         return self.model.background(*args)
