@@ -35,10 +35,13 @@ from phigenesis.train.evaluate_stage1 import (
     clip_starts,
     evaluate_clip,
     evaluate_stage1,
+    frame_truth,
     lidar_covered,
     oracle_scene,
     picture_panels,
+    render_views,
     shifted_views,
+    target_views,
 )
 from phigenesis.train.stage1 import Stage1TrainConfig, clip_inputs, load_stage1, train_stage1
 from phigenesis.train.stage1_data import Stage1Clips
@@ -208,10 +211,15 @@ def test_views_and_oracle_gaussians_follow_the_cache(cache: Path, checkpoint: Pa
         point = wfc[:3, :3] @ (ray * depth[c, i, u]) + wfc[:3, 3]
         np.testing.assert_allclose(gauss.means[j].numpy(), point, atol=1e-3)
         assert float(gauss.time_s[j]) == pytest.approx(float(ctx.time_s[c]), abs=1e-6)
-    # The picture has an entropy panel exactly when the render carries an entropy map.
-    columns, rows = picture_panels(result)
-    assert "truth depth" in columns and not any(c.startswith("entropy") for c in columns)
+    # The picture has an entropy panel exactly when the render carries an entropy map (the
+    # registered model's bins head gives one).
     render = result.model["input"]
+    assert render.entropy is not None and float(render.entropy.max()) <= math.log(64) + 1e-4
+    without = dataclasses.replace(
+        result, model={**result.model, "input": dataclasses.replace(render, entropy=None)}
+    )
+    columns, rows = picture_panels(without)
+    assert "truth depth" in columns and not any(c.startswith("entropy") for c in columns)
     entropy = torch.linspace(0, 2.0, render.depth.numel()).reshape(render.depth.shape)
     with_entropy = dataclasses.replace(
         result, model={**result.model, "input": dataclasses.replace(render, entropy=entropy)}
@@ -363,3 +371,16 @@ def test_cli_prints_the_table_and_writes_the_json(
     assert float(row[2]) == pytest.approx(saved["sections"]["input"]["model"]["psnr_db"], abs=0.01)
     assert eval_main(["stage1", "--ckpt", str(tmp_path / "missing.safetensors"), "--shards", str(cache)]) == 2
     assert "phigenesis-eval: error:" in capsys.readouterr().err
+
+
+def test_a_scene_with_depth_entropy_renders_its_entropy_map(cache: Path) -> None:
+    data = Stage1Clips(cache, SIZE, 1)
+    clip = data.clip(SCENE, 1, [], keep_frames=True)
+    views = target_views(clip, 0, frame_truth(clip.frames[1], SIZE))
+    scene = oracle_scene(views)
+    assert render_views(scene, views, torch.zeros(3)).entropy is None
+    nats = torch.full((len(scene),), 1.5)
+    rendered = render_views(dataclasses.replace(scene, depth_entropy=nats), views, torch.zeros(3))
+    covered = rendered.alpha > 0.5
+    assert rendered.entropy is not None and covered.float().mean() > 0.5
+    np.testing.assert_allclose(rendered.entropy[covered].numpy(), 1.5, rtol=1e-5)

@@ -244,14 +244,19 @@ def render_views(scene: GaussianScene, views: Views, background: Tensor) -> Rend
         zeros = torch.zeros(n, h, w)
         return Rendered(bg, zeros, zeros.clone(), torch.full((n, h, w), SKY, dtype=torch.uint8))
     out = scene.render(
-        views.world_from_camera.float(), views.intrinsics.float(), w, h, views.time_s, semantics=True
+        views.world_from_camera.float(),
+        views.intrinsics.float(),
+        w,
+        h,
+        views.time_s,
+        semantics=True,
+        entropy=scene.depth_entropy is not None,
     )
     rgb = (out.rgb + (1 - out.alpha[..., None]) * background).clamp(0.0, 1.0)
     assert out.semantic_probs is not None
     labels = out.semantic_probs.argmax(-1).to(torch.uint8)
     labels = torch.where(out.alpha < SKY_ALPHA, torch.full_like(labels, SKY), labels)
-    entropy = getattr(out, "depth_entropy", None)
-    return Rendered(rgb=rgb, depth=out.depth, alpha=out.alpha, semantic=labels, entropy=entropy)
+    return Rendered(rgb=rgb, depth=out.depth, alpha=out.alpha, semantic=labels, entropy=out.depth_entropy)
 
 
 def oracle_scene(views: Views, time_origin_micros: int = 0) -> GaussianScene:
