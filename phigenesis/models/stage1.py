@@ -224,27 +224,26 @@ class Stage1Model(nn.Module):
     def decode(self, latents: Tensor) -> Tensor:
         """[B, T, V, 3, H, W] images in [0, 1] that the frozen VAE decodes from [B, V, C_z, T_z,
         H_z, W_z] latents (T frames: 1 + (T_z - 1) x the VAE's temporal compression)."""
-        b, v = latents.shape[:2]
-        with torch.no_grad():
-            video = self.vae.decode(latents.flatten(0, 1))  # [B*V, 3, T, H, W] in [-1, 1]
-        video = ((video + 1) / 2).clamp(0.0, 1.0)
-        return video.reshape(b, v, *video.shape[1:]).permute(0, 3, 1, 2, 4, 5)
+        return self._decoded(latents)[0]
 
     def features(self, images: Tensor) -> list[Tensor]:
         """The frozen decoder's multi-scale features of [B, T, V, 3, H, W] images, each level as
         [B, T, V, C_i, H_i, W_i] (coarse levels repeated over the frames they cover)."""
-        return self.latent_features(self.encode(images))
+        return self._decoded(self.encode(images))[1]
 
     def latent_frames(self, latents: Tensor) -> int:
         """Frames of the clip that [B, V, C_z, T_z, H_z, W_z] latents decode to (causal VAE)."""
         return 1 + (int(latents.shape[3]) - 1) * self.vae.config.temporal_compression
 
-    def latent_features(self, latents: Tensor) -> list[Tensor]:
-        """:meth:`features` from [B, V, C_z, T_z, H_z, W_z] latents."""
+    def _decoded(self, latents: Tensor) -> tuple[Tensor, list[Tensor]]:
+        """(:meth:`decode`, :meth:`features`) of [B, V, C_z, T_z, H_z, W_z] latents, from one
+        pass of the frozen decoder."""
         b, v = latents.shape[:2]
         t = self.latent_frames(latents)
         with torch.no_grad():
-            feats = self.vae.decode_features(latents.flatten(0, 1))
+            video, feats = self.vae.decode_with_features(latents.flatten(0, 1))  # video in [-1, 1]
+        video = ((video + 1) / 2).clamp(0.0, 1.0)
+        images = video.reshape(b, v, *video.shape[1:]).permute(0, 3, 1, 2, 4, 5)
         out = []
         for f in feats:
             t_i = f.shape[2]
@@ -253,7 +252,7 @@ class Stage1Model(nn.Module):
             index = torch.div(torch.arange(t) + r - 1, r, rounding_mode="floor").clamp(max=t_i - 1)
             f = f[:, :, index]  # [B*V, C, T, h, w]
             out.append(f.reshape(b, v, *f.shape[1:]).permute(0, 3, 1, 2, 4, 5))
-        return out
+        return images, out
 
     def forward(
         self, images: Tensor, intrinsics: Tensor, world_from_camera: Tensor, time_s: Tensor
@@ -276,8 +275,9 @@ class Stage1Model(nn.Module):
         of the latents (:meth:`decode`). ``intrinsics`` [B, V, 3, 3], ``world_from_camera``
         [B, T, V, 4, 4] and ``time_s`` [B, T, V] as for :meth:`forward`, which is this method on
         the latents of its images."""
+        decoded, latent_feats = self._decoded(latents)
         if images is None:
-            images = self.decode(latents)
+            images = decoded
         b, t, _, _, h, w = images.shape
         if t != self.latent_frames(latents) or images.shape[:3:2] != latents.shape[:2]:
             raise ValueError(
@@ -288,7 +288,7 @@ class Stage1Model(nn.Module):
             raise ValueError(f"Stage 1 model runs at {self.config.image_size}, got images of {h}x{w}")
         order = range_view_order(world_from_camera[0, 0])
         inverse = torch.argsort(order)
-        feats = [f[:, :, order].flatten(0, 1) for f in self.latent_features(latents)]  # [B*T, V, C, h, w]
+        feats = [f[:, :, order].flatten(0, 1) for f in latent_feats]  # [B*T, V, C, h, w]
         k = intrinsics[:, order]  # [B, V, 3, 3]
         rays = pixel_rays(k[0], h, w)  # [V, 3, H, W]; the rig is the same over the batch
         focal = 0.5 * (k[0, :, 0, 0] + k[0, :, 1, 1])

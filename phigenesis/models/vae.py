@@ -348,8 +348,13 @@ class VideoVAE(nn.Module):
         the frame count after the temporal upsamplings so far (``T_0 = T_lat``; the last map has the
         output's T, H and W). These feed the range-view adapter.
         """
+        return self.decode_with_features(z)[1]
+
+    def decode_with_features(self, z: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """(:meth:`decode`, :meth:`decode_features`) of ``z`` from one pass of the decoder."""
         self._check_latent(z)
-        return self.decoder(z)[1]
+        video, features = self.decoder(z)
+        return video, features
 
     def forward(
         self, x: torch.Tensor, sample_posterior: bool = True, generator: torch.Generator | None = None

@@ -47,6 +47,7 @@ from tqdm import tqdm
 
 from phigenesis.data.taxonomy import IGNORE_ID, SKY
 from phigenesis.models import create_model
+from phigenesis.models.depth_bins import DepthBins
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.losses import edge_aware_smoothness, log_depth_loss, photometric_loss, semantic_loss
 from phigenesis.models.stage1 import Stage1Model, Stage1Prediction
@@ -249,18 +250,17 @@ class TargetRenders:
     rgb: Tensor  # [S, V, H, W, 3] with the sky model behind
     depth: Tensor  # [S, V, H, W] metres, 0 where nothing
     alpha: Tensor  # [S, V, H, W]
-    semantic_probs: Tensor | None  # [S, V, H, W, K] premultiplied class probabilities, if asked for
+    semantic_probs: Tensor  # [S, V, H, W, K] premultiplied class probabilities
 
 
-def render_targets(
-    model: Stage1Model, scene: GaussianScene, clip: Clip, semantics: bool = False
-) -> TargetRenders:
-    """Renders ``scene`` at every target view of ``clip`` at its own capture time."""
+def render_targets(model: Stage1Model, scene: GaussianScene, clip: Clip) -> TargetRenders:
+    """Renders ``scene`` (colour, depth, class probabilities) at every target view of ``clip`` at
+    its own capture time."""
     h, w = clip.context.images.shape[-2:]
     rgbs, depths, alphas, probs = [], [], [], []
     for s in range(clip.targets.images.shape[0]):
         wfc = clip.targets.world_from_camera[s]
-        r = scene.render(wfc.float(), clip.intrinsics, w, h, clip.targets.time_s[s], semantics=semantics)
+        r = scene.render(wfc.float(), clip.intrinsics, w, h, clip.targets.time_s[s], semantics=True)
         sky = model.background(wfc.float(), clip.intrinsics, h, w)
         rgbs.append(r.rgb + (1 - r.alpha[..., None]) * sky)
         depths.append(r.depth)
@@ -270,7 +270,7 @@ def render_targets(
         torch.stack(rgbs),
         torch.stack(depths),
         torch.stack(alphas),
-        torch.stack(probs) if semantics else None,  # type: ignore[arg-type]
+        torch.stack(probs),  # type: ignore[arg-type]  # semantics=True: never None
     )
 
 
@@ -285,13 +285,14 @@ def rendered_semantic_loss(probs: Tensor, alpha: Tensor, labels: Tensor, min_alp
     return -torch.log(picked.clamp(min=1e-6)).mean()
 
 
-def depth_bin_loss(logits: Tensor, model: Stage1Model, depth: Tensor, confidence: Tensor) -> Tensor:
+def depth_bin_loss(
+    logits: Tensor | None, bins: DepthBins | None, depth: Tensor, confidence: Tensor
+) -> Tensor:
     """Confidence-weighted mean cross-entropy of (..., K) depth-bin logits against the bin of
-    ``depth`` (metres, > 0 where known); 0 without the bins head."""
-    bins = model.config.adapter_config.bins
+    ``depth`` (metres, > 0 where known); 0 without the bins head (``logits`` and ``bins`` None)."""
     known = depth > 0
-    if bins is None or not known.any():
-        return logits.sum() * 0.0 if logits is not None else depth.sum() * 0.0
+    if logits is None or bins is None or not known.any():
+        return depth.sum() * 0.0 if logits is None else logits.sum() * 0.0
     weight = confidence[known]
     ce = F.cross_entropy(logits[known], bins.index(depth[known]), reduction="none")
     return (weight * ce).sum() / weight.sum().clamp(min=1e-6)
@@ -306,18 +307,18 @@ def stage1_losses(model: Stage1Model, clips: list[Clip]) -> tuple[dict[str, Tens
     for b, clip in enumerate(clips):
         scene = training_scene(pred, b, clip, model)
         gaussians += len(scene)
-        r = render_targets(model, scene, clip, semantics=True)
+        r = render_targets(model, scene, clip)
         tg = clip.targets
         terms["rgb"].append(photometric_loss(r.rgb, tg.images.permute(0, 1, 3, 4, 2)))
         terms["depth"].append(log_depth_loss(r.depth, tg.depth, tg.depth_confidence))
-        assert r.semantic_probs is not None
         terms["target_semantic"].append(rendered_semantic_loss(r.semantic_probs, r.alpha, tg.semantic))
         sky = (tg.semantic == SKY).float()
         terms["opacity"].append((r.alpha * sky).sum() / sky.sum().clamp(min=1.0))
         px, ctx = pred.pixels, clip.context
         terms["pixel_depth"].append(log_depth_loss(px.depth[b], ctx.depth, ctx.depth_confidence))
         logits = None if px.depth_logits is None else px.depth_logits[b]
-        terms["depth_ce"].append(depth_bin_loss(logits, model, ctx.depth, ctx.depth_confidence))
+        bins = model.config.adapter_config.bins
+        terms["depth_ce"].append(depth_bin_loss(logits, bins, ctx.depth, ctx.depth_confidence))
         terms["smooth"].append(edge_aware_smoothness(px.depth[b], ctx.images.permute(0, 1, 3, 4, 2)))
         terms["semantic"].append(
             semantic_loss(px.semantic_logits[b], ctx.semantic) + _not_sky(px.semantic_logits[b], ctx)
@@ -471,11 +472,9 @@ def _train(
             values = torch.stack(
                 [loss.detach(), *[terms[k].detach() for k in LOSS_NAMES], torch.tensor(float(late))]
             )
-            values, late = group.mean(values), False
-            if float(values[-1]) > 0:  # any rank past the limit: all stop after this step
-                late, values = True, values[:-1]
-            else:
-                values = values[:-1]
+            values = group.mean(values)
+            late = float(values[-1]) > 0  # any rank past the limit: all stop after this step
+            values = values[:-1]
             last = {
                 "loss": float(values[0]),
                 **{k: float(v) for k, v in zip(LOSS_NAMES, values[1:], strict=True)},
