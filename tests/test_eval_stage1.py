@@ -27,6 +27,7 @@ from phigenesis.data.pipeline import PipelineSpec, load_pipeline
 from phigenesis.data.records import CameraCalibration
 from phigenesis.data.shards import MANIFEST_NAME, CacheReader
 from phigenesis.data.sources.synthetic import SyntheticScene
+from phigenesis.infer.render import lift_views, render_views
 from phigenesis.models import create_model
 from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 from phigenesis.train.evaluate_stage1 import (
@@ -37,9 +38,7 @@ from phigenesis.train.evaluate_stage1 import (
     evaluate_stage1,
     frame_truth,
     lidar_covered,
-    oracle_scene,
     picture_panels,
-    render_views,
     shifted_views,
     target_views,
 )
@@ -198,7 +197,7 @@ def test_views_and_oracle_gaussians_follow_the_cache(cache: Path, checkpoint: Pa
     # The oracle: one Gaussian per pixel with a truth depth, on the pixel's ray at that depth, moving
     # with the truth flow where it exceeds 0.5 m/s.
     ctx, f = result.views["input"], frames[1]
-    gauss = oracle_scene(ctx)
+    gauss = lift_views(ctx)
     depth, flow = f["truth_depth"].numpy(), f["truth_flow"].numpy().transpose(0, 2, 3, 1)
     assert len(gauss) == int((depth > 0).sum())
     moving = (depth > 0) & (np.linalg.norm(flow, axis=-1) > 0.5)
@@ -377,7 +376,7 @@ def test_a_scene_with_depth_entropy_renders_its_entropy_map(cache: Path) -> None
     data = Stage1Clips(cache, SIZE, 1)
     clip = data.clip(SCENE, 1, [], keep_frames=True)
     views = target_views(clip, 0, frame_truth(clip.frames[1], SIZE))
-    scene = oracle_scene(views)
+    scene = lift_views(views)
     assert render_views(scene, views, torch.zeros(3)).entropy is None
     nats = torch.full((len(scene),), 1.5)
     rendered = render_views(dataclasses.replace(scene, depth_entropy=nats), views, torch.zeros(3))

@@ -75,11 +75,11 @@ from torch import Tensor
 from phigenesis.data import taxonomy
 from phigenesis.data.records import DENSE_ORIGINS, CameraCalibration, CameraTruth
 from phigenesis.data.shards import MANIFEST_NAME
-from phigenesis.data.taxonomy import IGNORE_ID, NUM_CLASSES, SKY
+from phigenesis.data.taxonomy import IGNORE_ID, NUM_CLASSES
 from phigenesis.eval.depth_protocol import ALL, DEPTH_METRICS, DepthAccumulator
-from phigenesis.models.gaussians import GaussianScene
+from phigenesis.infer.render import Rendered, Views, lift_views, render_views, sky_background
 from phigenesis.models.losses import psnr, ssim
-from phigenesis.models.stage1 import Stage1Model, pixel_rays
+from phigenesis.models.stage1 import Stage1Model
 from phigenesis.train.metrics import confusion_matrix, segmentation_scores
 from phigenesis.train.stage1 import clip_inputs, load_stage1
 from phigenesis.train.stage1_data import Clip, Stage1Clips
@@ -112,14 +112,6 @@ HIGHER_IS_BETTER = {
     **{depth_key(m, s): m.startswith("delta") for s in DEPTH_SUBSETS for m in DEPTH_METRICS},
     "miou": True,
 }
-#: The oracle's opacity, logit of its true class (softmax ~ 1) and the speed above which it moves (m/s).
-ORACLE_OPACITY = 0.99
-ORACLE_CLASS_LOGIT = 20.0
-ORACLE_MOVING_MPS = 0.5
-#: The oracle's Gaussian scale in pixel footprints (depth / focal).
-ORACLE_SCALE = 0.3
-#: Rendered pixels below this alpha count as sky in the semantic maps.
-SKY_ALPHA = 0.5
 
 
 def section_name(kind: str, value: float) -> str:
@@ -131,53 +123,6 @@ def section_name(kind: str, value: float) -> str:
 
 # --------------------------------------------------------------------------------------------
 # Records
-
-
-@dataclass(frozen=True)
-class Views:
-    """N views to score, all at the model's size H x W, with their truth.
-
-    Attributes:
-        images: [N, H, W, 3] float32 RGB in [0, 1] (the truth image).
-        world_from_camera: [N, 4, 4] float64 camera poses (OpenCV axes), world frame.
-        intrinsics: [N, 3, 3] float32 pinhole matrices at H x W.
-        time_s: [N] float64 capture times, seconds after the clip's origin.
-        depth: [N, H, W] float32 truth z-depth, metres, 0 = none.
-        semantic: [N, H, W] uint8 truth classes, 255 = unknown.
-        flow: [N, H, W, 3] float32 world-frame surface velocity (m/s), or None when unknown.
-        lidar_covered: [N, H, W] bool, the pixels the cache's LiDAR-derived depth covers
-            (:func:`lidar_covered`), or None for views the cache has no depth for (shifted ones).
-    """
-
-    images: Tensor
-    world_from_camera: Tensor
-    intrinsics: Tensor
-    time_s: Tensor
-    depth: Tensor
-    semantic: Tensor
-    flow: Tensor | None = None
-    lidar_covered: Tensor | None = None
-
-    def __len__(self) -> int:
-        return int(self.images.shape[0])
-
-    @property
-    def size_hw(self) -> tuple[int, int]:
-        return int(self.images.shape[1]), int(self.images.shape[2])
-
-
-@dataclass(frozen=True)
-class Rendered:
-    """A scene rendered into N views: ``rgb`` [N, H, W, 3] with the background composited, ``depth``
-    [N, H, W] metres (0 where nothing), ``alpha`` [N, H, W], ``semantic`` [N, H, W] uint8 (argmax
-    of the class probabilities, sky where alpha < 0.5) and ``entropy`` [N, H, W], nats, the entropy
-    of each ray's depth distribution when the rasterizer reports one (else None)."""
-
-    rgb: Tensor
-    depth: Tensor
-    alpha: Tensor
-    semantic: Tensor
-    entropy: Tensor | None = None
 
 
 def _mean(values: list[float]) -> float:
@@ -228,87 +173,6 @@ class SectionScores:
 def gap(model: dict[str, float], oracle: dict[str, float]) -> dict[str, float]:
     """How far the model is behind the oracle per metric (positive = worse than the oracle)."""
     return {k: (oracle[k] - model[k]) if HIGHER_IS_BETTER[k] else (model[k] - oracle[k]) for k in METRICS}
-
-
-# --------------------------------------------------------------------------------------------
-# Rendering
-
-
-def render_views(scene: GaussianScene, views: Views, background: Tensor) -> Rendered:
-    """Renders ``scene`` into every view at its own time, ``background`` [N, H, W, 3] (or [3])
-    filling what the Gaussians leave uncovered."""
-    h, w = views.size_hw
-    n = len(views)
-    if len(scene) == 0:
-        bg = background.expand(n, h, w, 3).float()
-        zeros = torch.zeros(n, h, w)
-        return Rendered(bg, zeros, zeros.clone(), torch.full((n, h, w), SKY, dtype=torch.uint8))
-    out = scene.render(
-        views.world_from_camera.float(),
-        views.intrinsics.float(),
-        w,
-        h,
-        views.time_s,
-        semantics=True,
-        entropy=scene.depth_entropy is not None,
-    )
-    rgb = (out.rgb + (1 - out.alpha[..., None]) * background).clamp(0.0, 1.0)
-    assert out.semantic_probs is not None
-    labels = out.semantic_probs.argmax(-1).to(torch.uint8)
-    labels = torch.where(out.alpha < SKY_ALPHA, torch.full_like(labels, SKY), labels)
-    return Rendered(rgb=rgb, depth=out.depth, alpha=out.alpha, semantic=labels, entropy=out.depth_entropy)
-
-
-def oracle_scene(views: Views, time_origin_micros: int = 0) -> GaussianScene:
-    """One Gaussian per pixel of ``views`` with truth depth > 0 (see the module docstring).
-
-    Pixels are unprojected with the pinhole ``intrinsics`` at their truth z-depth into the world
-    frame at their view's capture time; velocities come from ``views.flow`` (static if None).
-    """
-    h, w = views.size_hw
-    rays = pixel_rays(views.intrinsics.double(), h, w).permute(0, 2, 3, 1)  # [N, H, W, 3], z = 1
-    depth = views.depth.double()
-    keep = depth > 0
-    pts_cam = rays * depth[..., None]
-    rot = views.world_from_camera[:, None, None, :3, :3]
-    means = (rot @ pts_cam[..., None])[..., 0] + views.world_from_camera[:, None, None, :3, 3]
-    focal = 0.5 * (views.intrinsics[:, 0, 0] + views.intrinsics[:, 1, 1]).double()
-    scale = ORACLE_SCALE * depth / focal[:, None, None]
-    sem = views.semantic.long()
-    known = sem < NUM_CLASSES
-    logits = torch.zeros(*sem.shape, NUM_CLASSES)
-    logits[known] = ORACLE_CLASS_LOGIT * torch.nn.functional.one_hot(sem[known], NUM_CLASSES).float()
-    if views.flow is not None:
-        velocity = views.flow.float()
-        dynamic = velocity.norm(dim=-1) > ORACLE_MOVING_MPS
-        velocity = velocity * dynamic[..., None]
-    else:
-        velocity = torch.zeros(*sem.shape, 3)
-        dynamic = torch.zeros(sem.shape, dtype=torch.bool)
-    n = int(keep.sum())
-    times = views.time_s[:, None, None].expand(depth.shape)
-    quats = torch.zeros(n, 4)
-    quats[:, 0] = 1.0
-    return GaussianScene(
-        means=means[keep].float(),
-        quats=quats,
-        scales=scale[keep].float()[:, None].expand(n, 3).contiguous(),
-        opacities=torch.full((n,), ORACLE_OPACITY),
-        colors=views.images[keep].float(),
-        semantic_logits=logits[keep],
-        velocity=velocity[keep],
-        dynamic=dynamic[keep],
-        time_s=times[keep].float(),
-        time_origin_micros=time_origin_micros,
-    )
-
-
-def oracle_background(views: Views) -> Tensor:
-    """(3,) mean colour of the sky pixels of ``views`` (black when none is sky)."""
-    sky = views.semantic == SKY
-    if not sky.any():
-        return torch.zeros(3)
-    return views.images[sky].mean(0).float()
 
 
 # --------------------------------------------------------------------------------------------
@@ -570,8 +434,8 @@ def evaluate_clip(
             model_out[name] = render_views(scene, v, sky)
         if oracle:
             ctx = views["input"]
-            gauss = oracle_scene(ctx, clip.time_origin_micros)
-            bg = oracle_background(ctx)
+            gauss = lift_views(ctx, clip.time_origin_micros)
+            bg = sky_background(ctx)
             for name, v in views.items():
                 oracle_out[name] = render_views(gauss, v, bg)
     return ClipResult(scene_id, start, views, model_out, oracle_out)
