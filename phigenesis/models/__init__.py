@@ -16,7 +16,7 @@ from torch import nn
 ModelFactory = Callable[..., nn.Module]
 MODELS: dict[str, ModelFactory] = {}
 #: Modules of the built-in model families, imported (and so registered) on the first lookup.
-BUILTIN_MODEL_MODULES = ("segformer", "vae", "stage1")
+BUILTIN_MODEL_MODULES = ("segformer", "vae", "stage1", "dit")
 
 
 def register_model(fn: ModelFactory) -> ModelFactory:
