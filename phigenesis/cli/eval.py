@@ -3,6 +3,9 @@
 Subcommand ``stage1`` (:func:`phigenesis.train.evaluate_stage1.evaluate_stage1`): renders a Stage 1
 model's Gaussians at the context views, at future frames and at laterally shifted novel views and
 prints PSNR, SSIM, depth errors and mIoU beside those of a ground-truth-depth oracle.
+Subcommand ``stage2`` (:func:`phigenesis.eval.stage2.evaluate_stage2`): rolls a Stage 2 model out on
+held-out synthetic scenes and scores future frames, shifted trajectories and long rollouts against
+the exact truth, beside the history's Stage 1 render alone.
 """
 
 from __future__ import annotations
@@ -50,7 +53,78 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-oracle", action="store_true", help="skip the ground-truth-depth oracle")
     s.add_argument("--picture", help="write a PNG of the first clip here")
     s.add_argument("--threads", type=positive, help="torch CPU threads")
+
+    from phigenesis.infer.conditions import UNCERTAINTY_KINDS
+
+    d = sub.add_parser("stage2", help="evaluate a Stage 2 model on held-out synthetic scenes")
+    d.add_argument("--ckpt", required=True, help="Stage 2 checkpoint (file or run folder)")
+    d.add_argument("--shards", required=True, help="held-out cache (synthetic for the shifted views)")
+    d.add_argument("--stage1", help="Stage 1 checkpoint (default: the one the model was trained with)")
+    d.add_argument("--out", help="write the results as JSON here")
+    d.add_argument(
+        "--offsets", type=positive, nargs="*", default=[5, 10], help="future frames (default 5 10)"
+    )
+    d.add_argument("--shifts", type=_shift, nargs="*", default=[1.0, 2.0, 4.0], help="lateral shifts, m")
+    d.add_argument(
+        "--rollout-frames", type=positive, nargs="*", default=[50, 100, 150, 200], help="long-rollout frames"
+    )
+    d.add_argument("--clips-per-scene", type=positive, default=1, help="clips per scene (default 1)")
+    d.add_argument("--uncertainty", choices=(*UNCERTAINTY_KINDS, "none"), help="default: the trained one")
+    d.add_argument("--omega", type=float, default=1.0, help="guidance scale (default 1)")
+    d.add_argument("--steps", type=positive, default=10, help="Euler steps per window (default 10)")
+    d.add_argument("--seed", type=int, default=0, help="seed of the noise")
+    d.add_argument("--fid-model", help="local TorchScript Inception (default_1.pt) for FID/KID")
+    d.add_argument("--picture", help="write a PNG of the first clip here")
+    d.add_argument("--threads", type=positive, help="torch CPU threads")
     return parser
+
+
+def format_stage2_table(report: dict[str, Any]) -> str:
+    """The Stage 2 report as a text table: one row per section, generated beside render only."""
+    lines = [
+        f"{'section':12s} {'images':>6s}  {'PSNR':>6s} {'SSIM':>6s} {'AbsRel':>6s} {'FID':>7s} {'KID':>7s}"
+        f"  | render only: {'PSNR':>6s} {'SSIM':>6s}"
+    ]
+    for name, entry in report["sections"].items():
+        g, r = entry["generated"], entry["render_only"]
+        lines.append(
+            f"{name:12s} {int(g['images']):6d}  {_cell(g, 'psnr_db', '{:6.2f}')} "
+            f"{_cell(g, 'ssim', '{:6.3f}')} {_cell(g, 'abs_rel', '{:6.3f}')} "
+            f"{_cell(g, 'fid', '{:7.2f}')} {_cell(g, 'kid', '{:7.4f}')}"
+            f"  |              {_cell(r, 'psnr_db', '{:6.2f}')} {_cell(r, 'ssim', '{:6.3f}')}"
+        )
+    lines.append(f"{report['clips']} clips, {report['seconds_per_frame']:.2f} s per generated frame")
+    return "\n".join(lines)
+
+
+def _stage2(args: argparse.Namespace) -> int:
+    from phigenesis.eval.stage2 import evaluate_stage2
+    from phigenesis.infer.generate import GenerateOptions, trained_uncertainty
+
+    options = GenerateOptions(
+        uncertainty=args.uncertainty or trained_uncertainty(args.ckpt),
+        omega=args.omega,
+        steps=args.steps,
+        seed=args.seed,
+    )
+    report = evaluate_stage2(
+        args.ckpt,
+        args.shards,
+        stage1=args.stage1,
+        options=options,
+        offsets=tuple(args.offsets),
+        shifts_m=tuple(args.shifts),
+        rollout_frames=tuple(args.rollout_frames),
+        clips_per_scene=args.clips_per_scene,
+        fid_model=args.fid_model,
+        out_json=args.out,
+        picture=args.picture,
+        threads=args.threads,
+    )
+    print(format_stage2_table(report))
+    if args.out:
+        print(f"results: {args.out}")
+    return 0
 
 
 def _cell(values: dict[str, Any] | None, key: str, fmt: str) -> str:
@@ -112,7 +186,7 @@ def interrupted(args: argparse.Namespace) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run("phigenesis-eval", build_parser, argv, {"stage1": _stage1}, interrupted)
+    return run("phigenesis-eval", build_parser, argv, {"stage1": _stage1, "stage2": _stage2}, interrupted)
 
 
 if __name__ == "__main__":

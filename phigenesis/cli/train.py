@@ -1,7 +1,8 @@
 """``phigenesis-train``: train models on caches (a thin front end over phigenesis.train).
 
 Subcommands: ``segmenter`` (:func:`phigenesis.train.segmenter.train_segmenter`), ``vae``
-(:func:`phigenesis.train.vae.train_vae`) and ``stage1`` (:func:`phigenesis.train.stage1.train_stage1`).
+(:func:`phigenesis.train.vae.train_vae`), ``stage1`` (:func:`phigenesis.train.stage1.train_stage1`)
+and ``stage2`` (:func:`phigenesis.train.stage2.train_stage2`).
 """
 
 from __future__ import annotations
@@ -80,7 +81,49 @@ def build_parser() -> argparse.ArgumentParser:
         help="wall-clock budget in minutes: end (and write the final weights) after the step that passes it",
     )
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    d = sub.add_parser("stage2", help="train the Stage 2 multi-view video diffusion model on a cache")
+    d.add_argument(
+        "--shards", required=True, help="frame cache to train on (the windows' images and cameras)"
+    )
+    d.add_argument("--config", required=True, help="training config YAML (configs/stage2/tiny.yaml)")
+    d.add_argument("--out", required=True, help="run directory (runs/NAME) for checkpoints and logs")
+    d.add_argument("--stage1", help="trained Stage 1 checkpoint (overrides the config's stage1_checkpoint)")
+    d.add_argument(
+        "--latents", help="the Stage 2 latent cache (default OUT/latents; computed there if missing)"
+    )
+    d.add_argument("--steps", type=positive, help="optimiser steps (overrides the config)")
+    d.add_argument("--threads", type=positive, help="torch CPU threads per process (overrides the config)")
+    d.add_argument("--resume", action="store_true", help="continue --out from its newest checkpoint")
+    d.add_argument("--stop-after", type=positive, help="leave after this many steps (then --resume)")
+    d.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
+
+
+def _train_stage2(args: argparse.Namespace) -> int:
+    from phigenesis.train.stage2 import Stage2TrainConfig, train_stage2
+
+    config = Stage2TrainConfig.load(args.config, steps=args.steps, threads=args.threads)
+    result = train_stage2(
+        args.shards,
+        args.out,
+        config,
+        stage1=args.stage1,
+        latents=args.latents,
+        resume=args.resume,
+        stop_after=args.stop_after,
+        progress=not args.no_progress,
+    )
+    if os.environ.get("RANK", "0") != "0":  # torchrun: rank 0 reports
+        return 0
+    if result.checkpoint is None:
+        print(f"stopped at step {result.steps_done}; continue with --resume")
+        return 0
+    loss = result.last.get("loss", float("nan"))
+    print(f"{result.steps_done} steps in {result.seconds / 60:.1f} min; last loss {loss:.4f}")
+    print(f"latent cache: {result.latents}")
+    print(f"final checkpoint: {result.checkpoint}")
+    return 0
 
 
 def _train_stage1(args: argparse.Namespace) -> int:
@@ -180,7 +223,12 @@ def _train_segmenter(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS: dict[str, Command] = {"segmenter": _train_segmenter, "vae": _train_vae, "stage1": _train_stage1}
+COMMANDS: dict[str, Command] = {
+    "segmenter": _train_segmenter,
+    "vae": _train_vae,
+    "stage1": _train_stage1,
+    "stage2": _train_stage2,
+}
 
 
 def _steps_logged(out: Path) -> int | None:
@@ -195,7 +243,7 @@ def _steps_logged(out: Path) -> int | None:
 
 
 def run_interrupted(out: str | os.PathLike[str]) -> str:
-    """What Ctrl-C leaves of a resumable run (vae, stage1): the step it reached and the newest
+    """What Ctrl-C leaves of a resumable run (vae, stage1, stage2): the step it reached and the newest
     complete checkpoint, which ``--resume`` continues from."""
     from phigenesis.train.runner import kept_step
 

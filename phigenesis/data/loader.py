@@ -46,7 +46,8 @@ boxes_track_id             list[str] (M)
 
 ``depth_dense_origin`` says what each dense depth came from: 1 a LiDAR measurement, 2 the densifier, 3 a
 plane of its image segment and 4 a thin vertical structure (both from ``complete_depth``, at lower
-confidence); weigh or mask the depth loss by it.
+confidence), 5 the rendered depth of generated Gaussians (caches ``phigenesis-generate`` writes); weigh or
+mask the depth loss by it.
 
 Choose groups with ``fields`` ("images", "cameras", "truth", "depth", "pseudo", "lidar", "boxes"); only
 what is asked for is read, checked and decoded. Label maps stay compact (uint8 classes, int32 instances);

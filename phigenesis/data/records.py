@@ -412,8 +412,9 @@ TRUSTED_DEPTH_CONFIDENCE = 0.5
 #: What a dense depth pixel came from (:attr:`CameraDepth.dense_origin`): "lidar", a trusted
 #: measurement kept as measured; "densified", filled or corrected by ``densify_depth``; "plane",
 #: a plane of its image segment (``complete_depth``); "vertical", a thin vertical structure at its
-#: base's depth (``complete_depth``).
-DENSE_ORIGINS: tuple[str, ...] = ("none", "lidar", "densified", "plane", "vertical")
+#: base's depth (``complete_depth``); "rendered", the expected depth of Gaussians (a cache that
+#: ``phigenesis-generate`` wrote: the depth of the scene it generated).
+DENSE_ORIGINS: tuple[str, ...] = ("none", "lidar", "densified", "plane", "vertical", "rendered")
 
 
 @dataclass
@@ -490,8 +491,9 @@ def dense_origin_of(
     return (code * (dense_m > 0)).astype(np.uint8)
 
 
-#: Where a pseudo-semantic label came from (:attr:`CameraSemantics.source`).
-PSEUDO_SOURCES: tuple[str, ...] = ("none", "segmenter", "box", "ground_plane", "sky")
+#: Where a pseudo-semantic label came from (:attr:`CameraSemantics.source`); "rendered": the class
+#: probabilities of generated Gaussians (``phigenesis-generate``).
+PSEUDO_SOURCES: tuple[str, ...] = ("none", "segmenter", "box", "ground_plane", "sky", "rendered")
 
 
 @dataclass

@@ -261,7 +261,8 @@ class CameraColumns:
         pa.binary(),
         "what each dense depth came from, 8-bit PNG (records.DENSE_ORIGINS): 0 none, 1 lidar (a trusted "
         "measurement kept as measured), 2 densified, 3 plane of its image segment, 4 thin vertical "
-        "structure at its base's depth (3 and 4: stage complete_depth)",
+        "structure at its base's depth (3 and 4: stage complete_depth), 5 rendered from generated Gaussians "
+        "(phigenesis-generate)",
         "",
         "",
         "depth",

@@ -1,0 +1,343 @@
+"""Stage 2 benchmark: the tiny denoiser trained on 2 CPU cores per conditioning variant and seed,
+rolled out on held-out synthetic scenes and scored against the exact truth (the ablation table).
+
+Usage (from the repository root, on a quiet machine)::
+
+    python benchmarks/stage2.py [--work /tmp/stage2-bench] [--seeds 0 1 2] [--stage2-steps 800]
+
+1. Caches (reused when present): ``--train-scenes`` synthetic scenes (seed 1000) of
+   ``--train-frames`` frames and ``--eval-scenes`` held-out scenes (seed 100) of ``--eval-frames``
+   frames, at 96 x 144, bundled synthetic pipeline.
+2. ``phigenesis-train vae`` (vae_tiny, 1000 steps) and ``phigenesis-train stage1``
+   (``configs/stage1/tiny.yaml``, ``--stage1-steps`` steps, torchrun 2 x 1 thread): the frozen VAE and
+   the Stage 1 model every row shares (reused when present).
+3. The Stage 2 latent caches (:func:`phigenesis.train.stage2_data.precompute_stage2`), once per
+   geometry (``stage1``: Stage 1's Gaussians of the history, the paper; ``truth``: the synthetic
+   truth lifted, the ceiling), shared by every row and seed of that geometry.
+4. Per row and seed, ``phigenesis-train stage2`` (``configs/stage2/tiny.yaml``, ``--stage2-steps``
+   steps, 1 thread, two runs side by side on the 2 cores) with the row's ``uncertainty`` and
+   ``geometry``; then ``phigenesis-eval stage2`` on the held-out cache (+5 / +10 frames, 1 / 2 / 4 m
+   shifted trajectories, rollout frames ``--rollout-frames``; FID/KID with ``--fid-model``).
+   Rows: ``no geometry`` (uncertainty ``none``: the condition is always zero), ``coverage`` (the
+   render trusted wherever it covers: the "no SF" row), ``SF random``, ``SF entropy``, ``SF
+   localization potential`` and ``truth geometry`` (localization potential on the truth's render).
+   ``render only`` is the history's Stage 1 render scored at the same cameras (no diffusion).
+5. An omega sweep of the localization-potential model of the first seed.
+
+Writes the ``stage2`` section of BENCHMARKS.md (mean +- std over the seeds) and a picture per row.
+No timing is asserted anywhere; runs side by side share the machine, so their step times are not
+a quiet machine's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+from _report import REPO_ROOT, Report
+
+from phigenesis import prep
+from phigenesis.train.runner import read_metrics
+
+BIN = Path(sys.executable).parent
+#: (row name, uncertainty, geometry) of the trained rows.
+ROWS = (
+    ("no geometry", "none", "stage1"),
+    ("coverage (no SF)", "coverage", "stage1"),
+    ("SF random", "random", "stage1"),
+    ("SF entropy", "entropy", "stage1"),
+    ("SF localization potential", "localization_potential", "stage1"),
+    ("truth geometry (LP)", "localization_potential", "truth"),
+)
+SECTIONS_SHOWN = ("+5", "+10", "shift_1m", "shift_2m", "shift_4m")
+
+
+def _cmd(cmd: list[str], env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
+    print("+", " ".join(cmd), flush=True)
+    return subprocess.Popen(cmd, env={**os.environ, "OMP_NUM_THREADS": "1", **(env or {})})
+
+
+def _wait(procs: list[tuple[subprocess.Popen[bytes], list[str]]]) -> list[tuple[float, float]]:
+    """Waits for every process; (its wall seconds since now, peak RSS GiB) each; raises on failure."""
+    out = []
+    t0 = time.perf_counter()
+    for proc, cmd in procs:
+        _, status, usage = os.wait4(proc.pid, 0)
+        code = os.waitstatus_to_exitcode(status)
+        if code != 0:
+            raise subprocess.CalledProcessError(code, cmd)
+        out.append((time.perf_counter() - t0, usage.ru_maxrss / 2**20))
+    return out
+
+
+def _run(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, float]:
+    t0 = time.perf_counter()
+    (wall_rss,) = _wait([(_cmd(cmd, env), cmd)])
+    return time.perf_counter() - t0, wall_rss[1]
+
+
+def _in_pairs(jobs: list[list[str]]) -> list[tuple[float, float]]:
+    """Runs the commands two at a time (one per core); (wall s, peak RSS GiB) of each."""
+    results: list[tuple[float, float]] = []
+    for i in range(0, len(jobs), 2):
+        batch = jobs[i : i + 2]
+        t0 = time.perf_counter()
+        procs = [(_cmd(c), c) for c in batch]
+        for (_, rss), _c in zip(_wait(procs), batch, strict=True):
+            results.append((time.perf_counter() - t0, rss))
+    return results
+
+
+def _cache(path: Path, scenes: int, seed: int, frames: int) -> None:
+    if (path / "manifest.json").exists():
+        return
+    prep.synthetic(path, scenes=scenes, frames=frames, seed=seed, height=96, width=144, workers=2)
+
+
+def _mean_std(values: list[float], digits: int = 2) -> str:
+    values = [v for v in values if v is not None and math.isfinite(v)]
+    if not values:
+        return "—"
+    if len(values) == 1:
+        return f"{values[0]:.{digits}f}"
+    return f"{statistics.mean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f}"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--work", type=Path, default=Path("/tmp/stage2-bench"))
+    ap.add_argument("--train-scenes", type=int, default=16)
+    ap.add_argument("--train-frames", type=int, default=24)
+    ap.add_argument("--eval-scenes", type=int, default=2)
+    ap.add_argument("--eval-frames", type=int, default=60)
+    ap.add_argument("--vae-steps", type=int, default=1000)
+    ap.add_argument("--stage1-steps", type=int, default=1500)
+    ap.add_argument("--stage2-steps", type=int, default=800)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--rollout-frames", type=int, nargs="*", default=[50])
+    ap.add_argument("--omegas", type=float, nargs="*", default=[0.0, 1.0, 2.0, 3.0])
+    ap.add_argument("--sample-steps", type=int, default=10)
+    ap.add_argument("--fid-model", type=Path, help="local TorchScript Inception (default_1.pt) for FID/KID")
+    ap.add_argument("--rows", nargs="*", help="only these rows (by uncertainty name), for a partial run")
+    args = ap.parse_args()
+    work = args.work
+    work.mkdir(parents=True, exist_ok=True)
+    report = Report("stage2", "Stage 2 (tiny config, 2 CPU cores)")
+    t_all = time.perf_counter()
+
+    train_cache, eval_cache = work / "train", work / "eval"
+    _cache(train_cache, args.train_scenes, 1000, args.train_frames)
+    _cache(eval_cache, args.eval_scenes, 100, args.eval_frames)
+    vae = work / "vae"
+    if not (vae / "model.safetensors").exists():
+        shutil.rmtree(vae, ignore_errors=True)
+        _run(
+            [
+                str(BIN / "phigenesis-train"),
+                "vae",
+                "--shards",
+                str(train_cache),
+                "--out",
+                str(vae),
+                "--steps",
+                str(args.vae_steps),
+                "--batch-size",
+                "4",
+                "--threads",
+                "2",
+            ],
+            {"OMP_NUM_THREADS": "2"},
+        )
+    stage1 = work / "stage1"
+    if not (stage1 / "model.safetensors").exists():
+        shutil.rmtree(stage1, ignore_errors=True)
+        cfg = yaml.safe_load((REPO_ROOT / "configs/stage1/tiny.yaml").read_text())
+        cfg |= {"vae_checkpoint": str(vae / "model.safetensors"), "steps": args.stage1_steps, "batch_size": 2}
+        cfg |= {"threads": 1}
+        cfg_path = work / "stage1.yaml"
+        cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+        _run(
+            f"{sys.executable} -m torch.distributed.run --nproc_per_node 2 -m phigenesis.cli.train stage1 "
+            f"--shards {train_cache} --config {cfg_path} --out {stage1} --no-progress".split()
+        )
+
+    base = yaml.safe_load((REPO_ROOT / "configs/stage2/tiny.yaml").read_text())
+    base |= {"stage1_checkpoint": str(stage1 / "model.safetensors"), "steps": args.stage2_steps, "threads": 1}
+    rows = [r for r in ROWS if not args.rows or r[1] in args.rows or r[0] in args.rows]
+    # The latent caches, one per geometry, before any training run reads them.
+    from phigenesis.train.stage1 import load_stage1
+    from phigenesis.train.stage2 import Stage2TrainConfig
+    from phigenesis.train.stage2_data import precompute_stage2
+
+    model = load_stage1(stage1 / "model.safetensors")
+    precompute_s: dict[str, float] = {}
+    for geometry in sorted({g for _, _, g in rows}):
+        cfg = Stage2TrainConfig(**{**base, "geometry": geometry})
+        t0 = time.perf_counter()
+        precompute_stage2(
+            train_cache,
+            work / f"latents-{geometry}",
+            model,
+            cfg.data_config(),
+            stage1_checkpoint=cfg.stage1_checkpoint,
+        )
+        precompute_s[geometry] = time.perf_counter() - t0
+    del model
+
+    runs: dict[tuple[str, int], Path] = {}
+    train_jobs, eval_jobs = [], []
+    for name, kind, geometry in rows:
+        for seed in args.seeds:
+            tag = f"{kind}-{geometry}-s{seed}"
+            out = work / "runs" / tag
+            runs[(name, seed)] = out
+            cfg_path = work / "runs" / f"{tag}.yaml"
+            cfg_path.parent.mkdir(parents=True, exist_ok=True)
+            cfg_path.write_text(
+                yaml.safe_dump({**base, "uncertainty": kind, "geometry": geometry, "seed": seed})
+            )
+            if not (out / "model.safetensors").exists():
+                shutil.rmtree(out, ignore_errors=True)
+                train_jobs.append(
+                    [
+                        str(BIN / "phigenesis-train"),
+                        "stage2",
+                        "--shards",
+                        str(train_cache),
+                        "--config",
+                        str(cfg_path),
+                        "--latents",
+                        str(work / f"latents-{geometry}"),
+                        "--out",
+                        str(out),
+                        "--no-progress",
+                    ]
+                )
+            result = out / "eval.json"
+            if not result.exists():
+                eval_jobs.append(_eval_cmd(out, eval_cache, result, args, 1.0))
+    train_wall = _in_pairs(train_jobs)
+    eval_wall = _in_pairs(eval_jobs)
+    lp_name = "SF localization potential"
+    sweep: dict[float, Path] = {}
+    if (lp_name, args.seeds[0]) in runs:
+        jobs = []
+        for omega in args.omegas:
+            path = runs[(lp_name, args.seeds[0])] / f"eval-omega{omega:g}.json"
+            sweep[omega] = path
+            if not path.exists():
+                jobs.append(_eval_cmd(runs[(lp_name, args.seeds[0])], eval_cache, path, args, omega))
+        _in_pairs(jobs)
+
+    results = {key: json.loads((out / "eval.json").read_text()) for key, out in runs.items()}
+    _report_tables(report, args, rows, runs, results, sweep, precompute_s, train_wall, eval_wall)
+    report.text(f"The whole run took {(time.perf_counter() - t_all) / 60:.1f} min.")
+    report.write()
+
+
+def _eval_cmd(run: Path, eval_cache: Path, out: Path, args: argparse.Namespace, omega: float) -> list[str]:
+    cmd = [
+        str(BIN / "phigenesis-eval"),
+        "stage2",
+        "--ckpt",
+        str(run),
+        "--shards",
+        str(eval_cache),
+        "--out",
+        str(out),
+        "--steps",
+        str(args.sample_steps),
+        "--omega",
+        f"{omega:g}",
+        "--threads",
+        "1",
+        "--rollout-frames",
+        *[str(k) for k in args.rollout_frames],
+    ]
+    if omega == 1.0 and out.name == "eval.json":
+        cmd += ["--picture", str(run / "eval.png")]
+    if args.fid_model is not None:
+        cmd += ["--fid-model", str(args.fid_model)]
+    return cmd
+
+
+def _metric(results: dict, name: str, seeds: list[int], section: str, key: str, digits: int = 2) -> str:
+    """Mean +- std over the seeds of one generated-frame metric of a row's section."""
+    values = [results[(name, s)]["sections"].get(section, {}).get("generated", {}).get(key) for s in seeds]
+    return _mean_std([math.nan if v is None else v for v in values], digits)
+
+
+def _report_tables(report, args, rows, runs, results, sweep, precompute_s, train_wall, eval_wall) -> None:  # type: ignore[no-untyped-def]
+    seeds = args.seeds
+    rollout_sections = [f"rollout_{k}" for k in args.rollout_frames]
+    sections = [*SECTIONS_SHOWN, *rollout_sections]
+    first = results[(rows[0][0], seeds[0])]["sections"]
+
+    def render_only(key: str, digits: int) -> list[str]:
+        return [f"{first[s]['render_only'][key]:.{digits}f}" if s in first else "—" for s in sections]
+
+    for key, label, digits in (
+        ("psnr_db", "PSNR (dB)", 2),
+        ("ssim", "SSIM", 3),
+        ("abs_rel", "depth AbsRel", 3),
+    ):
+        table = (
+            [] if key == "abs_rel" else [["render only (Stage 1, no diffusion)", *render_only(key, digits)]]
+        )
+        table += [
+            [name, *[_metric(results, name, seeds, s, key, digits) for s in sections]] for name, _, _ in rows
+        ]
+        report.table(f"Held-out {label}, mean ± std over {len(seeds)} seeds", ["row", *sections], table)
+    if args.fid_model is not None:
+        cols = [(s, k) for s in rollout_sections for k in ("fid", "kid")]
+        fid_rows = [[name, *[_metric(results, name, seeds, s, k, 3) for s, k in cols]] for name, _, _ in rows]
+        report.table(
+            "Rollout FID / KID against the true frames",
+            ["row", *[f"{s} {k.upper()}" for s, k in cols]],
+            fid_rows,
+        )
+    if sweep:
+        sweep_rows = []
+        for omega, path in sweep.items():
+            sec = json.loads(path.read_text())["sections"]
+            cells = [f"{sec[s]['generated']['psnr_db']:.2f}" if s in sec else "—" for s in sections]
+            sweep_rows.append([f"{omega:g}", *cells])
+        report.table(
+            "Guidance scale omega (SF localization potential, first seed): PSNR dB",
+            ["omega", *sections],
+            sweep_rows,
+        )
+    speed = []
+    for (name, seed), out in runs.items():
+        logged = read_metrics(out)
+        per_step = statistics.median(r["seconds"] for r in logged) if logged else math.nan
+        steps = int(max(r["step"] for r in logged)) if logged else 0
+        per_frame = results[(name, seed)]["seconds_per_frame"]
+        speed.append([name, str(seed), str(steps), f"{per_step:.3f}", f"{per_frame:.2f}"])
+    report.table(
+        "Speed (two runs side by side on 2 cores, 1 thread each)",
+        ["row", "seed", "steps", "median s/step", "s per generated frame"],
+        speed,
+    )
+    report.text(
+        "Latent precompute: " + ", ".join(f"{g} {s / 60:.1f} min" for g, s in precompute_s.items()) + "."
+    )
+    if train_wall:
+        rss_eval = max((r for _, r in eval_wall), default=math.nan)
+        report.text(
+            f"Peak RSS of a training run: {max(r for _, r in train_wall):.2f} GiB; of an evaluation: "
+            f"{rss_eval:.2f} GiB."
+        )
+
+
+if __name__ == "__main__":
+    main()

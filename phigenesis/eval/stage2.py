@@ -1,0 +1,275 @@
+"""Evaluation of a trained Stage 2 model on held-out synthetic scenes: ``phigenesis-eval stage2``.
+
+On synthetic scenes the truth of every future frame and of every shifted camera exists, so the
+rollouts are scored against it (peers can only report FID). Per clip (frame ``T`` of a scene as
+the history, the rollout from ``T + 1`` on), sections:
+
+- ``+5``, ``+10`` (``offsets``): the generated frames ``T + k`` of a rollout along the recorded
+  trajectory against the cache's images of those frames (the paper's cross-temporal table);
+- ``shift_1m``, ``shift_2m``, ``shift_4m`` (``shifts_m``): the first window of a rollout along the
+  recorded trajectory moved d metres to the ego's left, against the synthetic renderer's exact
+  images of those cameras (the NVS table);
+- ``rollout_50`` .. ``rollout_200`` (``rollout_frames``): one long rollout per scene from its first
+  frame with a history; the generated frame ``start + k - 1`` against the true one (PSNR, SSIM),
+  and, over all scenes, FID and KID between the generated frames of the window ending there and
+  the true frames of the same window (with ``fid_model``, a local TorchScript Inception:
+  :mod:`phigenesis.eval.fid`). Scenes shorter than ``k`` frames after their start skip ``k``.
+
+Every section scores two renderers: ``generated`` (the rollout: the VAE's decoding of the
+generated latents; depth from the Gaussians Stage 1 builds of them) and ``render_only`` (the
+history's Stage 1 Gaussians rendered at the same cameras, Stage 1's sky behind: the ablation row
+"render only, no diffusion"). Depth is scored under the standard protocol
+(:mod:`phigenesis.eval.depth_protocol`) against the synthetic truth depth.
+
+Units: PSNR in dB on RGB in [0, 1] at the Stage 1 model's size; depth in metres.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from phigenesis.eval.depth_protocol import DepthAccumulator
+from phigenesis.infer.conditions import TargetCameras, history_scene, render_condition
+from phigenesis.infer.generate import GenerateOptions, Rollout, Stage2Runner
+from phigenesis.models.losses import psnr, ssim
+
+log = logging.getLogger(__name__)
+
+RENDERERS = ("generated", "render_only")
+
+
+@dataclass
+class _Scores:
+    """Running scores of one section for one renderer."""
+
+    psnr_db: list[float] = field(default_factory=list)
+    ssim: list[float] = field(default_factory=list)
+    depth: DepthAccumulator = field(default_factory=lambda: DepthAccumulator(()))
+
+    def add(self, rgb: Tensor, truth_rgb: Tensor, depth: Tensor | None, truth_depth: Tensor | None) -> None:
+        """``rgb``, ``truth_rgb`` [N, H, W, 3] in [0, 1]; depths [N, H, W] metres (0 = none)."""
+        self.psnr_db += psnr(rgb.clamp(0, 1).float(), truth_rgb.float()).tolist()
+        self.ssim += ssim(rgb.clamp(0, 1).float(), truth_rgb.float()).mean(dim=(-2, -1)).tolist()
+        if depth is not None and truth_depth is not None:
+            self.depth.add(depth.numpy(), truth_depth.numpy())
+
+    def summary(self) -> dict[str, float]:
+        out = {"psnr_db": float(np.mean(self.psnr_db)) if self.psnr_db else math.nan}
+        out["ssim"] = float(np.mean(self.ssim)) if self.ssim else math.nan
+        out["images"] = float(len(self.psnr_db))
+        if self.depth.images():
+            d = self.depth.image_mean()["all"]
+            out |= {"abs_rel": d.abs_rel, "rmse_m": d.rmse_m, "delta_1_25": d.delta_1_25}
+        return out
+
+
+def _section_name(kind: str, value: float) -> str:
+    if kind == "offset":
+        return f"{int(value):+d}"
+    if kind == "shift":
+        return f"shift_{value:g}m"
+    return f"rollout_{int(value)}"
+
+
+def _truth_frame(runner: Stage2Runner, scene: str, index: int) -> tuple[Tensor, Tensor]:
+    """(images [V, H, W, 3], truth depth [V, H, W]) of a cache frame at the model's size."""
+    from phigenesis.train.evaluate_stage1 import frame_truth
+    from phigenesis.train.views import resize_images
+
+    sample = runner.data._frame(scene, index)
+    size = tuple(runner.stage1.config.image_size)
+    images = resize_images(sample["images"], size).permute(0, 2, 3, 1)
+    return images, frame_truth(sample, size).depth  # type: ignore[arg-type]
+
+
+def _render_only(runner: Stage2Runner, clip: Any, cams: TargetCameras) -> tuple[Tensor, Tensor]:
+    """(rgb [F, V, H, W, 3] with Stage 1's sky behind, depth [F, V, H, W]) of the history's Stage 1
+    Gaussians at ``cams``."""
+    scene = history_scene("stage1", clip, runner.stage1)
+    out = render_condition(scene, cams)
+    f, v = cams.frames, cams.views
+    sky = runner.stage1.background(
+        cams.world_from_camera.flatten(0, 1).float(),
+        cams.intrinsics.expand(f, v, 3, 3).flatten(0, 1).float(),
+        *cams.size_hw,
+    ).reshape(f, v, *cams.size_hw, 3)
+    return (out.rgb + (1 - out.alpha[..., None]) * sky).clamp(0, 1), out.depth
+
+
+def clip_starts(length: int, history: int, needed: int, count: int) -> list[int]:
+    """Up to ``count`` rollout starts spread over a scene of ``length`` frames, each with ``history``
+    frames before it and ``needed`` frames from it on."""
+    last = length - needed
+    if last < history:
+        return []
+    return sorted(set(np.linspace(history, last, count).round().astype(int).tolist()))
+
+
+def evaluate_stage2(
+    checkpoint: str | os.PathLike[str],
+    shards: str | os.PathLike[str],
+    *,
+    stage1: str | os.PathLike[str] | None = None,
+    options: GenerateOptions | None = None,
+    offsets: tuple[int, ...] = (5, 10),
+    shifts_m: tuple[float, ...] = (1.0, 2.0, 4.0),
+    rollout_frames: tuple[int, ...] = (50, 100, 150, 200),
+    clips_per_scene: int = 1,
+    fid_model: str | os.PathLike[str] | None = None,
+    out_json: str | os.PathLike[str] | None = None,
+    picture: str | os.PathLike[str] | None = None,
+    threads: int | None = None,
+) -> dict[str, Any]:
+    """Scores the Stage 2 checkpoint on the held-out cache ``shards`` (see the module docstring).
+
+    Returns ``{"checkpoint", "shards", "options", "clips", "seconds", "seconds_per_frame",
+    "sections": {name: {"generated": {...}, "render_only": {...}}}}``; FID/KID (and their sample
+    counts) in the rollout sections when ``fid_model`` is given. Writes it as JSON to ``out_json``.
+    Raises ValueError when no scene is long enough for any section, CheckpointError for a
+    checkpoint that is not Stage 2's."""
+    from phigenesis.train.evaluate_stage1 import SyntheticTruth, shifted_views
+
+    if threads:
+        torch.set_num_threads(int(threads))
+    t0 = time.perf_counter()
+    options = options or GenerateOptions()
+    runner = Stage2Runner(checkpoint, shards, stage1)
+    t_h, window = runner.history_frames, runner.window
+    manifest = runner.data.reader.manifest
+    truth = None
+    if shifts_m:
+        try:
+            truth = SyntheticTruth(manifest.arguments, manifest.source)
+        except (ValueError, TypeError) as e:
+            log.warning("%s: skipping the shifted views (%s)", shards, e)
+    scores: dict[str, dict[str, _Scores]] = {}
+    long_frames: dict[int, dict[str, list[Tensor]]] = {}
+
+    def section(name: str) -> dict[str, _Scores]:
+        return scores.setdefault(name, {r: _Scores() for r in RENDERERS})
+
+    generated_frames, generation_seconds, clips = 0, 0.0, 0
+    first_picture: dict[str, Tensor] | None = None
+    for scene in sorted(runner.data.scenes):
+        length = runner.data.scene_length(scene)
+        need = max([*offsets, window if shifts_m else 0, 1])
+        for start in clip_starts(length, t_h, need, clips_per_scene):
+            clips += 1
+            # Future frames along the recorded trajectory.
+            if offsets:
+                result, clip = runner.run(scene, start, max(offsets), "recorded", options)
+                generated_frames += max(offsets)
+                generation_seconds += sum(result.seconds_per_window)
+                cams = _rollout_cameras(result, clip)
+                ro_rgb, ro_depth = _render_only(runner, clip, cams)
+                for k in offsets:
+                    images, depth = _truth_frame(runner, scene, start + k - 1)
+                    s = section(_section_name("offset", k))
+                    s["generated"].add(result.images[k - 1], images, result.depth[k - 1], depth)
+                    s["render_only"].add(ro_rgb[k - 1], images, ro_depth[k - 1], depth)
+                if first_picture is None:
+                    first_picture = {"generated": result.images, "condition": result.condition_rgb}
+            # Novel trajectories: the recorded one moved sideways.
+            if truth is not None:
+                for d in shifts_m:
+                    result, clip = runner.run(scene, start, window, f"shift:{d:g}m", options)
+                    generated_frames += window
+                    generation_seconds += sum(result.seconds_per_window)
+                    cams = _rollout_cameras(result, clip)
+                    ro_rgb, ro_depth = _render_only(runner, clip, cams)
+                    s = section(_section_name("shift", d))
+                    size = tuple(runner.stage1.config.image_size)
+                    for j in range(window):
+                        sample = runner.data._frame(scene, start + j)
+                        views = shifted_views(truth, clip, sample, d, size)  # type: ignore[arg-type]
+                        s["generated"].add(result.images[j], views.images, result.depth[j], views.depth)
+                        s["render_only"].add(ro_rgb[j], views.images, ro_depth[j], views.depth)
+        # One long rollout per scene.
+        reach = [k for k in rollout_frames if t_h + k <= length]
+        if reach:
+            start = t_h
+            result, clip = runner.run(scene, start, max(reach), "recorded", options)
+            generated_frames += max(reach)
+            generation_seconds += sum(result.seconds_per_window)
+            cams = _rollout_cameras(result, clip)
+            ro_rgb, ro_depth = _render_only(runner, clip, cams)
+            for k in reach:
+                images, depth = _truth_frame(runner, scene, start + k - 1)
+                s = section(_section_name("rollout", k))
+                s["generated"].add(result.images[k - 1], images, result.depth[k - 1], depth)
+                s["render_only"].add(ro_rgb[k - 1], images, ro_depth[k - 1], depth)
+                bucket = long_frames.setdefault(k, {"generated": [], "truth": []})
+                for j in range(max(k - window, 0), k):
+                    bucket["generated"].append(result.images[j])
+                    bucket["truth"].append(_truth_frame(runner, scene, start + j)[0])
+    if not scores:
+        raise ValueError(
+            f"{shards}: no scene is long enough for any section (history {t_h}, window {window})"
+        )
+    sections = {name: {r: sc.summary() for r, sc in by.items()} for name, by in scores.items()}
+    if fid_model is not None and long_frames:
+        from phigenesis.eval.fid import fid, image_features, kid, load_feature_extractor
+
+        extractor = load_feature_extractor(fid_model)
+        for k, bucket in long_frames.items():
+            gen = torch.cat(bucket["generated"]).permute(0, 3, 1, 2)
+            tru = torch.cat(bucket["truth"]).permute(0, 3, 1, 2)
+            fa, fb = image_features(extractor, gen), image_features(extractor, tru)
+            entry = sections[_section_name("rollout", k)]["generated"]
+            entry["fid"] = float(fid(fa, fb))
+            score = kid(fa, fb)
+            entry |= {"kid": float(score.mean), "kid_std": float(score.std), "fid_images": float(len(fa))}
+    report = {
+        "checkpoint": str(checkpoint),
+        "shards": str(shards),
+        "options": options.__dict__,
+        "clips": clips,
+        "seconds": time.perf_counter() - t0,
+        "seconds_per_frame": generation_seconds / max(generated_frames, 1),
+        "sections": sections,
+    }
+    if out_json is not None:
+        Path(out_json).write_text(json.dumps(report, indent=1, default=_jsonable))
+    if picture is not None and first_picture is not None:
+        _save_picture(first_picture, Path(picture))
+    return report
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return str(value)
+
+
+def _rollout_cameras(result: Rollout, clip: Any) -> TargetCameras:
+    """The cameras a rollout generated its frames at."""
+    return TargetCameras(
+        result.world_from_camera, clip.intrinsics, result.time_s, tuple(clip.context.images.shape[-2:])
+    )
+
+
+def _save_picture(picture: dict[str, Tensor], path: Path) -> Path:
+    """Rows of generated frames over their condition renders (views side by side)."""
+    import cv2
+
+    rows = []
+    n = picture["generated"].shape[0]
+    for i in sorted({0, n // 2, n - 1}):
+        rows.append(torch.cat(list(picture["generated"][i]), dim=1))
+        rows.append(torch.cat(list(picture["condition"][i]), dim=1))
+    image = (torch.cat(rows).numpy() * 255).round().clip(0, 255).astype(np.uint8)
+    ok, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    if ok:
+        path.write_bytes(png.tobytes())
+    return path

@@ -1,0 +1,714 @@
+"""``phigenesis-generate``: Stage 2 rollouts along a trajectory, written as a cache.
+
+A rollout generates ``frames`` frames of a scene from frame ``start`` on, window by window
+(``window_frames`` frames each, the Stage 2 model's training window):
+
+1. the history's Gaussians (window 0: the recorded history frames before ``start``, through the
+   Stage 1 model or ``geometry``; later windows: what the rollout generated) live in a
+   :class:`~phigenesis.infer.buffer.GaussianBuffer` (static ones persist, moving ones move, bounded);
+2. the buffer is rendered at every camera of the window at its own capture time, the chosen
+   uncertainty map ``u`` computed, and the render's latent turned into Stereo Forcing's condition
+   ``SF(u, z_ren)`` (:mod:`phigenesis.infer.stereo_forcing`);
+3. the denoiser samples the window's latents by Euler steps of the rectified flow with guidance
+   ``omega`` (:func:`~phigenesis.infer.flow.euler_sample`), the history's latents held at a small
+   noise level (0 for recorded history, ``history_level`` for generated history: DFoT's
+   stabilisation against drift);
+4. the latents go through the VAE decoder and the Stage 1 adapter
+   (:meth:`~phigenesis.models.stage1.Stage1Model.forward_latents`) into the window's Gaussians,
+   which join the buffer and condition the next window.
+
+Trajectories: ``recorded`` (the cache's own poses and capture times), ``shift:Xm`` (the recorded
+ones moved X metres along the ego's +y, left; negative: right) or a JSON file (``{"frames":
+[{"timestamp_micros": int, "world_from_ego": 4x4}, ...]}``, one entry per generated frame, strictly
+increasing times after the history, rigid poses in the cache's world frame; each camera at the
+recorded rig's extrinsics and its recorded offset from the frame time).
+
+The output folder holds a cache in the project's schema (one scene, the generated frames: images,
+calibrations at the model's size, poses, the generated Gaussians' rendered depth (dense origin
+``rendered``) and class labels (pseudo source ``rendered``)), so ``phigenesis-prep verify``,
+``preview`` and the loader work on it; ``strip.png`` (generated frames, views side by side);
+``gaussians/window-KKK.ply`` (each window's Gaussians); ``generate.json`` (what made it, timings).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from phigenesis import __version__
+from phigenesis.data import records
+from phigenesis.data.records import (
+    Boxes,
+    CameraCalibration,
+    CameraDepth,
+    CameraImage,
+    CameraSemantics,
+    Frame,
+    InvalidRecord,
+    encode_rgb,
+)
+from phigenesis.data.schema import SCHEMA_VERSION, CacheContents, frame_schema, frame_to_batch
+from phigenesis.data.shards import MANIFEST_NAME, Manifest, SceneEntry, ShardWriter
+from phigenesis.infer.buffer import GaussianBuffer
+from phigenesis.infer.conditions import (
+    GEOMETRY_SOURCES,
+    UNCERTAINTY_KINDS,
+    ConditionRender,
+    TargetCameras,
+    history_scene,
+    render_condition,
+    sequence_plucker,
+    uncertainty_maps,
+)
+from phigenesis.infer.flow import FixedFrames, euler_sample
+from phigenesis.infer.stereo_forcing import pool_to_latent, stereo_forcing
+from phigenesis.models.dit import MultiViewDiT
+from phigenesis.models.gaussians import GaussianScene
+from phigenesis.models.stage1 import Stage1Model
+
+log = logging.getLogger(__name__)
+
+#: A rendered pixel below this alpha is a hole (no depth, no label) in the generated cache.
+HOLE_ALPHA = 0.5
+#: Rig shift trajectories: ``shift:2m``, ``shift:-1.5m``.
+SHIFT_PATTERN = re.compile(r"^shift:(-?\d+(?:\.\d+)?)m$")
+#: The generated scene's id in its cache.
+GENERATED_SUFFIX = "-generated"
+
+
+@dataclass(frozen=True)
+class TrajectoryFrame:
+    """Where the rig is at one generated frame (world frame of the cache, metres, microseconds)."""
+
+    timestamp_micros: int
+    world_from_ego: np.ndarray  # (4, 4) float64 at timestamp_micros
+    camera_world_from_ego: np.ndarray  # (V, 4, 4) the ego pose at each camera's capture time
+    camera_timestamp_micros: np.ndarray  # (V,) int64 capture times
+
+
+@dataclass(frozen=True)
+class GenerateOptions:
+    """How a rollout samples (the CLI's options)."""
+
+    uncertainty: str = "localization_potential"  # SF's map: an uncertainty kind or "none"
+    omega: float = 1.0  # guidance scale: v(z) + omega [v(z | SF) - v(z)]
+    steps: int = 10  # Euler steps per window
+    shift: float = 1.0  # time shift of the sampling grid
+    history_level: float = 0.02  # flow time generated history is held at (recorded history: 0)
+    geometry: str = "stage1"  # window 0's history Gaussians: stage1 | cache | truth
+    voxel_m: float = 0.2  # the buffer's de-duplication voxel
+    max_gaussians: int = 200_000  # the buffer's bound
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.uncertainty not in (*UNCERTAINTY_KINDS, "none"):
+            raise ValueError(
+                f"uncertainty must be one of {(*UNCERTAINTY_KINDS, 'none')}, got {self.uncertainty!r}"
+            )
+        if not math.isfinite(self.omega):
+            raise ValueError(f"omega must be finite, got {self.omega}")
+        if self.steps < 1:
+            raise ValueError(f"steps must be at least 1, got {self.steps}")
+        if not 0 <= self.history_level < 1:
+            raise ValueError(f"history_level must be in [0, 1), got {self.history_level}")
+        if self.geometry not in GEOMETRY_SOURCES:
+            raise ValueError(f"geometry must be one of {GEOMETRY_SOURCES}, got {self.geometry!r}")
+
+
+@dataclass
+class Rollout:
+    """What a rollout generated, per frame (N frames, V views of H x W at the model's size)."""
+
+    images: Tensor  # [N, V, H, W, 3] RGB in [0, 1], the VAE's decoding of the generated latents
+    depth: Tensor  # [N, V, H, W] z-depth of the generated Gaussians, metres, 0 = none
+    alpha: Tensor  # [N, V, H, W] their accumulated opacity
+    semantic: Tensor  # [N, V, H, W] uint8 argmax class (SKY where alpha < HOLE_ALPHA)
+    condition_rgb: Tensor  # [N, V, H, W, 3] the buffer's render each window was conditioned on
+    u: Tensor  # [N, V, H, W] the uncertainty map it was weighed by (zeros for "none")
+    trajectory: list[TrajectoryFrame]
+    world_from_camera: Tensor  # [N, V, 4, 4]
+    time_s: Tensor  # [N, V] seconds after time_origin_micros
+    time_origin_micros: int
+    windows: list[GaussianScene] = field(default_factory=list)
+    buffer_sizes: list[int] = field(default_factory=list)
+    seconds_per_window: list[float] = field(default_factory=list)
+
+
+# --------------------------------------------------------------------------------------------
+# Trajectories
+
+
+def _check_rigid(m: np.ndarray, what: str) -> np.ndarray:
+    try:
+        return records.check_transform(what, np.asarray(m, dtype=np.float64))
+    except InvalidRecord as e:
+        raise ValueError(str(e)) from None
+
+
+def recorded_trajectory(frames: list[dict[str, Any]]) -> list[TrajectoryFrame]:
+    """The trajectory of loaded cache frames (loader dicts) as they were recorded."""
+    return [
+        TrajectoryFrame(
+            int(f["frame_timestamp_micros"]),
+            f["world_from_ego"].double().numpy(),
+            f["camera_world_from_ego"].double().numpy(),
+            f["camera_timestamp_micros"].numpy().astype(np.int64),
+        )
+        for f in frames
+    ]
+
+
+def shifted_trajectory(trajectory: list[TrajectoryFrame], metres: float) -> list[TrajectoryFrame]:
+    """``trajectory`` with every pose moved ``metres`` along its own ego +y (left)."""
+    shift = np.eye(4)
+    shift[1, 3] = metres
+    return [
+        TrajectoryFrame(
+            f.timestamp_micros,
+            f.world_from_ego @ shift,
+            f.camera_world_from_ego @ shift,
+            f.camera_timestamp_micros,
+        )
+        for f in trajectory
+    ]
+
+
+def load_trajectory_file(
+    path: str | os.PathLike[str], count: int, rig: TrajectoryFrame, after_micros: int
+) -> list[TrajectoryFrame]:
+    """The ``count`` frames of a trajectory JSON file (format in the module docstring); each camera
+    fires at its offset from the frame time in ``rig`` (a recorded frame). Raises ValueError naming
+    the file and the entry for a wrong length, NaN, a non-rigid pose or time going backwards."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: cannot read the trajectory ({e})") from None
+    entries = doc.get("frames") if isinstance(doc, dict) else None
+    if not isinstance(entries, list):
+        raise ValueError(f'{path}: a trajectory is {{"frames": [...]}}, one entry per generated frame')
+    if len(entries) != count:
+        raise ValueError(f"{path}: holds {len(entries)} frames, --frames asks for {count}")
+    offsets = rig.camera_timestamp_micros - rig.timestamp_micros
+    ego_offsets = np.linalg.inv(rig.world_from_ego) @ rig.camera_world_from_ego  # camera-time ego motion
+    out, last = [], after_micros
+    for i, e in enumerate(entries):
+        where = f"{path}: frames[{i}]"
+        if not isinstance(e, dict) or "timestamp_micros" not in e or "world_from_ego" not in e:
+            raise ValueError(f"{where}: needs timestamp_micros and world_from_ego")
+        t = e["timestamp_micros"]
+        if not isinstance(t, int) or isinstance(t, bool):
+            raise ValueError(f"{where}.timestamp_micros: {t!r} is not an integer")
+        if t <= last:
+            raise ValueError(f"{where}.timestamp_micros: {t} is not after {last} (time must increase)")
+        try:
+            pose = np.asarray(e["world_from_ego"], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}.world_from_ego: not a 4x4 matrix of numbers") from None
+        if pose.shape != (4, 4):
+            raise ValueError(f"{where}.world_from_ego: shape {pose.shape}, not (4, 4)")
+        pose = _check_rigid(pose, f"{where}.world_from_ego")
+        out.append(TrajectoryFrame(t, pose, pose @ ego_offsets, t + offsets))
+        last = t
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# The rollout
+
+
+def _cameras(
+    traj: list[TrajectoryFrame],
+    ego_from_camera: Tensor,
+    intrinsics: Tensor,
+    origin: int,
+    size_hw: tuple[int, int],
+) -> TargetCameras:
+    wfe = torch.as_tensor(np.stack([f.camera_world_from_ego for f in traj]))  # [F, V, 4, 4]
+    wfc = wfe @ ego_from_camera.double()[None]
+    times = torch.as_tensor(np.stack([f.camera_timestamp_micros for f in traj]) - origin).double() * 1e-6
+    return TargetCameras(wfc, intrinsics.float(), times, size_hw)
+
+
+def _encode(stage1: Stage1Model, images: Tensor) -> Tensor:
+    """[1, V, C, T_z, h, w] latents of [F, V, 3, H, W] images in [0, 1]."""
+    return stage1.encode(images[None])
+
+
+def _condition(
+    denoiser_kind: str,
+    stage1: Stage1Model,
+    buffer_scene: GaussianScene,
+    targets: TargetCameras,
+    history: TargetCameras,
+    options: GenerateOptions,
+    generator: torch.Generator,
+) -> tuple[ConditionRender, Tensor, Tensor]:
+    """(the render, u [F, V, H, W], the SF condition of the targets [1, V, C + 1, T, h, w])."""
+    render = render_condition(buffer_scene, targets)
+    z_render = _encode(stage1, render.rgb.permute(0, 1, 4, 2, 3))
+    f, v = targets.frames, targets.views
+    if denoiser_kind == "none":
+        c = z_render.shape[2]
+        return render, torch.zeros(f, v, *targets.size_hw), torch.zeros(1, v, c + 1, *z_render.shape[3:])
+    hist_depth = render_condition(buffer_scene, history).depth
+    bins = int(stage1.config.adapter_config.depth_bins)
+    maps = uncertainty_maps(render, targets, history, hist_depth, bins, generator, 8, (denoiser_kind,))
+    if denoiser_kind not in maps:
+        raise ValueError(f"uncertainty {denoiser_kind!r}: the history's Gaussians carry no depth entropy")
+    u = maps[denoiser_kind]
+    tc = int(stage1.vae.config.temporal_compression)
+    u_lat = pool_to_latent(u.permute(1, 0, 2, 3), tuple(z_render.shape[-2:]), tc)  # [V, T_z, h, w]
+    return render, u, stereo_forcing(u_lat[None], z_render)
+
+
+def _window_scene(stage1: Stage1Model, z: Tensor, cams: TargetCameras, origin: int) -> GaussianScene:
+    """The Gaussians Stage 1 builds from generated latents [1, V, C, T_z, h, w] at ``cams``."""
+    pred = stage1.forward_latents(
+        z, cams.intrinsics[None], cams.world_from_camera[None].float(), cams.time_s[None].float()
+    )
+    return pred.scene(0, dynamic_threshold=stage1.config.dynamic_threshold, time_origin_micros=origin)
+
+
+@torch.no_grad()
+def rollout(
+    denoiser: MultiViewDiT,
+    stage1: Stage1Model,
+    history_clip: Any,
+    trajectory: list[TrajectoryFrame],
+    ego_from_camera: Tensor,
+    window_frames: int,
+    options: GenerateOptions,
+    truth: dict[str, Tensor] | None = None,
+    progress: bool = False,
+) -> Rollout:
+    """Generates one frame per entry of ``trajectory`` after the recorded ``history_clip`` (a Stage
+    1 clip whose context is the history), window by window (see the module docstring)."""
+    denoiser.eval()
+    stage1.eval()
+    origin = int(history_clip.time_origin_micros)
+    size = tuple(history_clip.context.images.shape[-2:])
+    k = history_clip.intrinsics
+    ctx = history_clip.context
+    t_h = ctx.images.shape[0]
+    tc = int(stage1.vae.config.temporal_compression)
+    generator = torch.Generator().manual_seed(int(options.seed))
+    buffer = GaussianBuffer(voxel_m=options.voxel_m, max_gaussians=options.max_gaussians)
+    first = history_scene(options.geometry, history_clip, stage1, **(truth or {}))  # type: ignore[arg-type]
+    buffer.add(first, window=0)
+    hist_cams = TargetCameras(ctx.world_from_camera, k, ctx.time_s, size)
+    hist_images, level = ctx.images, 0.0
+    n = len(trajectory)
+    windows = math.ceil(n / window_frames)
+    # Pad the last window with its last pose (frames past the end are generated and dropped).
+    padded = trajectory + [trajectory[-1]] * (windows * window_frames - n)
+    out: dict[str, list[Tensor]] = {
+        k_: [] for k_ in ("images", "depth", "alpha", "semantic", "cond", "u", "wfc", "t")
+    }
+    result = Rollout(
+        *(torch.empty(0),) * 6,
+        trajectory=trajectory,
+        world_from_camera=torch.empty(0),
+        time_s=torch.empty(0),
+        time_origin_micros=origin,
+    )
+    from tqdm import tqdm
+
+    for w in tqdm(range(windows), disable=not progress, unit="window", desc="generate"):
+        tic = time.perf_counter()
+        cams = _cameras(padded[w * window_frames : (w + 1) * window_frames], ego_from_camera, k, origin, size)
+        render, u, cond_t = _condition(
+            options.uncertainty, stage1, buffer.scene(), cams, hist_cams, options, generator
+        )
+        z_hist = _encode(stage1, hist_images)  # [1, V, C, T_zh, h, w]
+        t_zh = z_hist.shape[3]
+        t_z = cond_t.shape[3]
+        v, c = z_hist.shape[1], z_hist.shape[2]
+        hw = tuple(z_hist.shape[-2:])
+        condition = torch.cat([torch.zeros(1, v, c + 1, t_zh, *hw), cond_t], dim=3)
+        plucker = sequence_plucker(hist_cams, cams, (t_zh, t_z), hw, tc)[None]
+        z0 = torch.cat([z_hist, torch.zeros(1, v, c, t_z, *hw)], dim=3)
+        mask = torch.zeros(t_zh + t_z, dtype=torch.bool)
+        mask[:t_zh] = True
+        noise = torch.randn(z0.shape, generator=generator)
+        fixed = FixedFrames(mask=mask, z0=z0, level=level)
+
+        def velocity(
+            z: Tensor, t: Tensor, cnd: Tensor | None, plucker: Tensor = plucker, zero: Tensor = condition
+        ) -> Tensor:
+            return denoiser(z, t, cnd if cnd is not None else torch.zeros_like(zero), plucker)
+
+        cond_arg = None if options.uncertainty == "none" else condition
+        z = euler_sample(
+            velocity, noise, options.steps, options.shift, options.omega, cond_arg, fixed, generator
+        )
+        z_gen = z[:, :, :, t_zh:]
+        if not torch.isfinite(z_gen).all():
+            raise FloatingPointError(f"window {w}: the sampler produced NaN or Inf latents")
+        images = stage1.decode(z_gen)[0]  # [F, V, 3, H, W]
+        scene = _window_scene(stage1, z_gen, cams, origin)
+        own = render_condition(scene.detach(), cams, semantics=True)
+        ego = torch.as_tensor(padded[(w + 1) * window_frames - 1].world_from_ego[:3, 3]).float()
+        buffer.add(scene.detach(), window=w + 1, ego_position_world=ego)
+        result.windows.append(scene.detach())
+        result.buffer_sizes.append(len(buffer))
+        out["images"].append(images.permute(0, 1, 3, 4, 2))
+        out["depth"].append(own.depth)
+        out["alpha"].append(own.alpha)
+        assert own.semantic is not None
+        out["semantic"].append(own.semantic)
+        out["cond"].append(render.rgb)
+        out["u"].append(u)
+        out["wfc"].append(cams.world_from_camera)
+        out["t"].append(cams.time_s)
+        # The next window's history: the last generated frames, held at a small noise level.
+        hist_images = images[-t_h:]
+        hist_cams = TargetCameras(cams.world_from_camera[-t_h:], k, cams.time_s[-t_h:], size)
+        level = options.history_level
+        result.seconds_per_window.append(time.perf_counter() - tic)
+    cat = {k_: torch.cat(v_)[:n] for k_, v_ in out.items()}
+    result.images, result.depth, result.alpha = cat["images"].clamp(0, 1), cat["depth"], cat["alpha"]
+    result.semantic, result.condition_rgb, result.u = cat["semantic"], cat["cond"], cat["u"]
+    result.world_from_camera, result.time_s = cat["wfc"], cat["t"]
+    return result
+
+
+# --------------------------------------------------------------------------------------------
+# Writing the generated scene
+
+
+def generated_frames(
+    result: Rollout, scene_id: str, calibrations: list[CameraCalibration], first_index: int
+) -> list[Frame]:
+    """The generated frames as scene-model records (the images JPEG-encoded, the rendered depth as
+    the dense depth and the rendered classes as pseudo labels, no LiDAR, no boxes)."""
+    frames = []
+    n, v = result.images.shape[:2]
+    for i in range(n):
+        traj = result.trajectory[i]
+        cameras = []
+        for j in range(v):
+            cal = calibrations[j]
+            rgb = (result.images[i, j].numpy() * 255).round().clip(0, 255).astype(np.uint8)
+            depth = result.depth[i, j].numpy().astype(np.float32)
+            covered = result.alpha[i, j].numpy() >= HOLE_ALPHA
+            depth = np.where(covered & (depth > 0), depth, 0).astype(np.float32)
+            conf = np.where(depth > 0, result.alpha[i, j].numpy().clip(0, 1), 0).astype(np.float32)
+            origin = np.where(depth > 0, records.DENSE_ORIGINS.index("rendered"), 0).astype(np.uint8)
+            sem = result.semantic[i, j].numpy().astype(np.uint8)
+            labelled = covered
+            empty = CameraDepth.empty(cal.height, cal.width)
+            cameras.append(
+                CameraImage(
+                    calibration=cal,
+                    timestamp_micros=int(traj.camera_timestamp_micros[j]),
+                    world_from_ego=traj.camera_world_from_ego[j],
+                    image_bytes=encode_rgb(rgb),
+                    depth=CameraDepth(
+                        empty.sparse_m, empty.sparse_confidence, empty.sparse_origin, depth, conf, origin
+                    ),
+                    pseudo=CameraSemantics(
+                        np.where(labelled, sem, 255).astype(np.uint8),
+                        labelled.astype(np.float32),
+                        np.where(labelled, records.PSEUDO_SOURCES.index("rendered"), 0).astype(np.uint8),
+                    ),
+                )
+            )
+        frames.append(
+            Frame(
+                scene_id,
+                first_index + i,
+                traj.timestamp_micros,
+                traj.world_from_ego,
+                cameras,
+                None,
+                Boxes.empty(),
+            )
+        )
+    return frames
+
+
+def write_generated_cache(
+    out: Path, frames: list[Frame], scene_id: str, arguments: dict[str, Any], metadata: dict[str, Any]
+) -> Path:
+    """Writes ``frames`` as a one-scene cache in ``out`` (manifest, shards, verify-able)."""
+    from phigenesis.data.pipeline import fingerprint
+
+    contents = CacheContents(
+        camera_truth=(),
+        lidar=False,
+        lidar_truth=False,
+        camera_labels=False,
+        depth=True,
+        pseudo_semantics=True,
+    )
+    schema = frame_schema(
+        contents, {"phigenesis.source": "generated", "phigenesis.scene_metadata": json.dumps(metadata)}
+    )
+    pipeline = {
+        "name": "generated",
+        "output": {"camera_truth": [], "lidar": False, "depth": True, "pseudo_semantics": True},
+    }
+    manifest = Manifest(
+        SCHEMA_VERSION,
+        "generated",
+        arguments,
+        pipeline,
+        fingerprint("generated", arguments, pipeline),
+        phigenesis_version=__version__,
+    )
+    with ShardWriter(out, scene_id, schema) as writer:
+        for frame in frames:
+            writer.write(frame_to_batch(frame, "generated", schema))
+        shards = writer.close()
+    manifest.record_scene(
+        SceneEntry(scene_id, "generated", len(frames), "complete", [s.path for s in shards]), shards
+    )
+    manifest.save(out)
+    return out
+
+
+def save_strip(result: Rollout, path: Path, max_rows: int = 8) -> Path:
+    """A PNG of generated frames (rows, at most ``max_rows`` spread over the rollout), the views of
+    each side by side, with the condition render of the same frame below each."""
+    n = result.images.shape[0]
+    rows = sorted(set(np.linspace(0, n - 1, min(n, max_rows)).round().astype(int).tolist()))
+    lines = []
+    for i in rows:
+        gen = torch.cat(list(result.images[i]), dim=1)  # [H, V*W, 3]
+        cond = torch.cat(list(result.condition_rgb[i]), dim=1)
+        lines += [gen, cond]
+    picture = (torch.cat(lines, dim=0).numpy() * 255).round().clip(0, 255).astype(np.uint8)
+    ok, png = cv2.imencode(".png", cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise ValueError(f"{path}: cannot encode the strip")
+    path.write_bytes(png.tobytes())
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# The entry function
+
+
+@dataclass
+class GenerateResult:
+    """What :func:`generate` wrote, with the rollout itself."""
+
+    out: Path
+    cache: Path
+    strip: Path
+    plys: list[Path]
+    rollout: Rollout
+    seconds: float
+
+
+def _stage2_checkpoint(path: str | os.PathLike[str]) -> tuple[MultiViewDiT, dict[str, Any]]:
+    """(the denoiser, its training config) of a Stage 2 checkpoint; CheckpointError otherwise."""
+    from phigenesis.errors import CheckpointError
+    from phigenesis.train.checkpoint import load_checkpoint
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "model.safetensors"
+    ckpt = load_checkpoint(path)
+    if not isinstance(ckpt.model, MultiViewDiT):
+        raise CheckpointError(f"{path}: a {ckpt.model_name!r} checkpoint, not a Stage 2 denoiser (stage2_*)")
+    train = ckpt.meta.get("train")
+    if not isinstance(train, dict) or "window_frames" not in train:
+        raise CheckpointError(f"{path}: has no Stage 2 training config in its metadata (window_frames)")
+    return ckpt.model, train
+
+
+def trained_uncertainty(ckpt: str | os.PathLike[str]) -> str:
+    """The uncertainty kind a Stage 2 checkpoint was trained with."""
+    return str(_stage2_checkpoint(ckpt)[1].get("uncertainty", "localization_potential"))
+
+
+class Stage2Runner:
+    """A trained Stage 2 model with its Stage 1 model over a frame cache: rolls scenes out.
+
+    ``stage1``: the Stage 1 checkpoint (default: the one the Stage 2 model was trained with).
+    Raises CheckpointError for a checkpoint that is not Stage 2's, ValueError for a cache Stage 1
+    cannot read."""
+
+    def __init__(
+        self,
+        ckpt: str | os.PathLike[str],
+        shards: str | os.PathLike[str],
+        stage1: str | os.PathLike[str] | None = None,
+    ):
+        from phigenesis.train.stage1 import load_stage1
+        from phigenesis.train.stage1_data import Stage1Clips
+
+        self.ckpt, self.shards = str(ckpt), str(shards)
+        self.denoiser, self.train = _stage2_checkpoint(ckpt)
+        stage1_path = stage1 or self.train.get("stage1_checkpoint")
+        if not stage1_path:
+            raise ValueError(f"{ckpt}: names no Stage 1 checkpoint; pass --stage1")
+        self.stage1_path = str(stage1_path)
+        self.stage1 = load_stage1(stage1_path)
+        self.window = int(self.train["window_frames"])
+        self.history_frames = int(self.train["history_frames"])
+        self.data = Stage1Clips(shards, self.stage1.config.image_size, self.history_frames, "auto")
+
+    def check(self, scene: str, start: int, frames: int, trajectory: str) -> None:
+        """Raises ValueError naming what is wrong with a rollout request."""
+        if frames < 1:
+            raise ValueError(f"--frames must be at least 1, got {frames}")
+        if scene not in self.data.scenes:
+            known = ", ".join(sorted(self.data.scenes)[:10])
+            raise ValueError(f"scene {scene!r} is not in {self.shards} (scenes: {known})")
+        length = self.data.scene_length(scene)
+        t_h = self.history_frames
+        if not t_h <= start < length:
+            raise ValueError(
+                f"--start {start}: scene {scene} has frames 0..{length - 1}; "
+                f"generation needs {t_h} recorded history frame(s) before --start"
+            )
+        if (trajectory == "recorded" or SHIFT_PATTERN.match(trajectory)) and start + frames > length:
+            raise ValueError(
+                f"--frames {frames} from --start {start} runs past the end of scene {scene} "
+                f"({length} frames): a {trajectory} trajectory needs recorded poses; "
+                f"at most {length - start} frames"
+            )
+
+    def run(
+        self,
+        scene: str,
+        start: int,
+        frames: int,
+        trajectory: str = "recorded",
+        options: GenerateOptions | None = None,
+        progress: bool = False,
+    ) -> tuple[Rollout, Any]:
+        """(the rollout, the history clip) of ``frames`` frames of ``scene`` from ``start`` on."""
+        options = options or GenerateOptions()
+        self.check(scene, start, frames, trajectory)
+        t_h = self.history_frames
+        clip = self.data.clip(scene, start - t_h, [], keep_frames=True)
+        assert clip.frames is not None
+        length = self.data.scene_length(scene)
+        loaded = [self.data._frame(scene, i) for i in range(start, min(start + frames, length))]
+        rig = recorded_trajectory([clip.frames[start - 1]])[0]
+        if trajectory == "recorded":
+            traj = recorded_trajectory(loaded)
+        elif m := SHIFT_PATTERN.match(trajectory):
+            traj = shifted_trajectory(recorded_trajectory(loaded), float(m.group(1)))
+        else:
+            traj = load_trajectory_file(trajectory, frames, rig, rig.timestamp_micros)
+        truth = None
+        if options.geometry == "truth":
+            from phigenesis.train.stage2_data import _truth_maps
+
+            depth, sem, flow = _truth_maps(clip)
+            truth = {"truth_depth_m": depth, "truth_semantic": sem, "truth_flow_mps": flow}
+        ego_from_camera = clip.frames[start - 1]["ego_from_camera"]
+        result = rollout(
+            self.denoiser, self.stage1, clip, traj, ego_from_camera, self.window, options, truth, progress
+        )
+        return result, clip
+
+
+def generate(
+    ckpt: str | os.PathLike[str],
+    shards: str | os.PathLike[str],
+    scene: str,
+    start: int,
+    frames: int,
+    out: str | os.PathLike[str],
+    *,
+    trajectory: str = "recorded",
+    stage1: str | os.PathLike[str] | None = None,
+    options: GenerateOptions | None = None,
+    progress: bool = True,
+) -> GenerateResult:
+    """Rolls out ``frames`` frames of ``scene`` from frame ``start`` on (its history: the frames just
+    before) with the Stage 2 checkpoint ``ckpt`` along ``trajectory`` and writes them to ``out``
+    (see the module docstring). ``stage1``: the Stage 1 checkpoint (default: the one the Stage 2
+    model was trained with). Raises ValueError naming what is wrong for a scene not in the cache,
+    a start without enough history, ``--frames`` past the cache's end with a recorded (or shifted)
+    trajectory, or a bad trajectory file; CheckpointError for a checkpoint that is not Stage 2's.
+
+    Example::
+
+        generate("runs/stage2/model.safetensors", "cache/", "synthetic-s7-0000", 1, 40, "gen/",
+                 trajectory="shift:2m", options=GenerateOptions(omega=2.0))
+    """
+    t0 = time.perf_counter()
+    options = options or GenerateOptions()
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(
+            f"{out}: exists and is not an empty folder; choose a new folder for the generated cache"
+        )
+    runner = Stage2Runner(ckpt, shards, stage1)
+    result, clip = runner.run(scene, start, frames, trajectory, options, progress)
+    stage1_path, window = runner.stage1_path, runner.window
+    ego_from_camera = clip.frames[start - 1]["ego_from_camera"]
+    h, w = runner.stage1.config.image_size
+    names = list(clip.camera_names)
+    calibrations = [
+        CameraCalibration(
+            names[j],
+            w,
+            h,
+            clip.intrinsics[j].double().numpy(),
+            np.zeros(5),
+            ego_from_camera[j].double().numpy(),
+        )
+        for j in range(len(names))
+    ]
+    out.mkdir(parents=True, exist_ok=True)
+    generated_id = scene + GENERATED_SUFFIX
+    arguments = {
+        "stage2_checkpoint": str(ckpt),
+        "stage1_checkpoint": str(stage1_path),
+        "frame_cache": str(Path(shards).resolve()),
+        "scene": scene,
+        "start": start,
+        "frames": frames,
+        "trajectory": trajectory,
+        **options.__dict__,
+    }
+    write_generated_cache(
+        out,
+        generated_frames(result, generated_id, calibrations, start),
+        generated_id,
+        arguments,
+        {"generated_from": scene, "start": start},
+    )
+    strip = save_strip(result, out / "strip.png")
+    from phigenesis.export.ply import write_ply
+
+    (out / "gaussians").mkdir(exist_ok=True)
+    plys = [
+        write_ply(g, out / "gaussians" / f"window-{i:03d}.ply")
+        for i, g in enumerate(result.windows)
+        if len(g)
+    ]
+    seconds = time.perf_counter() - t0
+    report = {
+        **arguments,
+        "windows": len(result.windows),
+        "window_frames": window,
+        "seconds": seconds,
+        "seconds_per_window": result.seconds_per_window,
+        "seconds_per_frame": sum(result.seconds_per_window) / max(frames, 1),
+        "buffer_sizes": result.buffer_sizes,
+        "phigenesis_version": __version__,
+    }
+    (out / "generate.json").write_text(json.dumps(report, indent=1, default=str))
+    log.info("generated %d frames of %s in %.1f s into %s", frames, scene, seconds, out)
+    return GenerateResult(out, out / MANIFEST_NAME, strip, plys, result, seconds)

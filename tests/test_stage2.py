@@ -1,0 +1,436 @@
+"""Stage 2 data and training: conditions from history, the latent cache, the trainer and its CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.ipc as ipc
+import pytest
+import torch
+
+from phigenesis import prep
+from phigenesis.cli.train import main as train_main
+from phigenesis.data.shards import CacheError, verify_cache
+from phigenesis.infer.conditions import context_cameras, future_cameras, history_scene, render_condition
+from phigenesis.train.checkpoint import CheckpointError
+from phigenesis.train.evaluate_stage1 import frame_truth
+from phigenesis.train.runner import read_metrics
+from phigenesis.train.stage1 import Stage1TrainConfig, load_stage1, train_stage1
+from phigenesis.train.stage1_data import Stage1Clips
+from phigenesis.train.stage2 import (
+    Stage2TrainConfig,
+    load_stage2,
+    make_batch,
+    restarted_cosine_lr,
+    train_stage2,
+)
+from phigenesis.train.stage2_data import (
+    Stage2DataConfig,
+    Stage2Latents,
+    precompute_stage2,
+    window_clip,
+    window_sample,
+    window_starts,
+)
+from tests.conftest import TINY_PREP_ARGS
+
+SIZE = (48, 72)
+FRAMES = 12
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("stage2_cache")
+    args = {**TINY_PREP_ARGS, "scenes": 1, "frames": FRAMES, "height": SIZE[0], "width": SIZE[1]}
+    prep.synthetic(out, progress=False, **args)  # type: ignore[arg-type]
+    return out
+
+
+@pytest.fixture(scope="module")
+def stage1_checkpoint(cache: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    run = train_stage1(
+        cache,
+        tmp_path_factory.mktemp("s1"),
+        Stage1TrainConfig(steps=2, warmup_steps=1, threads=1),
+        progress=False,
+    )
+    assert run.checkpoint is not None
+    return run.checkpoint
+
+
+@pytest.fixture(scope="module")
+def latents(cache: Path, stage1_checkpoint: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("lat") / "latents"
+    model = load_stage1(stage1_checkpoint)
+    return precompute_stage2(
+        cache, out, model, Stage2DataConfig(stride=3), stage1_checkpoint=str(stage1_checkpoint)
+    )
+
+
+def _config(**overrides: object) -> Stage2TrainConfig:
+    base = {"steps": 6, "batch_size": 2, "stride": 3, "warmup_steps": 2, "checkpoint_every": 3, "threads": 1}
+    return Stage2TrainConfig(**{**base, **overrides})  # type: ignore[arg-type]
+
+
+def test_windows_lie_inside_the_scene_and_step_by_the_stride() -> None:
+    cfg = Stage2DataConfig(history_frames=1, window_frames=5, stride=3)
+    assert window_starts(12, cfg) == [0, 3, 6]
+    assert window_starts(6, cfg) == [0]
+    assert window_starts(5, cfg) == []
+
+
+def test_a_windows_condition_uses_no_frame_at_or_after_its_start(
+    cache: Path, stage1_checkpoint: Path
+) -> None:
+    """The history is before the targets, and the render and its maps do not change when every
+    target image is replaced: nothing of the frames to generate leaks into their condition."""
+    model = load_stage1(stage1_checkpoint)
+    data = Stage1Clips(cache, SIZE, 1, "auto")
+    cfg = Stage2DataConfig(stride=3)
+    sample = window_sample(model, data, data.reader.scene_ids()[0], 3, cfg)
+    assert max(sample.history_indices) < min(sample.target_indices)
+    assert sample.target_indices == [4, 5, 6, 7, 8]
+
+    real_clip = data.clip
+
+    def clip_with_blank_targets(scene_id: str, start: int, offsets: list[int], keep_frames: bool = False):  # type: ignore[no-untyped-def]
+        clip = real_clip(scene_id, start, offsets, keep_frames)
+        t = len(clip.frame_indices)
+        images = clip.targets.images.clone()
+        images[t:] = 0.5
+        targets = dataclasses.replace(clip.targets, images=images)
+        return dataclasses.replace(clip, targets=targets)
+
+    data.clip = clip_with_blank_targets  # type: ignore[method-assign]
+    blanked = window_sample(model, data, data.reader.scene_ids()[0], 3, cfg)
+    assert torch.equal(blanked.z_render, sample.z_render)
+    assert torch.equal(blanked.z_history, sample.z_history)
+    for kind in sample.u:
+        assert torch.equal(blanked.u[kind], sample.u[kind]), kind
+    assert not torch.equal(blanked.z_target, sample.z_target)
+
+
+def test_truth_geometry_renders_the_history_at_its_own_cameras_and_covers_more_than_the_cache(
+    cache: Path,
+) -> None:
+    data = Stage1Clips(cache, SIZE, 1, "auto")
+    scene_id = data.reader.scene_ids()[0]
+    clip = window_clip(data, scene_id, 0, Stage2DataConfig(geometry="truth"))
+    assert clip.frames is not None
+    truths = [frame_truth(clip.frames[i], SIZE) for i in clip.frame_indices]
+    truth = {
+        "truth_depth_m": torch.stack([t.depth for t in truths]),
+        "truth_semantic": torch.stack([t.semantic for t in truths]),
+        "truth_flow_mps": torch.stack([t.flow for t in truths]),  # type: ignore[misc]
+    }
+    scene = history_scene("truth", clip, **truth)
+    own = render_condition(scene, context_cameras(clip))
+    covered = own.alpha > 0.9
+    assert covered.float().mean() > 0.6  # every non-sky pixel spawned a Gaussian
+    images = clip.context.images.permute(0, 1, 3, 4, 2)
+    err = (own.rgb / own.alpha.clamp(min=1e-6)[..., None] - images).abs()[covered]
+    assert float(err.mean()) < 0.05
+    future = render_condition(scene, future_cameras(clip))
+    cached = render_condition(history_scene("cache", clip), future_cameras(clip))
+    assert future.rgb.shape == (5, 5, *SIZE, 3)
+    assert float(future.alpha.mean()) > float(cached.alpha.mean())  # the LiDAR's dense depth has holes
+    with pytest.raises(ValueError, match="needs a Stage 1 model"):
+        history_scene("stage1", clip)
+    with pytest.raises(ValueError, match="truth depth"):
+        history_scene("truth", clip)
+
+
+def test_the_latent_cache_passes_verify_and_opens_with_plain_pyarrow(latents: Path) -> None:
+    report = verify_cache(latents)
+    assert not report.errors, report.errors
+    assert report.frames == 3
+    manifest = json.loads((latents / "manifest.json").read_text())
+    assert manifest["source"] == "stage2-latents" and manifest["arguments"]["geometry"] == "stage1"
+    shard = latents / manifest["shards"][0]["path"]
+    with pa.memory_map(str(shard)) as f:
+        table = ipc.open_file(f).read_all()
+    assert table.num_rows == 3
+    shape = table.column("z_target_shape")[0].as_py()
+    assert shape == [5, 4, 2, 12, 18]
+    assert len(table.column("z_target")[0].as_py()) == 5 * 4 * 2 * 12 * 18
+    u = torch.tensor(table.column("u_localization_potential")[0].as_py())
+    assert float(u.min()) >= 0 and float(u.max()) <= 1
+    sample = Stage2Latents(latents)[0]
+    assert set(sample.u) == {"coverage", "random", "entropy", "localization_potential"}
+    assert sample.z_history.shape == (5, 4, 1, 12, 18)
+
+
+def test_a_rerun_of_the_precompute_skips_finished_scenes_and_other_inputs_are_refused(
+    cache: Path, stage1_checkpoint: Path, latents: Path
+) -> None:
+    model = load_stage1(stage1_checkpoint)
+    before = (latents / "manifest.json").read_text()
+    precompute_stage2(
+        cache, latents, model, Stage2DataConfig(stride=3), stage1_checkpoint=str(stage1_checkpoint)
+    )
+    assert (latents / "manifest.json").read_text() == before
+    with pytest.raises(ValueError, match="other inputs"):
+        precompute_stage2(
+            cache, latents, model, Stage2DataConfig(stride=2), stage1_checkpoint=str(stage1_checkpoint)
+        )
+
+
+def test_a_crafted_latent_row_with_nan_is_refused_naming_the_shard_and_column(
+    cache: Path, latents: Path, tmp_path: Path
+) -> None:
+    import shutil
+
+    from phigenesis.data.shards import ShardWriter
+    from phigenesis.train.stage2_data import latent_schema, sample_to_batch
+
+    sample = Stage2Latents(latents)[0]
+    with pytest.raises(ValueError, match="z_render holds NaN"):
+        bad = dataclasses.replace(sample, z_render=sample.z_render.clone().fill_(float("nan")))
+        sample_to_batch(bad, latent_schema({}))
+    # A shard whose bytes are right for its manifest but whose values leave [0, 1]: the reader refuses.
+    crafted = tmp_path / "crafted"
+    shutil.copytree(latents, crafted)
+    manifest = json.loads((crafted / "manifest.json").read_text())
+    scene = manifest["scenes"][0]["id"]
+    for p in (crafted / "shards").iterdir():
+        p.unlink()
+    u = dict(sample.u)
+    u["coverage"] = u["coverage"] * 0 + 2.0
+    with ShardWriter(crafted, scene, latent_schema({})) as writer:
+        writer.write(sample_to_batch(dataclasses.replace(sample, u=u), latent_schema({})))
+        shards = writer.close()
+    manifest["shards"] = [dataclasses.asdict(s) for s in shards]
+    manifest["scenes"][0]["frames"] = 1
+    manifest["scenes"][0]["shards"] = [s.path for s in shards]
+    (crafted / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(CacheError, match=r"row 0: u_coverage leaves \[0, 1\]"):
+        Stage2Latents(crafted)[0]
+    with pytest.raises(CacheError, match="not a Stage 2 latent cache"):
+        Stage2Latents(cache)
+
+
+def test_a_batch_holds_history_then_targets_with_the_condition_on_the_targets_only(latents: Path) -> None:
+    data = Stage2Latents(latents)
+    batch = make_batch([data[0], data[1]], "localization_potential", 4)
+    assert batch.z0.shape == (2, 5, 4, 3, 12, 18)
+    assert batch.target.tolist() == [False, True, True]
+    assert torch.count_nonzero(batch.condition[:, :, :, 0]) == 0
+    u = data[0].u["localization_potential"]
+    assert torch.allclose(batch.condition[0, :, 4, 1:], u)  # the last channel is u itself
+    assert torch.allclose(batch.condition[0, :, :4, 1:], u[:, None] * data[0].z_render)
+    assert batch.plucker.shape == (2, 5, 6, 3, 12, 18)
+    d = batch.plucker[:, :, :3]
+    assert torch.allclose(d.norm(dim=2), torch.ones(()), atol=1e-5)
+    none = make_batch([data[0]], "none", 4)
+    assert torch.count_nonzero(none.condition) == 0
+
+
+def test_the_learning_rate_warms_up_then_restarts_its_cosine() -> None:
+    cfg = _config(steps=100, warmup_steps=10, restart_steps=30, lr=1e-3, final_lr_ratio=0.1)
+    assert restarted_cosine_lr(0, cfg) == pytest.approx(1e-4)
+    assert restarted_cosine_lr(10, cfg) == pytest.approx(1e-3)
+    assert restarted_cosine_lr(39, cfg) < 2e-4
+    assert restarted_cosine_lr(40, cfg) == pytest.approx(1e-3)
+
+
+def test_a_killed_training_run_resumes_to_the_same_losses(
+    cache: Path, stage1_checkpoint: Path, latents: Path, tmp_path: Path
+) -> None:
+    whole = train_stage2(
+        cache, tmp_path / "whole", _config(), stage1=stage1_checkpoint, latents=latents, progress=False
+    )
+    assert whole.checkpoint is not None and whole.steps_done == 6
+    part = train_stage2(
+        cache,
+        tmp_path / "part",
+        _config(),
+        stage1=stage1_checkpoint,
+        latents=latents,
+        stop_after=3,
+        progress=False,
+    )
+    assert part.checkpoint is None and part.steps_done == 3
+    again = train_stage2(
+        cache,
+        tmp_path / "part",
+        _config(),
+        stage1=stage1_checkpoint,
+        latents=latents,
+        resume=True,
+        progress=False,
+    )
+    assert again.steps_done == 6
+    a, b = read_metrics(tmp_path / "whole"), read_metrics(tmp_path / "part")
+    assert [r["loss"] for r in a] == pytest.approx([r["loss"] for r in b], rel=1e-6)
+    model = load_stage2(whole.checkpoint)
+    assert model.name == "stage2_tiny"
+    with pytest.raises(ValueError, match="holds a run already"):
+        train_stage2(
+            cache, tmp_path / "whole", _config(), stage1=stage1_checkpoint, latents=latents, progress=False
+        )
+
+
+def test_a_stage1_checkpoint_where_a_stage2_one_is_expected_is_refused(stage1_checkpoint: Path) -> None:
+    with pytest.raises(CheckpointError, match="not a Stage 2 denoiser"):
+        load_stage2(stage1_checkpoint)
+
+
+def test_entropy_without_a_depth_entropy_is_refused_naming_the_map(latents: Path) -> None:
+    sample = Stage2Latents(latents)[0]
+    del sample.u["entropy"]
+    with pytest.raises(ValueError, match="no 'entropy' map"):
+        make_batch([sample], "entropy", 4)
+
+
+def test_the_cli_trains_from_a_config_file_and_reports_bad_configs(
+    cache: Path, stage1_checkpoint: Path, latents: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = tmp_path / "tiny.yaml"
+    config.write_text("steps: 2\nbatch_size: 1\nstride: 3\nwarmup_steps: 1\nthreads: 1\n")
+    argv = ["stage2", "--shards", str(cache), "--config", str(config), "--stage1", str(stage1_checkpoint)]
+    argv += ["--latents", str(latents), "--out", str(tmp_path / "run"), "--no-progress"]
+    assert train_main(argv) == 0
+    assert "final checkpoint" in capsys.readouterr().out
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("uncertainty: depth\n")
+    argv[argv.index(str(config))] = str(bad)
+    assert train_main(argv) == 2
+    assert "uncertainty must be one of" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------
+# Generation
+
+
+@pytest.fixture(scope="module")
+def stage2_checkpoint(
+    cache: Path, stage1_checkpoint: Path, latents: Path, tmp_path_factory: pytest.TempPathFactory
+) -> Path:
+    run = train_stage2(
+        cache,
+        tmp_path_factory.mktemp("s2"),
+        _config(steps=2),
+        stage1=stage1_checkpoint,
+        latents=latents,
+        progress=False,
+    )
+    assert run.checkpoint is not None
+    return run.checkpoint
+
+
+def _straight_trajectory(cache: Path, frames: int, path: Path) -> Path:
+    """A JSON trajectory driving on at the recorded scene's last velocity, ``frames`` frames long."""
+    from phigenesis.data.loader import FrameDataset
+
+    ds = FrameDataset(cache, fields=["cameras"])
+    a, b = ds[0], ds[1]
+    step = b["world_from_ego"][:3, 3] - a["world_from_ego"][:3, 3]
+    dt = int(b["frame_timestamp_micros"]) - int(a["frame_timestamp_micros"])
+    entries = []
+    for i in range(frames):
+        pose = b["world_from_ego"].clone()
+        pose[:3, 3] += step * (i + 1)
+        entries.append(
+            {
+                "timestamp_micros": int(b["frame_timestamp_micros"]) + dt * (i + 1),
+                "world_from_ego": pose.tolist(),
+            }
+        )
+    path.write_text(json.dumps({"frames": entries}))
+    return path
+
+
+def test_a_generated_cache_passes_verify_and_the_loader_reads_its_rendered_depth(
+    cache: Path, stage2_checkpoint: Path, tmp_path: Path
+) -> None:
+    from phigenesis.data import records
+    from phigenesis.data.loader import FrameDataset
+    from phigenesis.infer.generate import GenerateOptions, generate
+
+    out = tmp_path / "gen"
+    result = generate(
+        stage2_checkpoint,
+        cache,
+        "synthetic-s7-0000",
+        2,
+        7,
+        out,
+        trajectory="shift:2m",
+        options=GenerateOptions(steps=2, omega=2.0),
+        progress=False,
+    )
+    report = verify_cache(out)
+    assert not report.errors and report.frames == 7
+    assert (out / "strip.png").stat().st_size > 0 and len(result.plys) == 2
+    sample = FrameDataset(out, fields=["images", "cameras", "depth", "pseudo"])[0]
+    assert sample["images"].shape == (5, 3, *SIZE) and sample["frame_index"] == 2
+    rendered = records.DENSE_ORIGINS.index("rendered")
+    dense = sample["depth_dense"]
+    assert (dense > 0).any() and bool(((sample["depth_dense_origin"] == rendered) == (dense > 0)).all())
+    # The shift moved every camera 2 m along the ego's +y.
+    recorded = FrameDataset(cache, fields=["cameras"])[2]
+    moved = sample["camera_world_from_ego"][:, :3, 3] - recorded["camera_world_from_ego"][:, :3, 3]
+    left = recorded["world_from_ego"][:3, 1]
+    assert torch.allclose(moved.double(), 2.0 * left.double().expand(5, 3), atol=1e-6)
+    assert json.loads((out / "generate.json").read_text())["windows"] == 2
+
+
+def test_a_200_frame_rollout_keeps_its_buffer_bounded_and_finite(
+    cache: Path, stage2_checkpoint: Path, tmp_path: Path
+) -> None:
+    from phigenesis.infer.generate import GenerateOptions, generate
+
+    path = _straight_trajectory(cache, 200, tmp_path / "straight.json")
+    options = GenerateOptions(steps=1, uncertainty="coverage", max_gaussians=20_000)
+    result = generate(
+        stage2_checkpoint,
+        cache,
+        "synthetic-s7-0000",
+        2,
+        200,
+        tmp_path / "long",
+        trajectory=str(path),
+        options=options,
+        progress=False,
+    )
+    r = result.rollout
+    assert r.images.shape[0] == 200 and len(r.buffer_sizes) == 40
+    assert max(r.buffer_sizes) <= 20_000
+    assert torch.isfinite(r.images).all() and torch.isfinite(r.depth).all()
+    assert verify_cache(tmp_path / "long").frames == 200
+
+
+def test_generation_refuses_bad_inputs_naming_what_is_wrong(
+    cache: Path,
+    stage1_checkpoint: Path,
+    stage2_checkpoint: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from phigenesis.cli.generate import main as generate_main
+
+    def run(*extra: str, ckpt: Path = stage2_checkpoint, out: str = "g") -> str:
+        argv = ["--ckpt", str(ckpt), "--shards", str(cache), "--scene", "synthetic-s7-0000", "--start", "2"]
+        argv += ["--frames", "5", "--out", str(tmp_path / out), "--steps", "1", "--no-progress", *extra]
+        assert generate_main(argv) == 2
+        return capsys.readouterr().err
+
+    assert "not a Stage 2 denoiser" in run(ckpt=stage1_checkpoint)
+    assert "'nope' is not in" in run("--scene", "nope")
+    assert "runs past the end of scene" in run("--frames", "40")
+    nan = _straight_trajectory(cache, 5, tmp_path / "nan.json")
+    doc = json.loads(nan.read_text())
+    doc["frames"][3]["world_from_ego"][0][3] = float("nan")
+    nan.write_text(json.dumps(doc))
+    assert "frames[3].world_from_ego" in run("--trajectory", str(nan))
+    short = _straight_trajectory(cache, 4, tmp_path / "short.json")
+    assert "holds 4 frames, --frames asks for 5" in run("--trajectory", str(short))
+    back = _straight_trajectory(cache, 5, tmp_path / "back.json")
+    doc = json.loads(back.read_text())
+    doc["frames"][2]["timestamp_micros"] = doc["frames"][1]["timestamp_micros"]
+    back.write_text(json.dumps(doc))
+    assert "frames[2].timestamp_micros" in run("--trajectory", str(back))
