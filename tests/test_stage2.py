@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import pyarrow as pa
@@ -434,3 +435,44 @@ def test_generation_refuses_bad_inputs_naming_what_is_wrong(
     doc["frames"][2]["timestamp_micros"] = doc["frames"][1]["timestamp_micros"]
     back.write_text(json.dumps(doc))
     assert "frames[2].timestamp_micros" in run("--trajectory", str(back))
+
+
+def test_the_stage2_evaluation_scores_rollouts_against_the_truth(
+    cache: Path, stage2_checkpoint: Path, tmp_path: Path
+) -> None:
+    from phigenesis.eval.stage2 import evaluate_stage2
+    from phigenesis.infer.generate import GenerateOptions, Stage2Runner
+    from phigenesis.models.losses import psnr
+    from phigenesis.train.views import resize_images
+
+    class Tiny(torch.nn.Module):
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return torch.nn.functional.adaptive_avg_pool2d(x, 4).flatten(1)  # [N, 48]
+
+    fid_model = tmp_path / "tiny.pt"
+    torch.jit.script(Tiny()).save(str(fid_model))
+    options = GenerateOptions(steps=1, uncertainty="coverage")
+    report = evaluate_stage2(
+        stage2_checkpoint,
+        cache,
+        options=options,
+        offsets=(2,),
+        shifts_m=(1.0,),
+        rollout_frames=(6,),
+        fid_model=fid_model,
+        out_json=tmp_path / "eval.json",
+    )
+    assert set(report["sections"]) == {"+2", "shift_1m", "rollout_6"}
+    gen = report["sections"]["+2"]["generated"]
+    assert gen["images"] == 5 and 0 <= gen["ssim"] <= 1 and gen["abs_rel"] > 0
+    assert report["sections"]["shift_1m"]["generated"]["images"] == 25  # one window of 5 frames x 5 views
+    assert json.loads((tmp_path / "eval.json").read_text())["clips"] == 1
+    # The same rollout scored by hand: frame start + 1 against the cache's image.
+    runner = Stage2Runner(stage2_checkpoint, cache)
+    start = 1  # one clip per scene: the first frame with a history (clip_starts)
+    result, _ = runner.run("synthetic-s7-0000", start, 2, "recorded", options)
+    sample = runner.data._frame("synthetic-s7-0000", start + 1)
+    truth = resize_images(sample["images"], SIZE).permute(0, 2, 3, 1)
+    assert gen["psnr_db"] == pytest.approx(float(psnr(result.images[1], truth).mean()), abs=1e-4)
+    rollout = report["sections"]["rollout_6"]["generated"]
+    assert rollout["fid"] >= 0 and rollout["fid_images"] == 25 and math.isfinite(rollout["kid"])
