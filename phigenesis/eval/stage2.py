@@ -179,7 +179,14 @@ def evaluate_stage2(
                     s["generated"].add(result.images[k - 1], images, result.depth[k - 1], depth)
                     s["render_only"].add(ro_rgb[k - 1], images, ro_depth[k - 1], depth)
                 if first_picture is None:
-                    first_picture = {"generated": result.images, "condition": result.condition_rgb}
+                    k = max(offsets)
+                    first_picture = {
+                        "history": clip.context.images[-1].permute(0, 2, 3, 1),
+                        "condition": result.condition_rgb[k - 1],
+                        "u": result.u[k - 1][..., None].expand(*result.u.shape[1:], 3),
+                        "generated": result.images[k - 1],
+                        "truth": _truth_frame(runner, scene, start + k - 1)[0],
+                    }
             # Novel trajectories: the recorded one moved sideways.
             if truth is not None:
                 for d in shifts_m:
@@ -260,16 +267,17 @@ def _rollout_cameras(result: Rollout, clip: Any) -> TargetCameras:
 
 
 def _save_picture(picture: dict[str, Tensor], path: Path) -> Path:
-    """Rows of generated frames over their condition renders (views side by side)."""
+    """One row per panel (the last history frame, the condition render at the scored frame, its u, the
+    generated frame, the truth), the views side by side, each row labelled."""
     import cv2
 
     rows = []
-    n = picture["generated"].shape[0]
-    for i in sorted({0, n // 2, n - 1}):
-        rows.append(torch.cat(list(picture["generated"][i]), dim=1))
-        rows.append(torch.cat(list(picture["condition"][i]), dim=1))
-    image = (torch.cat(rows).numpy() * 255).round().clip(0, 255).astype(np.uint8)
-    ok, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    for name, views in picture.items():
+        row = (torch.cat(list(views), dim=1).clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+        row = np.ascontiguousarray(row)
+        cv2.putText(row, name, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+        rows.append(row)
+    ok, png = cv2.imencode(".png", cv2.cvtColor(np.concatenate(rows), cv2.COLOR_RGB2BGR))
     if ok:
         path.write_bytes(png.tobytes())
     return path
