@@ -1,5 +1,6 @@
 """The native CPU rasterizer against the per-pixel reference (values) and the tiled PyTorch path
-(gradients), on random scenes and hard cases; its determinism; and the fallback where it cannot be built."""
+(gradients), on random scenes and hard cases; its determinism; the native no-grad projection against the
+PyTorch one, and when it is used; and the fallback where it cannot be built."""
 
 from __future__ import annotations
 
@@ -209,6 +210,259 @@ def test_auto_picks_the_native_kernel_on_cpu_and_the_env_var_overrides(monkeypat
         resolve_backend("auto", torch.device("cpu"))
     with pytest.raises(ValueError, match="backend must be one of"):
         resolve_backend("cuda", torch.device("cpu"))
+
+
+# --- The native projection (csrc/project_cpu.cpp) against the PyTorch one -------------------------------
+
+#: Tolerances of the native projection against the PyTorch path: relative, and an absolute floor (pixels,
+#: 1/pixels^2, metres) at ~100x the rounding of the largest terms of each value (u = fx x / z + cx near
+#: u = 0 keeps the rounding of cx, a needle's conic B the rounding of its large products). Both paths
+#: evaluate the same operations in the same order and precision, so on an FMA CPU with MKL they agree
+#: bitwise; only a BLAS that rounds the camera-space rotation differently can move the last bits.
+_PROJECTION_TOL = {
+    F64: {"rtol": 1e-12, "means2d": 1e-12, "conics": 1e-14, "depths": 1e-14},
+    F32: {"rtol": 1e-5, "means2d": 1e-4, "conics": 1e-6, "depths": 1e-6},
+}
+
+
+def _project_both(*args, **kw):
+    from phigenesis.models.rasterizer import _project_gaussians_torch, project_gaussians
+
+    with torch.no_grad():
+        return project_gaussians(*args, **kw), _project_gaussians_torch(*args, **kw)
+
+
+def _assert_projections_match(ours, ref) -> None:
+    dtype = ref.means2d.dtype
+    tol = _PROJECTION_TOL[dtype]
+    for name in ("means2d", "conics", "depths"):
+        a, b = getattr(ours, name), getattr(ref, name)
+        assert a.shape == b.shape and a.dtype == b.dtype, name
+        torch.testing.assert_close(a, b, rtol=tol["rtol"], atol=tol[name], equal_nan=True, msg=name)
+    assert ours.radii.shape == ref.radii.shape and ours.radii.dtype == ref.radii.dtype
+    assert ours.valid.shape == ref.valid.shape and ours.valid.dtype == torch.bool
+    if dtype == F64:
+        assert torch.equal(ours.radii, ref.radii) and torch.equal(ours.valid, ref.valid)
+        return
+    # float32: a radius is ceil(extend sqrt(Sigma2d_ii + eps)); where that product lies within float32
+    # rounding of an integer, a last-bit difference upstream (a BLAS that rounds the rotation otherwise)
+    # moves the ceil by one, and with it maybe the off-screen test. Allowed: differences of 1, in at
+    # most 1 in 10^4 of the (camera, Gaussian) pairs (none at all in small scenes).
+    budget = ref.valid.numel() // 10_000
+    diff = (ours.radii - ref.radii).abs()
+    assert diff.max().item() <= 1 if diff.numel() else True
+    assert int(diff.ne(0).any(-1).sum()) <= budget
+    assert int(ours.valid.ne(ref.valid).sum()) <= budget
+
+
+def _projection_args(
+    scene: dict, cams: int, width: int, height: int, focal: float, dtype, near: float = 0.01
+):
+    return (
+        scene["means"],
+        scene["quats"],
+        scene["scales"],
+        _cameras(cams, dtype),
+        _intrinsics(cams, width, height, focal, dtype),
+        width,
+        height,
+        near,
+        scene["opacities"],
+    )
+
+
+@needs_native
+@pytest.mark.parametrize("dtype", [F64, F32])
+@pytest.mark.parametrize("per_camera", [False, True])
+@pytest.mark.parametrize(("n", "cams", "seed"), [(7, 2, 0), (60, 3, 1), (4000, 5, 2)])
+def test_native_projection_matches_pytorch_on_random_scenes(n, cams, seed, per_camera, dtype):
+    """Small scenes take PyTorch's own loop for the rotation einsum, large ones BLAS: both covered."""
+    scene = _scene(n, seed, dtype=dtype)
+    if per_camera:
+        shift = torch.randn(cams, 1, 3, generator=torch.Generator().manual_seed(seed), dtype=dtype) * 0.3
+        scene["means"] = scene["means"][None] + shift
+    ours, ref = _project_both(*_projection_args(scene, cams, 40, 30, 35.0, dtype))
+    assert ref.valid.float().mean() > 0.3 and ref.radii.max() > 3  # a real scene, partly in view
+    _assert_projections_match(ours, ref)
+    # Without opacities the box extent is GAUSSIAN_EXTEND for all.
+    _assert_projections_match(*_project_both(*_projection_args(scene, cams, 40, 30, 35.0, dtype)[:8]))
+
+
+def _stress_scene(n: int, dtype) -> dict:
+    """Scales from 1e-9 to 1e6 (past MAX_SCALE) with random anisotropy, needles, zero and tiny quaternions,
+    centres on, behind and just past the near plane, a hair in front of the camera and at its centre,
+    opacities around 1/255."""
+    g = torch.Generator().manual_seed(11)
+    means = torch.randn(n, 3, generator=g, dtype=dtype) * torch.tensor([1.5, 1.0, 2.0], dtype=dtype)
+    means[:, 2] += 2.0
+    means[: n // 10, 2] = 0.01  # exactly on the near plane of the first camera (identity pose)
+    means[n // 10 : n // 5, 2] = torch.linspace(-0.02, 0.04, n // 5 - n // 10, dtype=dtype)
+    means[n // 5 : n // 5 + 20, 2] = 4 * torch.finfo(dtype).tiny  # with near = 0: inf and nan projections
+    means[-1] = 0.0
+    log_scale = torch.rand(n, 3, generator=g, dtype=dtype) * 15.0 - 9.0  # 1e-9 .. 1e6
+    scales = torch.pow(torch.tensor(10.0, dtype=dtype), log_scale)
+    scales[::7, 1:] = 1e-9  # needles
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    quats[::5] = 0.0
+    quats[1::11] *= 1e-13  # squared norm ~1e-26: treated as zero
+    quats[2::11] *= 1e-11  # squared norm ~1e-22: normalised
+    opacities = torch.rand(n, generator=g, dtype=dtype)
+    opacities[::3] *= 2.0 / 255.0  # many around and below the alpha threshold
+    opacities[::13] = 1.0 / 255.0
+    opacities[::17] = 0.0
+    return {"means": means, "quats": quats, "scales": scales, "opacities": opacities}
+
+
+@needs_native
+@pytest.mark.parametrize("dtype", [F64, F32])
+def test_native_projection_matches_pytorch_on_hard_cases(dtype):
+    hard = _hard_scene(dtype)
+    extra = {  # the native hard-case test's extras: 1e-4 m and 1e2 m scales, a zero quaternion
+        "means": torch.tensor([[0.05, -0.05, 2.0], [0.0, 0.05, 4.0]], dtype=dtype),
+        "quats": torch.tensor([[0.7, 0.1, -0.2, 0.3], [0.0, 0.0, 0.0, 0.0]], dtype=dtype),
+        "scales": torch.tensor([[1e-4, 1e-4, 1e-4], [1e2, 1e2, 1e2]], dtype=dtype),
+        "opacities": torch.tensor([0.95, 0.002], dtype=dtype),  # the second is below 1/255
+    }
+    hard = {key: torch.cat([hard[key], extra[key]]) for key in extra}
+    ours, ref = _project_both(*_projection_args(hard, 2, 24, 16, 20.0, dtype))
+    assert ref.radii[:, [0, 1, 2, 8, 9, 11]].eq(0).all() and ref.valid[:, [4, 5, 6, 7]].any()
+    _assert_projections_match(ours, ref)
+    # The same per camera, and without opacities.
+    per_camera = {
+        **hard,
+        "means": hard["means"][None] + torch.tensor([[[0.0, 0, 0]], [[0.1, 0, 0.2]]], dtype=dtype),
+    }
+    _assert_projections_match(*_project_both(*_projection_args(per_camera, 2, 24, 16, 20.0, dtype)))
+    _assert_projections_match(*_project_both(*_projection_args(hard, 2, 24, 16, 20.0, dtype)[:8]))
+
+    stress = _stress_scene(3000, dtype)
+    for near in (0.01, 0.0):  # near 0: centres on the camera plane project to inf and nan
+        ours, ref = _project_both(*_projection_args(stress, 3, 48, 32, 30.0, dtype, near=near))
+        assert ref.valid.any() and not ref.valid.all()
+        _assert_projections_match(ours, ref)
+    assert not torch.isfinite(ref.means2d).all()  # the inf and nan cases were there
+
+
+@needs_native
+@pytest.mark.parametrize("dtype", [F64, F32])
+def test_native_projection_of_empty_scenes_and_one_pixel_images(dtype):
+    scene = _scene(20, 3, dtype=dtype)
+    none = {key: value[:0] for key, value in scene.items()}
+    for per_camera in (False, True):
+        empty = {**none, "means": none["means"][None].expand(2, 0, 3)} if per_camera else none
+        ours, ref = _project_both(*_projection_args(empty, 2, 12, 10, 10.0, dtype))
+        assert (
+            ours.means2d.shape == (2, 0, 2) and ours.radii.shape == (2, 0, 2) and ours.valid.shape == (2, 0)
+        )
+        _assert_projections_match(ours, ref)
+    no_cameras = _projection_args(scene, 2, 12, 10, 10.0, dtype)
+    ours, ref = _project_both(
+        scene["means"], *no_cameras[1:3], no_cameras[3][:0], no_cameras[4][:0], *no_cameras[5:]
+    )
+    assert ours.means2d.shape == (0, 20, 2)
+    _assert_projections_match(ours, ref)
+    ours, ref = _project_both(*_projection_args(scene, 2, 1, 1, 2.0, dtype))  # one pixel
+    assert ref.valid.any()
+    _assert_projections_match(ours, ref)
+
+
+@needs_native
+def test_native_projection_takes_non_contiguous_inputs_and_any_thread_count():
+    scene = _scene(500, 4, dtype=F32)
+    args = _projection_args(scene, 3, 40, 30, 35.0, F32)
+    strided = (
+        scene["means"].t().contiguous().t(),
+        torch.cat([scene["quats"], scene["quats"]], 1)[:, :4],
+        scene["scales"].flip(0).flip(0),
+        *args[3:],
+    )
+    assert not strided[0].is_contiguous() and not strided[1].is_contiguous()
+    _assert_projections_match(*_project_both(*strided))
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one, _ = _project_both(*args)
+        torch.set_num_threads(2)
+        two, _ = _project_both(*args)
+    finally:
+        torch.set_num_threads(threads)
+    for name in ("means2d", "conics", "depths", "radii", "valid"):
+        assert torch.equal(getattr(one, name), getattr(two, name)), name
+
+
+@needs_native
+def test_projection_dispatch_keeps_gradients_on_the_pytorch_path(monkeypatch):
+    """With grad mode on and an input that requires grad, the PyTorch projection runs and gradients flow;
+    with grad mode off (or no input requiring grad) the native one does."""
+    from phigenesis.models import rasterizer
+
+    calls = []
+    torch_path = rasterizer._project_gaussians_torch
+
+    def counting(*args, **kw):
+        calls.append(1)
+        return torch_path(*args, **kw)
+
+    monkeypatch.setattr(rasterizer, "_project_gaussians_torch", counting)
+    scene = _scene(40, 5)
+    args = list(_projection_args(scene, 2, 30, 20, 25.0, F64))
+    for index in (0, 1, 2, 3, 4):  # means, quats, scales, poses, intrinsics
+        leaf = args[index].clone().requires_grad_()
+        call = [*args[:index], leaf, *args[index + 1 :]]
+        calls.clear()
+        proj = rasterizer.project_gaussians(*call)
+        assert calls and proj.conics.requires_grad
+        (grad,) = torch.autograd.grad(proj.means2d.sum() + proj.conics.sum() + proj.depths.sum(), leaf)
+        assert torch.isfinite(grad).all() and grad.abs().max() > 0
+        calls.clear()
+        with torch.no_grad():
+            fast = rasterizer.project_gaussians(*call)
+        assert not calls and not fast.means2d.requires_grad
+        _assert_projections_match(fast, torch_path(*args))
+    calls.clear()
+    opac = scene["opacities"].clone().requires_grad_()  # no gradient reaches opacities through a projection
+    fast = rasterizer.project_gaussians(*args[:8], opac)
+    assert not calls and not fast.means2d.requires_grad
+    calls.clear()
+    with pytest.raises(RuntimeError):  # mixed dtypes: the PyTorch path gets them, and refuses them
+        rasterizer.project_gaussians(*args[:3], args[3].float(), *args[4:])
+    assert calls
+
+
+@needs_native
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+@pytest.mark.parametrize("dtype", [F64, F32])
+def test_rendering_under_no_grad_matches_rendering_with_gradients(backend, dtype):
+    scene = _scene(150, 6, features=4, dtype=dtype)
+    scene["opacities"] = 0.3 + 0.7 * scene["opacities"]
+    cams, k = _cameras(3, dtype), _intrinsics(3, 40, 30, 35.0, dtype)
+    leaves = {key: value.clone().requires_grad_() for key, value in scene.items()}
+    with_grad = rasterize(*leaves.values(), cams, k, 40, 30, backend=backend)
+    assert with_grad.features.requires_grad
+    with torch.no_grad():
+        without = rasterize(*leaves.values(), cams, k, 40, 30, backend=backend)
+    assert with_grad.alpha.max() > 0.9
+    for name in ("features", "depth", "alpha"):
+        torch.testing.assert_close(
+            getattr(without, name), getattr(with_grad, name).detach(), atol=1e-6, rtol=0
+        )
+    assert torch.equal(without.radii, with_grad.radii)
+
+
+def test_the_build_directory_hashes_every_source(tmp_path, monkeypatch):
+    """A change to the projection's source alone makes a fresh build (and the bindings' source too)."""
+    copies = []
+    for source in native.SOURCES:
+        copy = tmp_path / source.name
+        copy.write_bytes(source.read_bytes())
+        copies.append(copy)
+    monkeypatch.setattr(native, "SOURCES", tuple(copies))
+    first = native.build_directory()
+    copies[1].write_bytes(copies[1].read_bytes() + b"\n// changed\n")
+    second = native.build_directory()
+    copies[0].write_bytes(copies[0].read_bytes() + b"\n// changed\n")
+    assert len({first, second, native.build_directory()}) == 3
+    assert [s.name for s in native.SOURCES] == ["rasterize_cpu.cpp", "project_cpu.cpp"]
 
 
 _FALLBACK = textwrap.dedent(

@@ -1,11 +1,12 @@
-"""Builds and loads the native CPU rasterizer (``csrc/rasterize_cpu.cpp``) on first use.
+"""Builds and loads the native CPU rasterizer (``csrc/rasterize_cpu.cpp`` and the forward-only
+projection ``csrc/project_cpu.cpp``, one extension) on first use.
 
 Entry point: :func:`load_rasterizer`.
 
 The extension is compiled from the package's own source with PyTorch's C++ extension tools (g++ with
 OpenMP, and ninja) into a cache folder, once per machine, torch version and source:
 ``$PHIGENESIS_NATIVE_DIR`` if set, else ``$XDG_CACHE_HOME/phigenesis/native`` (``~/.cache/...``).
-The folder's name hashes everything the binary depends on (the source, the compiler flags, the
+The folder's name hashes everything the binary depends on (the sources, the compiler flags, the
 torch and Python versions and this CPU's instruction set, since it is built with ``-march=native``),
 so a shared home never hands one machine another's build. When the build fails (no compiler, no
 ninja, a read-only cache) the reason is one warning line and :func:`load_rasterizer` returns
@@ -28,6 +29,8 @@ import torch
 logger = logging.getLogger(__name__)
 
 SOURCE = Path(__file__).parent / "csrc" / "rasterize_cpu.cpp"
+#: Every source of the extension (``SOURCE`` holds its Python bindings).
+SOURCES = (SOURCE, SOURCE.with_name("project_cpu.cpp"))
 CFLAGS = ("-O3", "-march=native", "-fopenmp", "-fno-math-errno")
 LDFLAGS = ("-fopenmp",)
 
@@ -57,7 +60,10 @@ def _cpu_flags() -> str:
 def build_directory() -> Path:
     """Where this machine's build of the current source lives."""
     digest = hashlib.sha256()
-    for part in (SOURCE.read_bytes(), repr((CFLAGS, LDFLAGS)).encode(), torch.__version__.encode()):
+    for source in SOURCES:
+        digest.update(source.name.encode())
+        digest.update(source.read_bytes())
+    for part in (repr((CFLAGS, LDFLAGS)).encode(), torch.__version__.encode()):
         digest.update(part)
     digest.update(f"{sys.version_info[:2]} {platform.machine()} {_cpu_flags()}".encode())
     return cache_root() / f"rasterize_cpu-{digest.hexdigest()[:16]}"
@@ -93,7 +99,7 @@ def load_rasterizer() -> ModuleType | None:
                 )
             _module = cpp_extension.load(
                 name=f"phigenesis_{build_dir.name.replace('-', '_')}",
-                sources=[str(SOURCE)],
+                sources=[str(source) for source in SOURCES],
                 extra_cflags=list(CFLAGS),
                 extra_ldflags=list(LDFLAGS),
                 build_directory=str(build_dir),

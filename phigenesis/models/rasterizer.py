@@ -124,7 +124,91 @@ def project_gaussians(
     fire at different times). ``opacities`` (N,) set each box's opacity-aware extent and cull
     those below 1/255; without them the extent is :data:`GAUSSIAN_EXTEND` (gsplat's pure-PyTorch
     projection).
+
+    Where no gradient can flow (grad mode off, or no input requires grad) and the tensors are float32 or
+    float64 on the CPU, the native extension's forward-only twin of the PyTorch code computes it (same
+    formulas in the same order and precision, multi-threaded); otherwise, or where the extension is not
+    built, the PyTorch code (:func:`_project_gaussians_torch`, the reference) does.
     """
+    ext = _native_projection(means, quats, scales, world_from_camera, intrinsics, opacities)
+    if ext is not None:
+        extend = _box_extend(means.shape[-2], opacities, means.dtype, means.device)
+        means2d, conics, depths, radii, valid = ext.project(
+            means.contiguous(),
+            quats.contiguous(),
+            scales.contiguous(),
+            world_from_camera.contiguous(),
+            intrinsics.contiguous(),
+            extend.contiguous(),
+            int(width),
+            int(height),
+            float(near),
+            EPS_2D,
+            FOV_CLAMP_MARGIN,
+            MAX_SCALE,
+            QUATERNION_ZERO_SQNORM,
+        )
+        return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii, valid=valid)
+    return _project_gaussians_torch(
+        means, quats, scales, world_from_camera, intrinsics, width, height, near, opacities
+    )
+
+
+def _native_projection(means, quats, scales, world_from_camera, intrinsics, opacities):
+    """The native extension if it may project these inputs (see :func:`project_gaussians`), else ``None``."""
+    tensors = (means, quats, scales, world_from_camera, intrinsics)
+    if not all(isinstance(t, Tensor) for t in tensors):
+        return None
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        return None
+    dtype = means.dtype
+    if dtype not in (torch.float32, torch.float64) or any(
+        t.dtype != dtype or t.device.type != "cpu" or t.layout != torch.strided for t in tensors
+    ):
+        return None
+    if means.ndim not in (2, 3) or world_from_camera.ndim != 3:
+        return None
+    n, c = means.shape[-2], world_from_camera.shape[0]
+    shapes_ok = (
+        means.shape in ((n, 3), (c, n, 3))
+        and quats.shape == (n, 4)
+        and scales.shape == (n, 3)
+        and world_from_camera.shape == (c, 4, 4)
+        and intrinsics.shape == (c, 3, 3)
+    )
+    if not shapes_ok or (
+        opacities is not None
+        and (not isinstance(opacities, Tensor) or opacities.shape != (n,) or opacities.device.type != "cpu")
+    ):
+        return None
+    return native.load_rasterizer()
+
+
+def _box_extend(n: int, opacities: Tensor | None, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """(N,) box half-width in standard deviations, the values :func:`_project_gaussians_torch` computes
+    (the same element-wise ops on the same values wherever the opacity reaches the alpha threshold; 0
+    elsewhere, which culls those Gaussians as its ``valid & visible`` does), in fewer passes."""
+    with torch.no_grad():
+        if opacities is None:
+            return torch.full((n,), GAUSSIAN_EXTEND, dtype=dtype, device=device)
+        opac = opacities.detach().to(dtype)
+        visible = opac >= ALPHA_THRESHOLD
+        extend = opac.clamp(min=ALPHA_THRESHOLD).div_(ALPHA_THRESHOLD).log_().mul_(2.0).sqrt_()
+        return torch.where(visible, extend.clamp_(max=GAUSSIAN_EXTEND), 0.0)
+
+
+def _project_gaussians_torch(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    world_from_camera: Tensor,
+    intrinsics: Tensor,
+    width: int,
+    height: int,
+    near: float = 0.01,
+    opacities: Tensor | None = None,
+) -> Projection:
+    """The PyTorch projection (differentiable; the reference the native one is held to)."""
     n = means.shape[-2]
     rot = quaternion_to_rotation(quats)  # (N, 3, 3)
     m = rot * scales.clamp(min=-MAX_SCALE, max=MAX_SCALE)[:, None, :]  # (N, 3, 3) = R diag(s)
