@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import pytest
@@ -345,14 +344,10 @@ def test_loading_a_file_that_is_not_torchscript_names_the_path(tmp_path, kind):
 
 @pytest.mark.skipif(not INCEPTION_FILE.is_file(), reason=f"{INCEPTION_FILE} not unzipped on this machine")
 def test_the_inception_file_gives_2048_features_for_images_of_any_size():
-    start = time.perf_counter()
     net = load_feature_extractor(INCEPTION_FILE)
     g = torch.Generator().manual_seed(0)
     images = torch.stack([torch.rand(3, 64, 96, generator=g), torch.full((3, 64, 96), 0.5)])
     features = image_features(net, images)
-    elapsed = time.perf_counter() - start
     assert features.shape == (2, 2048) and features.dtype == torch.float64
     assert bool(torch.isfinite(features).all()) and float(features.min()) >= 0.0
     assert not torch.allclose(features[0], features[1])
-    if elapsed > 10.0:
-        pytest.skip(f"the Inception check took {elapsed:.1f} s (> 10 s): too slow for the unit suite")

@@ -364,9 +364,10 @@ def _draw_clips(data: Stage1Clips, cfg: Stage1TrainConfig, step: int, group: Pro
     return clips
 
 
-def _check_run_folder(out: Path, cfg: Stage1TrainConfig, resume: bool) -> Path | None:
-    """The checkpoint to resume from (or None); refuses to mix runs in one folder, and to restart
-    one with logged steps but no usable checkpoint."""
+def check_run_folder(out: Path, cfg: Any, resume: bool) -> Path | None:
+    """The checkpoint to resume from (or None) for a run of ``cfg`` (a training config with
+    ``to_dict``, as its ``config.yaml`` records it; Stage 1's and Stage 2's); refuses to mix runs in
+    one folder, and to restart one with logged steps but no usable checkpoint."""
     if not resume:
         evidence = run_evidence(out)
         if evidence is not None:
@@ -421,7 +422,7 @@ def _train(
     time_limit_s: float | None = None,
 ) -> Stage1Run:
     out.mkdir(parents=True, exist_ok=True)
-    resume_from = _check_run_folder(out, cfg, resume)
+    resume_from = check_run_folder(out, cfg, resume)
     torch.manual_seed(cfg.seed)
     model = build_model(cfg)
     data = Stage1Clips(shards, model.config.image_size, model.config.frames, cfg.semantic_target)  # type: ignore[arg-type]

@@ -54,17 +54,14 @@ from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_c
 from phigenesis.train.runner import (
     MetricsLog,
     ProcessGroup,
-    checkpoint_to_resume,
     load_training_state,
     process_group,
-    read_run_config,
     restore_optimizer,
-    run_evidence,
     save_training_state,
     step_generator,
     write_text_atomic,
 )
-from phigenesis.train.stage1 import load_stage1
+from phigenesis.train.stage1 import check_run_folder, load_stage1
 from phigenesis.train.stage2_data import (
     UNCERTAINTY_KINDS,
     Stage2DataConfig,
@@ -269,22 +266,6 @@ def stage2_loss(
 # Training
 
 
-def _check_run_folder(out: Path, cfg: Stage2TrainConfig, resume: bool) -> Path | None:
-    """The checkpoint to resume from (or None); refuses to mix runs in one folder."""
-    if not resume:
-        evidence = run_evidence(out)
-        if evidence is not None:
-            raise ValueError(f"{out}: holds a run already ({evidence}); pass --resume or another --out")
-        return None
-    before = read_run_config(out)
-    if before is not None and before != cfg.to_dict():
-        diff = sorted(k for k in set(before) | set(cfg.to_dict()) if before.get(k) != cfg.to_dict().get(k))
-        raise ValueError(
-            f"{out / 'config.yaml'}: the run was started with another config (fields differ: {diff})"
-        )
-    return checkpoint_to_resume(out)
-
-
 def build_denoiser(cfg: Stage2TrainConfig, latent_channels: int) -> MultiViewDiT:
     """The denoiser of a config, its latent channels those of the Stage 1 model's VAE."""
     overrides = {"latent_channels": latent_channels, **cfg.model_overrides}
@@ -357,7 +338,7 @@ def _train(
     progress: bool,
 ) -> Stage2Run:
     out.mkdir(parents=True, exist_ok=True)
-    resume_from = _check_run_folder(out, cfg, resume)
+    resume_from = check_run_folder(out, cfg, resume)
     stage1 = load_stage1(cfg.stage1_checkpoint)
     tc = int(stage1.vae.config.temporal_compression)
     if group.is_main:
