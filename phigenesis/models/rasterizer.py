@@ -529,10 +529,14 @@ def rasterize_reference(
     near: float = 0.01,
 ) -> RenderOutput:
     """Same image as :func:`rasterize`, the slow obvious way: for every camera, the Gaussians one by one
-    in depth order, each tested at every pixel; a per-pixel transmittance and stop flag. For tests."""
+    in depth order, each tested at every pixel; a per-pixel transmittance and stop flag. For tests.
+
+    It always projects with the PyTorch code (:func:`_project_gaussians_torch`), never the native twin,
+    so that a test holding a native backend to it compares against code the native extension did not
+    compute."""
     _check_inputs(means, quats, scales, opacities, features, world_from_camera, intrinsics)
     f = features.shape[1]
-    proj = project_gaussians(
+    proj = _project_gaussians_torch(
         means, quats, scales, world_from_camera, intrinsics, width, height, near, opacities
     )
     py, px = torch.meshgrid(
