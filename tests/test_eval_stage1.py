@@ -39,6 +39,7 @@ from phigenesis.train.evaluate_stage1 import (
     frame_truth,
     lidar_covered,
     picture_panels,
+    shift_collision,
     shifted_views,
     target_views,
 )
@@ -383,3 +384,69 @@ def test_a_scene_with_depth_entropy_renders_its_entropy_map(cache: Path) -> None
     covered = rendered.alpha > 0.5
     assert rendered.entropy is not None and covered.float().mean() > 0.5
     np.testing.assert_allclose(rendered.entropy[covered].numpy(), 1.5, rtol=1e-5)
+
+
+def _rig_sample(
+    box_center: list[float], box_velocity: list[float], camera_delay_micros: int
+) -> dict[str, Any]:
+    """A frame of one camera 1.5 m above the ego origin (ego at the world origin, facing +x) and one
+    2 x 2 x 2 m box of class car, yawed 90 degrees, the camera firing ``camera_delay_micros`` after the
+    frame's time."""
+    ego_from_camera = torch.eye(4, dtype=torch.float64)
+    ego_from_camera[2, 3] = 1.5
+    return {
+        "camera_names": ["FRONT"],
+        "camera_world_from_ego": torch.eye(4, dtype=torch.float64)[None],
+        "ego_from_camera": ego_from_camera[None],
+        "camera_timestamp_micros": torch.tensor([1_000_000 + camera_delay_micros]),
+        "frame_timestamp_micros": 1_000_000,
+        "boxes_center_world": torch.tensor([box_center], dtype=torch.float64),
+        "boxes_size_lwh": torch.tensor([[2.0, 2.0, 2.0]], dtype=torch.float64),
+        "boxes_yaw_world": torch.tensor([math.pi / 2], dtype=torch.float64),
+        "boxes_velocity_world": torch.tensor([box_velocity], dtype=torch.float64),
+        "boxes_class_id": torch.tensor([13]),
+        "boxes_track_id": ["agent-7"],
+    }
+
+
+def test_a_shift_into_a_road_user_is_a_collision_naming_the_camera_and_the_box() -> None:
+    # The box spans y in [3, 5] m; grown by the 0.5 m clearance, [2.5, 5.5]: the camera moved 2.7 m
+    # left is inside, moved 2.3 m it is clear, and so is the unshifted rig.
+    sample = _rig_sample([0.0, 4.0, 1.0], [0.0, 0.0, 0.0], 0)
+    why = shift_collision(sample, 2.7)
+    assert why is not None and "FRONT" in why and "agent-7" in why and "car" in why
+    assert shift_collision(sample, 2.3) is None and shift_collision(sample, 0.0) is None
+    # Height counts: the same box 4 m up (z in [4, 6], grown [3.5, 6.5]) clears a camera at 1.5 m.
+    assert shift_collision(_rig_sample([0.0, 4.0, 5.0], [0.0, 0.0, 0.0], 0), 2.7) is None
+    # A narrower clearance lets the camera pass 0.3 m beside the box.
+    assert shift_collision(sample, 2.7, clearance_m=0.2) is None
+
+
+def test_a_moving_road_user_collides_at_the_cameras_own_capture_time() -> None:
+    # At the frame's time the box (y in [3, 5]) is 2 m from a camera moved 1 m left; it drives at
+    # -10 m/s in y, so 0.2 s later, when the camera fires, it spans y in [1, 3], at the camera.
+    moving = _rig_sample([0.0, 4.0, 1.0], [0.0, -10.0, 0.0], 200_000)
+    assert shift_collision(moving, 1.0) is not None
+    assert shift_collision(_rig_sample([0.0, 4.0, 1.0], [0.0, -10.0, 0.0], 0), 1.0) is None
+    # No boxes, no collision.
+    empty = {**moving, "boxes_center_world": torch.zeros(0, 3, dtype=torch.float64)}
+    assert shift_collision(empty, 4.0) is None
+
+
+def test_the_evaluation_skips_the_clips_whose_shifted_rig_would_collide(
+    cache: Path, checkpoint: Path
+) -> None:
+    data = Stage1Clips(cache, SIZE, 1)
+    report = evaluate_stage1(
+        checkpoint, cache, offsets=(1,), shifts_m=(2.0,), clips_per_scene=FRAMES, oracle=False, threads=1
+    )
+    starts = [start for _, start in report["clip_list"]]
+    colliding = [s for s in starts if shift_collision(data.dataset[data.scenes[SCENE][s]], 2.0) is not None]
+    # This scene has a truck beside the ego for a stretch (frames 6-10 of the tiny cache).
+    assert 0 < len(colliding) < len(starts)
+    entry = report["sections"]["shift_2m"]
+    assert entry["skipped_clips"] == len(colliding)
+    assert entry["images"] == 5 * (len(starts) - len(colliding))
+    assert report["sections"]["+1"]["skipped_clips"] == 0 and report["sections"]["+1"]["images"] == 5 * len(
+        starts
+    )

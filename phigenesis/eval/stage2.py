@@ -8,7 +8,9 @@ the history, the rollout from ``T + 1`` on), sections:
   trajectory against the cache's images of those frames (the paper's cross-temporal table);
 - ``shift_1m``, ``shift_2m``, ``shift_4m`` (``shifts_m``): the first window of a rollout along the
   recorded trajectory moved d metres to the ego's left, against the synthetic renderer's exact
-  images of those cameras (the NVS table);
+  images of those cameras (the NVS table). Frames where the shifted rig would collide with a
+  labelled road user (:func:`~phigenesis.train.evaluate_stage1.shift_collision`) are not scored
+  (``skipped_frames``): their truth is the inside of that road user;
 - ``rollout_50`` .. ``rollout_200`` (``rollout_frames``): one long rollout per scene from its first
   frame with a history; the generated frame ``start + k - 1`` against the true one (PSNR, SSIM),
   and, over all scenes, FID and KID between the generated frames of the window ending there and
@@ -56,6 +58,7 @@ class _Scores:
     psnr_db: list[float] = field(default_factory=list)
     ssim: list[float] = field(default_factory=list)
     depth: DepthAccumulator = field(default_factory=lambda: DepthAccumulator(()))
+    skipped_frames: int = 0  # shifted frames not scored: the shifted rig would collide
 
     def add(self, rgb: Tensor, truth_rgb: Tensor, depth: Tensor | None, truth_depth: Tensor | None) -> None:
         """``rgb``, ``truth_rgb`` [N, H, W, 3] in [0, 1]; depths [N, H, W] metres (0 = none)."""
@@ -68,6 +71,7 @@ class _Scores:
         out = {"psnr_db": float(np.mean(self.psnr_db)) if self.psnr_db else math.nan}
         out["ssim"] = float(np.mean(self.ssim)) if self.ssim else math.nan
         out["images"] = float(len(self.psnr_db))
+        out["skipped_frames"] = float(self.skipped_frames)
         if self.depth.images():
             d = self.depth.image_mean()["all"]
             out |= {"abs_rel": d.abs_rel, "rmse_m": d.rmse_m, "delta_1_25": d.delta_1_25}
@@ -138,7 +142,7 @@ def evaluate_stage2(
     counts) in the rollout sections when ``fid_model`` is given. Writes it as JSON to ``out_json``.
     Raises ValueError when no scene is long enough for any section, CheckpointError for a
     checkpoint that is not Stage 2's."""
-    from phigenesis.train.evaluate_stage1 import SyntheticTruth, shifted_views
+    from phigenesis.train.evaluate_stage1 import SyntheticTruth, shift_collision, shifted_views
 
     if threads:
         torch.set_num_threads(int(threads))
@@ -199,6 +203,12 @@ def evaluate_stage2(
                     size = tuple(runner.stage1.config.image_size)
                     for j in range(window):
                         sample = runner.data._frame(scene, start + j)
+                        why = shift_collision(sample, d)
+                        if why is not None:
+                            log.info("%s frame %d: not scoring the %g m shift: %s", scene, start + j, d, why)
+                            for r in RENDERERS:
+                                s[r].skipped_frames += 1
+                            continue
                         views = shifted_views(truth, clip, sample, d, size)  # type: ignore[arg-type]
                         s["generated"].add(result.images[j], views.images, result.depth[j], views.depth)
                         s["render_only"].add(ro_rgb[j], views.images, ro_depth[j], views.depth)
