@@ -70,3 +70,32 @@ def nuscenes_dataroot(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("nuscenes")
     export_nuscenes(NUSCENES_CONFIG, root, keyframes=NUSCENES_KEYFRAMES, dropped=[NUSCENES_DROPPED])
     return root
+
+
+def one_scene_cache(
+    tmp_path_factory: pytest.TempPathFactory, name: str, frames: int, size_hw: tuple[int, int]
+) -> Path:
+    """A one-scene cache of the tiny synthetic scene (seed 7) at ``size_hw``, one thread."""
+    import torch
+
+    from phigenesis import prep
+
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp(name)
+    args = {**TINY_PREP_ARGS, "scenes": 1, "frames": frames, "height": size_hw[0], "width": size_hw[1]}
+    prep.synthetic(out, progress=False, **args)  # type: ignore[arg-type]
+    return out
+
+
+def two_step_stage1(cache: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The checkpoint of a 2-step Stage 1 run on ``cache`` (an untrained but real model)."""
+    from phigenesis.train.stage1 import Stage1TrainConfig, train_stage1
+
+    run = train_stage1(
+        cache,
+        tmp_path_factory.mktemp("s1"),
+        Stage1TrainConfig(steps=2, warmup_steps=1, threads=1),
+        progress=False,
+    )
+    assert run.checkpoint is not None
+    return run.checkpoint

@@ -43,10 +43,10 @@ from phigenesis.train.evaluate_stage1 import (
     shifted_views,
     target_views,
 )
-from phigenesis.train.stage1 import Stage1TrainConfig, clip_inputs, load_stage1, train_stage1
+from phigenesis.train.stage1 import clip_inputs, load_stage1
 from phigenesis.train.stage1_data import Stage1Clips
 from phigenesis.train.views import resize_intrinsics
-from tests.conftest import TINY_PREP_ARGS, tiny_config
+from tests.conftest import TINY_PREP_ARGS, one_scene_cache, tiny_config, two_step_stage1
 
 SIZE = (48, 72)
 FRAMES = 12
@@ -56,23 +56,12 @@ SECTIONS = ["input", "+5", "+10", "shift_1m", "shift_2m", "shift_4m"]
 
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    torch.set_num_threads(1)
-    out = tmp_path_factory.mktemp("eval_cache")
-    args = {**TINY_PREP_ARGS, "scenes": 1, "frames": FRAMES, "height": SIZE[0], "width": SIZE[1]}
-    prep.synthetic(out, progress=False, **args)  # type: ignore[arg-type]
-    return out
+    return one_scene_cache(tmp_path_factory, "eval_cache", FRAMES, SIZE)
 
 
 @pytest.fixture(scope="module")
 def checkpoint(cache: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    run = train_stage1(
-        cache,
-        tmp_path_factory.mktemp("stage1_run"),
-        Stage1TrainConfig(steps=2, warmup_steps=1, threads=1),
-        progress=False,
-    )
-    assert run.checkpoint is not None
-    return run.checkpoint
+    return two_step_stage1(cache, tmp_path_factory)
 
 
 @pytest.fixture(scope="module")

@@ -12,14 +12,13 @@ import pyarrow.ipc as ipc
 import pytest
 import torch
 
-from phigenesis import prep
 from phigenesis.cli.train import main as train_main
 from phigenesis.data.shards import CacheError, verify_cache
 from phigenesis.infer.conditions import context_cameras, future_cameras, history_scene, render_condition
 from phigenesis.train.checkpoint import CheckpointError
 from phigenesis.train.evaluate_stage1 import frame_truth
 from phigenesis.train.runner import read_metrics
-from phigenesis.train.stage1 import Stage1TrainConfig, load_stage1, train_stage1
+from phigenesis.train.stage1 import load_stage1
 from phigenesis.train.stage1_data import Stage1Clips
 from phigenesis.train.stage2 import (
     Stage2TrainConfig,
@@ -36,7 +35,7 @@ from phigenesis.train.stage2_data import (
     window_sample,
     window_starts,
 )
-from tests.conftest import TINY_PREP_ARGS
+from tests.conftest import one_scene_cache, two_step_stage1
 
 SIZE = (48, 72)
 FRAMES = 12
@@ -44,23 +43,12 @@ FRAMES = 12
 
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    torch.set_num_threads(1)
-    out = tmp_path_factory.mktemp("stage2_cache")
-    args = {**TINY_PREP_ARGS, "scenes": 1, "frames": FRAMES, "height": SIZE[0], "width": SIZE[1]}
-    prep.synthetic(out, progress=False, **args)  # type: ignore[arg-type]
-    return out
+    return one_scene_cache(tmp_path_factory, "stage2_cache", FRAMES, SIZE)
 
 
 @pytest.fixture(scope="module")
 def stage1_checkpoint(cache: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    run = train_stage1(
-        cache,
-        tmp_path_factory.mktemp("s1"),
-        Stage1TrainConfig(steps=2, warmup_steps=1, threads=1),
-        progress=False,
-    )
-    assert run.checkpoint is not None
-    return run.checkpoint
+    return two_step_stage1(cache, tmp_path_factory)
 
 
 @pytest.fixture(scope="module")

@@ -155,6 +155,22 @@ def stage1_scene(model: Stage1Model, clip: Clip) -> GaussianScene:
     return GaussianScene.concatenate(scenes) if len(scenes) > 1 else scenes[0]
 
 
+def truth_maps(clip: Clip) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The synthetic truth (depth [F, V, H, W] metres, classes [F, V, H, W], flow [F, V, H, W, 3] m/s or
+    None) of the clip's context frames at its image size: what ``geometry: truth`` lifts. The clip must
+    carry its frames (``keep_frames``); a cache without truth depth is refused naming the scene."""
+    from phigenesis.train.evaluate_stage1 import frame_truth
+
+    assert clip.frames is not None
+    size = tuple(clip.context.images.shape[-2:])
+    truths = [frame_truth(clip.frames[i], size) for i in clip.frame_indices]  # type: ignore[arg-type]
+    if not all(t.has_truth_depth for t in truths):
+        raise ValueError(f"scene {clip.scene_id}: geometry 'truth' needs a synthetic cache with truth depth")
+    flows = [t.flow for t in truths]
+    flow = torch.stack(flows) if all(f is not None for f in flows) else None  # type: ignore[arg-type]
+    return torch.stack([t.depth for t in truths]), torch.stack([t.semantic for t in truths]), flow
+
+
 def history_scene(
     geometry: GeometrySource,
     clip: Clip,

@@ -70,6 +70,7 @@ from phigenesis.infer.conditions import (
     history_scene,
     render_condition,
     sequence_plucker,
+    truth_maps,
     uncertainty_maps,
 )
 from phigenesis.infer.flow import FixedFrames, euler_sample
@@ -610,9 +611,7 @@ class Stage2Runner:
             traj = load_trajectory_file(trajectory, frames, rig, rig.timestamp_micros)
         truth = None
         if options.geometry == "truth":
-            from phigenesis.train.stage2_data import _truth_maps
-
-            depth, sem, flow = _truth_maps(clip)
+            depth, sem, flow = truth_maps(clip)
             truth = {"truth_depth_m": depth, "truth_semantic": sem, "truth_flow_mps": flow}
         ego_from_camera = clip.frames[start - 1]["ego_from_camera"]
         result = rollout(

@@ -62,11 +62,11 @@ from phigenesis.infer.conditions import (
     future_cameras,
     history_scene,
     render_condition,
+    truth_maps,
     uncertainty_maps,
 )
 from phigenesis.infer.stereo_forcing import pool_to_latent
 from phigenesis.models.stage1 import Stage1Model
-from phigenesis.train.evaluate_stage1 import frame_truth
 from phigenesis.train.stage1_data import Clip, Stage1Clips
 
 log = logging.getLogger(__name__)
@@ -140,17 +140,6 @@ def _encode(model: Stage1Model, images: Tensor) -> Tensor:
     return model.encode(images[None])[0]
 
 
-def _truth_maps(clip: Clip) -> tuple[Tensor, Tensor, Tensor | None]:
-    assert clip.frames is not None
-    size = tuple(clip.context.images.shape[-2:])
-    truths = [frame_truth(clip.frames[i], size) for i in clip.frame_indices]  # type: ignore[arg-type]
-    if not all(t.has_truth_depth for t in truths):
-        raise ValueError(f"scene {clip.scene_id}: geometry 'truth' needs a synthetic cache with truth depth")
-    flows = [t.flow for t in truths]
-    flow = torch.stack(flows) if all(f is not None for f in flows) else None  # type: ignore[arg-type]
-    return torch.stack([t.depth for t in truths]), torch.stack([t.semantic for t in truths]), flow
-
-
 def window_sample(
     model: Stage1Model, data: Stage1Clips, scene_id: str, start: int, cfg: Stage2DataConfig
 ) -> Stage2Sample:
@@ -159,7 +148,7 @@ def window_sample(
     t_h = len(clip.frame_indices)
     truth: dict[str, Any] = {}
     if cfg.geometry == "truth":
-        depth, sem, flow = _truth_maps(clip)
+        depth, sem, flow = truth_maps(clip)
         truth = {"truth_depth_m": depth, "truth_semantic": sem, "truth_flow_mps": flow}
     scene = history_scene(cfg.geometry, clip, model, **truth)
     targets, history = future_cameras(clip), context_cameras(clip)

@@ -1,0 +1,526 @@
+"""A cache as another rig sees it: ``phigenesis-render`` (Python: :func:`render`).
+
+For every frame of every scene of a cache, the frame's 4D Gaussians are built and rendered at the
+cameras of another rig (:mod:`phigenesis.infer.rigs`: a named rig, a YAML rig file, or random rigs
+drawn per scene), and written as a new cache in the same frame schema:
+
+- **Gaussians** (``geometry``): ``stage1``, the Stage 1 model of ``ckpt`` on the frame's clip
+  (the frame and the model's ``frames - 1`` before it; the first frames of a scene use the scene's
+  first clip); or ``cache``, the cache's own dense depth lifted to one Gaussian per pixel at its
+  full size (:func:`phigenesis.infer.conditions.cache_scene`; no checkpoint needed); or ``truth``,
+  a synthetic cache's exact truth depth, classes and flow lifted the same way (the oracle). A Stage 2
+  rollout is re-rendered through its generated cache, whose dense depth is the rollout's rendered
+  depth, with ``geometry="cache"``.
+- **Times and poses.** Camera ``i`` of the new rig fires ``time_offsets_micros[i]`` after the
+  frame's time; its ego pose is the scene's recorded ego pose at that time (:class:`PoseTrack`:
+  every frame's and every camera's recorded pose, linear in position and slerped in rotation
+  between them, so a time the cache recorded gets its pose exactly). The Gaussians move at their
+  velocities to each camera's own time.
+- **What each new image holds.** The colour composited over the sky (the Stage 1 model's sky
+  model; with ``cache`` geometry the mean colour of the clip's sky pixels); the rendered z-depth as
+  the dense depth where the render's alpha is at least 0.5 (confidence: the alpha; dense origin
+  ``rendered``); the rendered classes there as pseudo labels (source ``rendered``; holes 255); and
+  the frame's LiDAR sweep projected into the new camera as its sparse depth, with the ego body as
+  an occluder (:func:`phigenesis.data.stages.project.project_camera`). Cameras with lens
+  distortion are rendered as their pinhole and resampled through the distortion.
+- **Carried over unchanged**: the frame's pose and time, its LiDAR sweep and its 3D boxes (world
+  frame), the scene's metadata (its ego body) plus the rig the scene was rendered with
+  (``rendered_rig``).
+
+The output verifies, previews and loads like any cache; its manifest (source ``rendered``) names
+the source cache and its fingerprint, the checkpoint and its SHA-256, the geometry, the rig
+specification, the seed and the random ranges. A rerun into the same folder with the same
+arguments resumes after the last finished scene; a folder holding anything else is refused.
+
+Units: metres, microseconds; images RGB uint8 in the cache.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from phigenesis import __version__, geometry
+from phigenesis.data import records
+from phigenesis.data.records import (
+    Boxes,
+    CameraCalibration,
+    CameraDepth,
+    CameraImage,
+    CameraSemantics,
+    Frame,
+    encode_rgb,
+)
+from phigenesis.data.schema import SCHEMA_VERSION, CacheContents, frame_schema, frame_to_batch
+from phigenesis.data.shards import (
+    MANIFEST_NAME,
+    CacheReader,
+    Manifest,
+    SceneEntry,
+    ShardWriter,
+)
+from phigenesis.infer.conditions import (
+    TargetCameras,
+    cache_scene,
+    lifted_scene,
+    render_condition,
+    stage1_scene,
+    truth_maps,
+)
+from phigenesis.infer.rigs import RandomRigRanges, Rig, resolve_rig
+from phigenesis.models.gaussians import GaussianScene
+from phigenesis.models.stage1 import Stage1Model
+from phigenesis.train.stage1_data import Clip, Stage1Clips
+
+log = logging.getLogger(__name__)
+
+GEOMETRIES: tuple[str, ...] = ("stage1", "cache", "truth")
+#: The manifest source of a rendered cache.
+SOURCE_NAME = "rendered"
+#: Render alpha at or above which a pixel has a rendered depth and class.
+COVERED_ALPHA = 0.5
+
+
+# --------------------------------------------------------------------------------------------
+# Ego poses at any time of a scene
+
+
+class PoseTrack:
+    """A scene's ego poses at every recorded time, interpolated between them.
+
+    ``samples`` are ``(timestamp_micros, world_from_ego)`` pairs (any order; repeated times keep
+    the first). Between two recorded times the position is linear and the rotation slerped; at a
+    recorded time the pose is that sample exactly; outside the recorded span the nearest end's pose
+    is held (and :meth:`at` says how far out it was through ``outside_micros``).
+    """
+
+    def __init__(self, samples: list[tuple[int, np.ndarray]]):
+        if not samples:
+            raise ValueError("PoseTrack: no recorded pose")
+        by_time: dict[int, np.ndarray] = {}
+        for t, pose in samples:
+            by_time.setdefault(int(t), np.asarray(pose, np.float64))
+        self.times_micros = np.array(sorted(by_time), np.int64)
+        self.poses = np.stack([by_time[int(t)] for t in self.times_micros])
+        self.quaternions = np.stack([geometry.matrix_to_quaternion(p[:3, :3]) for p in self.poses])
+
+    def outside_micros(self, t_micros: int) -> int:
+        """How far ``t_micros`` lies outside the recorded span (0 inside)."""
+        return int(max(self.times_micros[0] - t_micros, t_micros - self.times_micros[-1], 0))
+
+    def at(self, t_micros: int) -> np.ndarray:
+        """(4, 4) float64 world_from_ego at ``t_micros``."""
+        times = self.times_micros
+        j = int(np.searchsorted(times, t_micros))
+        if j < len(times) and times[j] == t_micros:
+            return self.poses[j].copy()
+        if j == 0 or j == len(times):
+            return self.poses[0 if j == 0 else -1].copy()
+        i = j - 1
+        s = (t_micros - times[i]) / (times[j] - times[i])
+        q = geometry.quaternion_slerp(self.quaternions[i], self.quaternions[j], s)
+        position = (1 - s) * self.poses[i][:3, 3] + s * self.poses[j][:3, 3]
+        return geometry.pose_to_transform(position, q)
+
+
+def scene_pose_track(frames: list[Frame]) -> PoseTrack:
+    """The :class:`PoseTrack` of a scene's frames: each frame's pose and each camera's."""
+    samples = [(f.timestamp_micros, f.world_from_ego) for f in frames]
+    samples += [(c.timestamp_micros, c.world_from_ego) for f in frames for c in f.cameras]
+    return PoseTrack(samples)
+
+
+def source_rig(frame: Frame, name: str = "source") -> Rig:
+    """The rig of a cache frame: its cameras' calibrations, firing when they did in ``frame``."""
+    return Rig(
+        name=name,
+        cameras=tuple(c.calibration for c in frame.cameras),
+        time_offsets_micros=tuple(int(c.timestamp_micros - frame.timestamp_micros) for c in frame.cameras),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Rendering one camera
+
+
+@dataclass(frozen=True)
+class CameraRender:
+    """One new camera's render at its own size."""
+
+    rgb: np.ndarray  # (H, W, 3) uint8, composited over the sky
+    depth_m: np.ndarray  # (H, W) float32 z-depth where alpha >= COVERED_ALPHA, else 0
+    alpha: np.ndarray  # (H, W) float32 accumulated opacity
+    semantic: np.ndarray  # (H, W) uint8 class where covered, 255 elsewhere
+
+
+def _distortion_grid(cal: CameraCalibration) -> Tensor | None:
+    """grid_sample grid [1, H, W, 2] taking each pixel of the distorted camera to where its ray lands
+    in the pinhole image of the same K (None for a camera without distortion)."""
+    if not np.any(cal.distortion):
+        return None
+    h, w = cal.height, cal.width
+    k = cal.intrinsics
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    xd = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1]], -1).reshape(-1, 2)
+    xu = geometry.undistort_normalized(xd, cal.distortion)
+    pu = xu[:, 0] * k[0, 0] + k[0, 2]
+    pv = xu[:, 1] * k[1, 1] + k[1, 2]
+    grid = np.stack([2 * (pu + 0.5) / w - 1, 2 * (pv + 0.5) / h - 1], -1).reshape(1, h, w, 2)
+    return torch.from_numpy(grid).float()
+
+
+def _resample(x: Tensor, grid: Tensor, mode: str) -> Tensor:
+    """[H, W, C] sampled at ``grid`` (zeros outside)."""
+    out = F.grid_sample(x.permute(2, 0, 1)[None].float(), grid, mode=mode, align_corners=False)
+    return out[0].permute(1, 2, 0)
+
+
+def render_camera(
+    gaussians: GaussianScene,
+    cal: CameraCalibration,
+    world_from_ego: np.ndarray,
+    time_s: float,
+    sky: Tensor | None,
+    model: Stage1Model | None,
+) -> CameraRender:
+    """``gaussians`` seen by camera ``cal`` on the ego at ``world_from_ego`` (world frame), at
+    ``time_s`` seconds after the Gaussians' time origin. The sky behind: ``model``'s sky where a
+    model is given, else the constant colour ``sky`` (3,) in [0, 1]."""
+    h, w = cal.height, cal.width
+    world_from_camera = torch.from_numpy(world_from_ego @ cal.ego_from_camera)[None, None]
+    k = torch.from_numpy(cal.intrinsics).float()[None]
+    cams = TargetCameras(world_from_camera, k, torch.tensor([[time_s]], dtype=torch.float64), (h, w))
+    out = render_condition(gaussians, cams, semantics=True)
+    if model is not None:
+        with torch.no_grad():
+            background = model.background(world_from_camera[0, 0].float(), k[0], h, w)
+    else:
+        background = (sky if sky is not None else torch.zeros(3)).expand(h, w, 3)
+    alpha = out.alpha[0, 0]
+    rgb = out.rgb[0, 0] + (1 - alpha[..., None]) * background
+    depth = out.depth[0, 0]
+    assert out.semantic is not None
+    semantic = out.semantic[0, 0]
+    grid = _distortion_grid(cal)
+    if grid is not None:
+        rgb = _resample(rgb, grid, "bilinear")
+        # Outside the pinhole image: nothing rendered; the sky there is the nearest border's.
+        border = F.grid_sample(
+            background.permute(2, 0, 1)[None].float(), grid, align_corners=False, padding_mode="border"
+        )[0].permute(1, 2, 0)
+        alpha = _resample(alpha[..., None], grid, "bilinear")[..., 0]
+        rgb = rgb + (1 - _resample(torch.ones(h, w, 1), grid, "bilinear")) * border
+        depth = _resample(depth[..., None], grid, "nearest")[..., 0]
+        semantic = _resample(semantic[..., None].float(), grid, "nearest")[..., 0].round().to(torch.uint8)
+    covered = (alpha >= COVERED_ALPHA) & (depth > 0)
+    return CameraRender(
+        rgb=(rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8),
+        depth_m=torch.where(covered, depth, torch.zeros_like(depth)).numpy().astype(np.float32),
+        alpha=alpha.clamp(0, 1).numpy().astype(np.float32),
+        semantic=torch.where(covered, semantic, torch.full_like(semantic, 255)).numpy().astype(np.uint8),
+    )
+
+
+def _sparse_depth(camera: CameraImage, frame: Frame, ego_boxes: list[dict]) -> CameraDepth:
+    """The frame's own LiDAR sweep projected into ``camera`` (the ego body occludes)."""
+    from phigenesis.data.stages.project import ProjectParams, ego_body_depth, project_camera, sweep_points
+
+    h, w = camera.calibration.height, camera.calibration.width
+    if frame.lidar is None or len(frame.lidar.points_ego) == 0:
+        return CameraDepth.empty(h, w)
+    depth, _ = project_camera(camera, sweep_points(frame), ProjectParams(), ego_body_depth(camera, ego_boxes))
+    return depth
+
+
+def rendered_camera(
+    frame: Frame, cal: CameraCalibration, t_micros: int, world_from_ego: np.ndarray, out: CameraRender,
+    ego_boxes: list[dict],
+) -> CameraImage:  # fmt: skip
+    """The new camera's :class:`CameraImage` record: the render as image, dense depth and pseudo
+    labels, the frame's LiDAR as sparse depth."""
+    camera = CameraImage(cal, int(t_micros), world_from_ego, encode_rgb(out.rgb))
+    sparse = _sparse_depth(camera, frame, ego_boxes)
+    has = out.depth_m > 0
+    depth = CameraDepth(
+        sparse.sparse_m,
+        sparse.sparse_confidence,
+        sparse.sparse_origin,
+        out.depth_m,
+        np.where(has, out.alpha, 0).astype(np.float32),
+        np.where(has, records.DENSE_ORIGINS.index("rendered"), 0).astype(np.uint8),
+    )
+    labelled = out.semantic != 255
+    pseudo = CameraSemantics(
+        out.semantic,
+        labelled.astype(np.float32),
+        np.where(labelled, records.PSEUDO_SOURCES.index("rendered"), 0).astype(np.uint8),
+    )
+    return dataclasses.replace(camera, depth=depth, pseudo=pseudo)
+
+
+# --------------------------------------------------------------------------------------------
+# The command
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """What :func:`render` wrote."""
+
+    out: Path
+    scenes: list[str]  # scene ids rendered by this call (finished ones skipped)
+    skipped: list[str]  # scene ids already complete in ``out``
+    frames: int  # frames rendered by this call
+    seconds: float
+    rigs: dict[str, dict[str, Any]]  # scene id -> the rig it was rendered with (Rig.to_dict)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _scene_metadata(reader: CacheReader, scene_id: str) -> dict[str, Any]:
+    """The scene metadata its shard's schema records (``{}`` when none)."""
+    for i, shard in enumerate(reader.shards):
+        if shard.scene_id == scene_id:
+            raw = (reader.shard(i).schema.metadata or {}).get(b"phigenesis.scene_metadata")
+            if raw:
+                value = json.loads(raw)
+                return value if isinstance(value, dict) else {}
+            return {}
+    return {}
+
+
+def _scene_seed(seed: int, scene_index: int) -> int:
+    """The random rig seed of the scene at ``scene_index`` (of the source's scene order)."""
+    return int(np.random.SeedSequence([int(seed), int(scene_index)]).generate_state(1)[0])
+
+
+def _sky_colour(clip: Clip) -> Tensor:
+    """(3,) mean colour of the clip's context pixels labelled sky (black without any)."""
+    from phigenesis.data.taxonomy import SKY
+
+    ctx = clip.context
+    sky = ctx.semantic == SKY
+    if not sky.any():
+        return torch.zeros(3)
+    return ctx.images.permute(0, 1, 3, 4, 2)[sky].mean(0).float()
+
+
+def _gaussians(geometry: str, clip: Clip, model: Stage1Model | None) -> GaussianScene:
+    """The Gaussians of ``clip``'s context frames from ``geometry`` (see the module docstring)."""
+    if geometry == "stage1":
+        assert model is not None
+        return stage1_scene(model, clip)
+    if geometry == "cache":
+        return cache_scene(clip)
+    return lifted_scene(clip, *truth_maps(clip))
+
+
+def _open_output(out: Path, fp: str) -> Manifest | None:
+    """The manifest of a folder to resume (same fingerprint), None for a new or empty folder."""
+    if not out.exists():
+        return None
+    if not out.is_dir():
+        raise ValueError(f"{out}: exists and is not a folder; choose a new folder for the rendered cache")
+    if (out / MANIFEST_NAME).is_file():
+        manifest = Manifest.load(out)
+        if manifest.fingerprint != fp:
+            raise ValueError(
+                f"{out}: holds a cache made with other arguments (fingerprint {manifest.fingerprint}, "
+                f"this run's {fp}); choose a new folder"
+            )
+        return manifest
+    if any(out.iterdir()):
+        raise ValueError(f"{out}: exists, is not empty and holds no cache; choose a new folder")
+    return None
+
+
+def render(
+    ckpt: str | os.PathLike[str] | None,
+    shards: str | os.PathLike[str],
+    rig: str,
+    out: str | os.PathLike[str],
+    *,
+    geometry: str = "stage1",
+    seed: int = 0,
+    ranges: RandomRigRanges | None = None,
+    height: int | None = None,
+    width: int | None = None,
+    scenes: list[str] | None = None,
+    max_frames: int | None = None,
+    progress: bool = True,
+    threads: int | None = None,
+) -> RenderResult:
+    """Writes the cache ``shards`` as rig ``rig`` sees it into ``out`` (see the module docstring).
+
+    Args:
+        ckpt: the Stage 1 checkpoint (``geometry="stage1"``; unused with ``"cache"``).
+        shards: the source cache.
+        rig: ``"waymo5"``, ``"nuscenes6"``, a YAML rig file, or ``"random"`` (a rig per scene drawn from
+            ``ranges`` around the source's own rig, its seed from ``seed`` and the scene's index).
+        out: the new cache's folder (new, empty, or a previous run of the same arguments to resume).
+        geometry: ``"stage1"``, ``"cache"`` or ``"truth"`` (synthetic caches).
+        height, width: the image size of a named rig (default: the source's first camera's).
+        scenes: only these scene ids (default all); ``max_frames``: at most this many per scene.
+
+    Returns a :class:`RenderResult`. Raises ValueError naming what is wrong (an unknown scene or
+    geometry, a missing checkpoint, an output folder holding something else), RigError for a bad
+    rig, CheckpointError for a checkpoint that is not Stage 1's.
+    """
+    from tqdm import tqdm
+
+    from phigenesis.data.pipeline import fingerprint
+    from phigenesis.data.stages.aggregate import DEFAULT_EGO_BOXES
+    from phigenesis.train.stage1 import load_stage1
+
+    t0 = time.perf_counter()
+    if threads:
+        torch.set_num_threads(int(threads))
+    if geometry not in GEOMETRIES:
+        raise ValueError(f"geometry must be one of {GEOMETRIES}, got {geometry!r}")
+    shards, out = Path(shards), Path(out)
+    if not (shards / MANIFEST_NAME).is_file():
+        raise ValueError(f"{shards}: not a phigenesis cache (no {MANIFEST_NAME})")
+    reader = CacheReader(shards)
+    all_scenes = reader.scene_ids()
+    chosen = list(all_scenes) if scenes is None else list(scenes)
+    unknown = [s for s in chosen if s not in all_scenes]
+    if unknown:
+        raise ValueError(f"{shards}: no complete scene {unknown}; it has {all_scenes}")
+    if max_frames is not None and max_frames < 1:
+        raise ValueError(f"max_frames must be at least 1, got {max_frames}")
+    model: Stage1Model | None = None
+    checkpoint = None
+    if geometry == "stage1":
+        if ckpt is None:
+            raise ValueError("geometry 'stage1' needs a Stage 1 checkpoint (--ckpt)")
+        checkpoint = Path(ckpt)
+        if not checkpoint.is_file():
+            raise ValueError(f"{checkpoint}: no such checkpoint file")
+        model = load_stage1(checkpoint)
+        model.eval()
+    first = reader.frame(reader.frames_of(chosen[0])[0], decode_truth=False) if chosen else None
+    if height is None or width is None:
+        assert first is not None
+        height = height or first.cameras[0].calibration.height
+        width = width or first.cameras[0].calibration.width
+    arguments = {
+        "source_cache": str(shards.resolve()),
+        "source_fingerprint": reader.manifest.fingerprint,
+        "checkpoint": None if checkpoint is None else str(checkpoint.resolve()),
+        "checkpoint_sha256": None if checkpoint is None else _sha256(checkpoint),
+        "geometry": geometry,
+        "rig": rig,
+        "rig_file_sha256": _sha256(Path(rig)) if Path(rig).is_file() else None,
+        "seed": int(seed),
+        "ranges": dataclasses.asdict(ranges or RandomRigRanges()) if rig == "random" else None,
+        "height": int(height),
+        "width": int(width),
+        "scenes": chosen,
+        "max_frames": max_frames,
+    }
+    pipeline = {"name": SOURCE_NAME, "output": {"camera_truth": [], "depth": True, "pseudo_semantics": True}}
+    fp = fingerprint(SOURCE_NAME, arguments, pipeline)
+    manifest = _open_output(out, fp)
+    if manifest is None:
+        manifest = Manifest(
+            SCHEMA_VERSION, SOURCE_NAME, arguments, pipeline, fp, phigenesis_version=__version__
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    if model is not None:
+        data = Stage1Clips(shards, tuple(model.config.image_size), int(model.config.frames), "auto")
+    else:
+        assert first is not None
+        cal0 = first.cameras[0].calibration
+        data = Stage1Clips(shards, (cal0.height, cal0.width), 1, "auto")
+    done, skipped, rigs, total = [], [], {}, 0
+    for scene_index, scene_id in enumerate(all_scenes):
+        if scene_id not in chosen:
+            continue
+        entry = manifest.scene(scene_id)
+        if entry is not None and entry.status == "complete":
+            skipped.append(scene_id)
+            log.info("%s: already rendered in %s; skipped", scene_id, out)
+            continue
+        indices = list(reader.frames_of(scene_id))
+        frames = [reader.frame(i, decode_truth=False) for i in indices]
+        n = len(frames) if max_frames is None else min(len(frames), max_frames)
+        metadata = _scene_metadata(reader, scene_id)
+        ego_boxes = metadata.get("ego_boxes", DEFAULT_EGO_BOXES)
+        scene_rig = resolve_rig(
+            rig,
+            base=source_rig(frames[0]),
+            height=int(height),
+            width=int(width),
+            seed=_scene_seed(seed, scene_index),
+            ranges=ranges,
+            ego_boxes=ego_boxes,
+        )
+        rigs[scene_id] = scene_rig.to_dict()
+        track = scene_pose_track(frames)
+        schema = frame_schema(
+            CacheContents(
+                camera_truth=(),
+                lidar=any(f.lidar is not None for f in frames),
+                lidar_truth=False,
+                camera_labels=False,
+                depth=True,
+                pseudo_semantics=True,
+            ),
+            {
+                "phigenesis.source": SOURCE_NAME,
+                "phigenesis.scene_metadata": json.dumps({**metadata, "rendered_rig": rigs[scene_id]}),
+            },
+        )
+        group = data.frames
+        with ShardWriter(out, scene_id, schema) as writer:
+            bar = tqdm(range(n), desc=scene_id, unit="frame", disable=not progress)
+            for k in bar:
+                frame = frames[k]
+                start = min(max(k - group + 1, 0), max(len(frames) - group, 0))
+                clip = data.clip(scene_id, start, [], keep_frames=geometry == "truth")
+                gaussians = _gaussians(geometry, clip, model)
+                sky = None if model is not None else _sky_colour(clip)
+                cameras = []
+                for cal, offset in zip(scene_rig.cameras, scene_rig.time_offsets_micros, strict=True):
+                    t_cam = frame.timestamp_micros + int(offset)
+                    if track.outside_micros(t_cam):
+                        log.debug(
+                            "%s frame %d camera %s: time outside the recorded poses", scene_id, k, cal.name
+                        )
+                    pose = track.at(t_cam)
+                    t_s = (t_cam - clip.time_origin_micros) * 1e-6
+                    shot = render_camera(gaussians, cal, pose, t_s, sky, model)
+                    cameras.append(rendered_camera(frame, cal, t_cam, pose, shot, ego_boxes))
+                new = Frame(
+                    scene_id, k, frame.timestamp_micros, frame.world_from_ego, cameras, frame.lidar,
+                    frame.boxes if frame.boxes is not None else Boxes.empty(),
+                )  # fmt: skip
+                writer.write(frame_to_batch(new, SOURCE_NAME, schema))
+                total += 1
+            written = writer.close()
+        manifest.record_scene(
+            SceneEntry(scene_id, SOURCE_NAME, n, "complete", [s.path for s in written]), written
+        )
+        manifest.save(out)
+        done.append(scene_id)
+        log.info("%s: %d frames rendered with rig %s", scene_id, n, scene_rig.name)
+    if not (out / MANIFEST_NAME).is_file():
+        manifest.save(out)
+    return RenderResult(out, done, skipped, total, time.perf_counter() - t0, rigs)
