@@ -213,6 +213,16 @@ def test_bad_rigs_and_inputs_are_refused_by_name(cache: Path, tmp_path: Path, ca
     assert not (tmp_path / "o1").exists() or not any((tmp_path / "o1").iterdir())
     with pytest.raises(ValueError, match="needs a Stage 1 checkpoint"):
         render(None, cache, "waymo5", tmp_path / "o3", progress=False)
+    with pytest.raises(ValueError, match="4 frames one clip needs"):
+        render(
+            None,
+            cache,
+            "waymo5",
+            tmp_path / "o6",
+            geometry="cache",
+            history_frames=FRAMES + 1,
+            progress=False,
+        )
     with pytest.raises(ValueError, match="no complete scene"):
         render(None, cache, "waymo5", tmp_path / "o4", geometry="cache", scenes=["nope"], progress=False)
     # The command line says the same in one line, exit status 2 or 1, no traceback.

@@ -35,6 +35,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--size", type=size_hw, help="HxW of a named rig's images (default: the source's)")
     parser.add_argument("--scene", action="append", help="only this scene id (repeatable)")
     parser.add_argument("--max-frames", type=positive, help="at most this many frames per scene")
+    parser.add_argument(
+        "--history-frames",
+        type=positive,
+        default=1,
+        help="join the Gaussians of this many frames up to each frame (default 1: the frame's own)",
+    )
     parser.add_argument("--threads", type=positive, help="torch threads")
     parser.add_argument("--out", required=True, help="new folder for the rendered cache (or a run to resume)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -57,6 +63,7 @@ def _render(args: argparse.Namespace) -> int:
         width=width,
         scenes=args.scene,
         max_frames=args.max_frames,
+        history_frames=args.history_frames,
         progress=not args.no_progress,
         threads=args.threads,
     )

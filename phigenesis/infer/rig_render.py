@@ -5,9 +5,10 @@ cameras of another rig (:mod:`phigenesis.infer.rigs`: a named rig, a YAML rig fi
 drawn per scene), and written as a new cache in the same frame schema:
 
 - **Gaussians** (``geometry``): ``stage1``, the Stage 1 model of ``ckpt`` on the frame's clip
-  (the frame and the model's ``frames - 1`` before it; the first frames of a scene use the scene's
-  first clip); or ``cache``, the cache's own dense depth lifted to one Gaussian per pixel at its
-  full size (:func:`phigenesis.infer.conditions.cache_scene`; no checkpoint needed); or ``truth``,
+  (the frame and the ``history_frames - 1`` before it, default none; the first frames of a scene
+  use the scene's first clip); or ``cache``, the cache's own dense depth lifted to one Gaussian per
+  pixel at its full size (:func:`phigenesis.infer.conditions.cache_scene`; no checkpoint needed); or
+  ``truth``,
   a synthetic cache's exact truth depth, classes and flow lifted the same way (the oracle). A Stage 2
   rollout is re-rendered through its generated cache, whose dense depth is the rollout's rendered
   depth, with ``geometry="cache"``.
@@ -364,6 +365,7 @@ def render(
     width: int | None = None,
     scenes: list[str] | None = None,
     max_frames: int | None = None,
+    history_frames: int = 1,
     progress: bool = True,
     threads: int | None = None,
 ) -> RenderResult:
@@ -378,6 +380,9 @@ def render(
         geometry: ``"stage1"``, ``"cache"`` or ``"truth"`` (synthetic caches).
         height, width: the image size of a named rig (default: the source's first camera's).
         scenes: only these scene ids (default all); ``max_frames``: at most this many per scene.
+        history_frames: the Gaussians of this many frames up to each frame are joined (a multiple of
+            the Stage 1 model's ``frames``): a rig that looks where the source's cameras did not (a
+            rear camera) sees what they saw earlier; moving Gaussians move at their velocities.
 
     Returns a :class:`RenderResult`. Raises ValueError naming what is wrong (an unknown scene or
     geometry, a missing checkpoint, an output folder holding something else), RigError for a bad
@@ -403,6 +408,8 @@ def render(
     unknown = [s for s in chosen if s not in all_scenes]
     if unknown:
         raise ValueError(f"{shards}: no complete scene {unknown}; it has {all_scenes}")
+    if history_frames < 1:
+        raise ValueError(f"history_frames must be at least 1, got {history_frames}")
     if max_frames is not None and max_frames < 1:
         raise ValueError(f"max_frames must be at least 1, got {max_frames}")
     model: Stage1Model | None = None
@@ -434,6 +441,7 @@ def render(
         "width": int(width),
         "scenes": chosen,
         "max_frames": max_frames,
+        "history_frames": int(history_frames),
     }
     pipeline = {"name": SOURCE_NAME, "output": {"camera_truth": [], "depth": True, "pseudo_semantics": True}}
     fp = fingerprint(SOURCE_NAME, arguments, pipeline)
@@ -444,11 +452,16 @@ def render(
         )
     out.mkdir(parents=True, exist_ok=True)
     if model is not None:
-        data = Stage1Clips(shards, tuple(model.config.image_size), int(model.config.frames), "auto")
+        group = int(model.config.frames)
+        if history_frames % group:
+            raise ValueError(
+                f"history_frames {history_frames} is not a multiple of the Stage 1 model's {group} frames"
+            )
+        data = Stage1Clips(shards, tuple(model.config.image_size), int(history_frames), "auto")
     else:
         assert first is not None
         cal0 = first.cameras[0].calibration
-        data = Stage1Clips(shards, (cal0.height, cal0.width), 1, "auto")
+        data = Stage1Clips(shards, (cal0.height, cal0.width), int(history_frames), "auto")
     done, skipped, rigs, total = [], [], {}, 0
     for scene_index, scene_id in enumerate(all_scenes):
         if scene_id not in chosen:
@@ -488,12 +501,16 @@ def render(
                 "phigenesis.scene_metadata": json.dumps({**metadata, "rendered_rig": rigs[scene_id]}),
             },
         )
-        group = data.frames
+        window = data.frames
+        if len(frames) < window:
+            raise ValueError(
+                f"{shards}: scene {scene_id} has {len(frames)} frames, fewer than history_frames {window}"
+            )
         with ShardWriter(out, scene_id, schema) as writer:
             bar = tqdm(range(n), desc=scene_id, unit="frame", disable=not progress)
             for k in bar:
                 frame = frames[k]
-                start = min(max(k - group + 1, 0), max(len(frames) - group, 0))
+                start = min(max(k - window + 1, 0), len(frames) - window)
                 clip = data.clip(scene_id, start, [], keep_frames=geometry == "truth")
                 gaussians = _gaussians(geometry, clip, model)
                 sky = None if model is not None else _sky_colour(clip)
