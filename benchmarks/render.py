@@ -149,7 +149,55 @@ def main() -> None:
             + ("" if args.ckpt else " No Stage 1 checkpoint was given to this run, so it has no stage1 rows.")
         ),
     )
+    picture = _random_rigs_picture(source, work, Path(__file__).resolve().parent.parent / PICTURE)
+    report.text(
+        f"![one frame for three random rigs]({PICTURE})\n\n"
+        "One frame of the first scene rendered (truth geometry) for three random rigs (`--rig random`, "
+        "seeds 0, 1, 2: field of view, image size, mounting height, pitch, yaw and lateral offset drawn "
+        f"around the waymo5 rig), one row per rig, its cameras left to right: `{picture.name}`."
+    )
     report.write()
+
+
+PICTURE = "docs/images/render_random_rigs.png"
+
+
+def _random_rigs_picture(source: Path, work: Path, path: Path) -> Path:
+    """Frame 0 of the first scene for three random rigs, one row each, cameras side by side."""
+    from PIL import Image, ImageDraw
+
+    scene = CacheReader(source).scene_ids()[0]
+    rows = []
+    for seed in (0, 1, 2):
+        out = work / f"random-{seed}"
+        shutil.rmtree(out, ignore_errors=True)
+        render(
+            None,
+            source,
+            "random",
+            out,
+            geometry="truth",
+            seed=seed,
+            scenes=[scene],
+            max_frames=1,
+            progress=False,
+        )
+        frame = CacheReader(out).frame(0, decode_truth=False)
+        tiles = []
+        for cam in frame.cameras:
+            tile = Image.fromarray(cam.decode_image())
+            tile = tile.resize((round(tile.width * 120 / tile.height), 120))
+            ImageDraw.Draw(tile).text(
+                (3, 2), f"{cam.calibration.name} {cam.calibration.width}x{cam.calibration.height}"
+            )
+            tiles.append(np.asarray(tile))
+        row = np.concatenate([np.pad(t, ((0, 0), (0, 4), (0, 0))) for t in tiles], axis=1)
+        rows.append(row)
+    width = max(r.shape[1] for r in rows)
+    canvas = np.concatenate([np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0))) for r in rows], axis=0)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(canvas).save(path)
+    return path
 
 
 if __name__ == "__main__":
