@@ -190,9 +190,13 @@ def test_the_rendered_cache_verifies_opens_with_plain_pyarrow_and_resumes(
     with pa.memory_map(str(shard)) as f:
         table = ipc.open_file(f).read_all()
     assert table.num_rows == FRAMES and "cameras" in table.column_names
-    # A rerun of the same command resumes (nothing left to do); other arguments are refused.
+    # A rerun of the same command resumes (nothing left to do), removing what an interrupted run
+    # left; other arguments are refused.
+    leftover = out_dir / "shards" / "x.arrow.tmp-123"
+    leftover.write_bytes(b"partial")
     again = render(None, cache, "random", out_dir, geometry="cache", seed=3, progress=False)
-    assert again.skipped == [SCENE] and again.frames == 0
+    assert again.skipped == [SCENE] and again.frames == 0 and not leftover.exists()
+    assert verify_cache(out_dir).ok
     with pytest.raises(ValueError, match="other arguments"):
         render(None, cache, "random", out_dir, geometry="cache", seed=4, progress=False)
 

@@ -33,6 +33,7 @@ import contextlib
 import ctypes
 import hashlib
 import json
+import logging
 import os
 import sys
 import uuid
@@ -45,6 +46,8 @@ from typing import Any
 import pyarrow as pa
 
 from phigenesis.errors import CacheError, PrepError
+
+log = logging.getLogger(__name__)
 
 MANIFEST_NAME = "manifest.json"
 SHARDS_DIR = "shards"
@@ -895,6 +898,17 @@ class ShardReader:
     @property
     def schema(self) -> pa.Schema:
         return self._reader.schema
+
+
+def remove_unfinished_shards(cache_dir: str | os.PathLike[str]) -> None:
+    """Removes the temporary shard files an interrupted run left in ``cache_dir`` (only plain files
+    ``shards/*.tmp-*``): what a resuming writer calls before writing again."""
+    shard_dir = Path(cache_dir) / SHARDS_DIR
+    if shard_dir.is_dir():
+        for p in shard_dir.iterdir():
+            if TMP_MARKER in p.name and p.is_file() and not p.is_symlink():
+                log.info("removing %s, left by an interrupted run", p)
+                p.unlink()
 
 
 class CacheReader:

@@ -71,6 +71,7 @@ from phigenesis.data.shards import (
     Manifest,
     SceneEntry,
     ShardWriter,
+    remove_unfinished_shards,
 )
 from phigenesis.infer.conditions import (
     TargetCameras,
@@ -166,7 +167,7 @@ class CameraRender:
     semantic: np.ndarray  # (H, W) uint8 class where covered, 255 elsewhere
 
 
-def _distortion_grid(cal: CameraCalibration) -> Tensor | None:
+def distortion_grid_of(cal: CameraCalibration) -> Tensor | None:
     """grid_sample grid [1, H, W, 2] taking each pixel of the distorted camera to where its ray lands
     in the pinhole image of the same K (None for a camera without distortion)."""
     if not np.any(cal.distortion):
@@ -195,10 +196,13 @@ def render_camera(
     time_s: float,
     sky: Tensor | None,
     model: Stage1Model | None,
+    distortion_grid: Tensor | None = None,
 ) -> CameraRender:
     """``gaussians`` seen by camera ``cal`` on the ego at ``world_from_ego`` (world frame), at
     ``time_s`` seconds after the Gaussians' time origin. The sky behind: ``model``'s sky where a
-    model is given, else the constant colour ``sky`` (3,) in [0, 1]."""
+    model is given, else the constant colour ``sky`` (3,) in [0, 1]. ``distortion_grid``: the
+    camera's :func:`distortion_grid_of`, computed once per camera by a caller rendering many frames
+    (None: computed here)."""
     h, w = cal.height, cal.width
     world_from_camera = torch.from_numpy(world_from_ego @ cal.ego_from_camera)[None, None]
     k = torch.from_numpy(cal.intrinsics).float()[None]
@@ -214,7 +218,7 @@ def render_camera(
     depth = out.depth[0, 0]
     assert out.semantic is not None
     semantic = out.semantic[0, 0]
-    grid = _distortion_grid(cal)
+    grid = distortion_grid_of(cal) if distortion_grid is None else distortion_grid
     if grid is not None:
         rgb = _resample(rgb, grid, "bilinear")
         # Outside the pinhole image: nothing rendered; the sky there is the nearest border's.
@@ -346,6 +350,7 @@ def _open_output(out: Path, fp: str) -> Manifest | None:
                 f"{out}: holds a cache made with other arguments (fingerprint {manifest.fingerprint}, "
                 f"this run's {fp}); choose a new folder"
             )
+        remove_unfinished_shards(out)
         return manifest
     if any(out.iterdir()):
         raise ValueError(f"{out}: exists, is not empty and holds no cache; choose a new folder")
@@ -487,6 +492,7 @@ def render(
         )
         rigs[scene_id] = scene_rig.to_dict()
         track = scene_pose_track(frames)
+        grids = [distortion_grid_of(cal) for cal in scene_rig.cameras]
         schema = frame_schema(
             CacheContents(
                 camera_truth=(),
@@ -515,7 +521,9 @@ def render(
                 gaussians = _gaussians(geometry, clip, model)
                 sky = None if model is not None else _sky_colour(clip)
                 cameras = []
-                for cal, offset in zip(scene_rig.cameras, scene_rig.time_offsets_micros, strict=True):
+                for cal, offset, grid in zip(
+                    scene_rig.cameras, scene_rig.time_offsets_micros, grids, strict=True
+                ):
                     t_cam = frame.timestamp_micros + int(offset)
                     if track.outside_micros(t_cam):
                         log.debug(
@@ -523,7 +531,7 @@ def render(
                         )
                     pose = track.at(t_cam)
                     t_s = (t_cam - clip.time_origin_micros) * 1e-6
-                    shot = render_camera(gaussians, cal, pose, t_s, sky, model)
+                    shot = render_camera(gaussians, cal, pose, t_s, sky, model, grid)
                     cameras.append(rendered_camera(frame, cal, t_cam, pose, shot, ego_boxes))
                 new = Frame(
                     scene_id, k, frame.timestamp_micros, frame.world_from_ego, cameras, frame.lidar,

@@ -46,13 +46,12 @@ from phigenesis.data.pipeline import fingerprint
 from phigenesis.data.schema import SCHEMA_VERSION
 from phigenesis.data.shards import (
     MANIFEST_NAME,
-    SHARDS_DIR,
-    TMP_MARKER,
     CacheError,
     CacheReader,
     Manifest,
     SceneEntry,
     ShardWriter,
+    remove_unfinished_shards,
 )
 from phigenesis.infer.conditions import (
     GEOMETRY_SOURCES,
@@ -390,16 +389,6 @@ class Stage2Latents:
 # The cache
 
 
-def _remove_unfinished(out: Path) -> None:
-    """Removes temporary shard files an interrupted run left (only ``shards/*.tmp-*`` files)."""
-    shard_dir = out / SHARDS_DIR
-    if shard_dir.is_dir():
-        for p in shard_dir.iterdir():
-            if TMP_MARKER in p.name and p.is_file() and not p.is_symlink():
-                log.info("removing %s, left by an interrupted run", p)
-                p.unlink()
-
-
 def precompute_stage2(
     shards: str | os.PathLike[str],
     out: str | os.PathLike[str],
@@ -444,7 +433,7 @@ def precompute_stage2(
                 f"{out}: holds a latent cache made from other inputs (its arguments: "
                 f"{json.dumps(manifest.arguments, default=str)[:300]}); choose another --out"
             )
-        _remove_unfinished(out)
+        remove_unfinished_shards(out)
     else:
         out.mkdir(parents=True, exist_ok=True)
         manifest = Manifest(SCHEMA_VERSION, LATENT_SOURCE, arguments, {}, fp, phigenesis_version=__version__)
