@@ -318,7 +318,7 @@ BAD_MANIFESTS: dict[str, tuple[Callable[[Any], Any], str]] = {
         _setting(_row(0), 0, -5),
         "shards[0].row_index[0][0]: -5 is not a non-negative integer",
     ),
-    "a row of the wrong width": (_row_1_one_value_short, "integers (end, body start, metadata CRC-32 and"),
+    "a row of the wrong width": (_row_1_one_value_short, "integers (end, body start, metadata CRC and"),
     "row ends not increasing": (_previous_end, "shards[0].row_index[1][0]: row end"),
     "a row end past the file": (_end_past_file, "is past the end of the file"),
     "a body start outside its row": (_body_before_row, "shards[0].row_index[1][1]: body start"),
@@ -330,8 +330,16 @@ BAD_MANIFESTS: dict[str, tuple[Callable[[Any], Any], str]] = {
         _setting(_shard0, "footer_crc32", -1),
         "shards[0].footer_crc32: -1 is not an integer in [0, 4294967295]",
     ),
-    "a SHA-256 that is not hex": (
-        _setting(_shard0, "sha256", "xyz"),
+    "a file CRC of more than 32 bits": (
+        _setting(_shard0, "file_crc32c", 1 << 32),
+        "shards[0].file_crc32c: 4294967296 is not an integer in [0, 4294967295]",
+    ),
+    "an unknown checksum": (
+        _setting(_shard0, "checksum", "md5"),
+        'shards[0].checksum: "md5" is not one of',
+    ),
+    "a legacy entry's SHA-256 that is not hex": (
+        lambda d: (_shard0(d).update(checksum="crc32", sha256="xyz"), d)[1],
         'shards[0].sha256: "xyz" is not a SHA-256 hex digest',
     ),
     "a missing field": (_deleting(_shard0, "bytes"), "shards[0].bytes: missing"),
@@ -445,8 +453,8 @@ def test_verify_reports_a_wrong_column_crc_in_the_manifest_by_shard_row_and_colu
     cache, shard = corrupt_index(tiny_cache, tmp_path, edit)
     report = verify_cache(cache)
     assert report.errors == [
-        f"{shard}: row 1, column 'cameras': CRC-32 mismatch "
-        "(the file matches its SHA-256: the manifest's index of it is wrong)"
+        f"{shard}: row 1, column 'cameras': CRC-32C mismatch "
+        "(the file matches its whole-file CRC-32C: the manifest's index of it is wrong)"
     ]
     with pytest.raises(CacheError, match=r"row 1, column 'cameras' is corrupt"):
         CacheReader(cache).read(1)  # what verify reports is what the reader refuses
@@ -461,10 +469,10 @@ def test_verify_reports_a_wrong_metadata_crc_and_a_wrong_footer_crc_each_on_its_
 
     cache, shard = corrupt_index(tiny_cache, tmp_path, edit)
     report = verify_cache(cache)
-    why = "(the file matches its SHA-256: the manifest's index of it is wrong)"
+    why = "(the file matches its whole-file CRC-32C: the manifest's index of it is wrong)"
     assert report.errors == [
-        f"{shard}: footer: CRC-32 mismatch {why}",
-        f"{shard}: row 2 (metadata): CRC-32 mismatch {why}",
+        f"{shard}: footer: CRC-32C mismatch {why}",
+        f"{shard}: row 2 (metadata): CRC-32C mismatch {why}",
     ]
     assert report.frames == TINY_PREP_ARGS["frames"]  # the other shard's frames are sound
     with pytest.raises(CacheError, match="the footer is corrupt"):
@@ -493,7 +501,8 @@ def test_verify_names_every_damaged_row_and_column_of_a_corrupt_file(
     path.write_bytes(bytes(data))
     report = verify_cache(cache)
     assert report.errors == [
-        f"{path}: row {row}, column {column!r}: CRC-32 mismatch (SHA-256 mismatch: the file is corrupt)"
+        f"{path}: row {row}, column {column!r}: CRC-32C mismatch "
+        "(whole-file CRC-32C mismatch: the file is corrupt)"
         for row, column in damaged
     ]
 
@@ -1057,3 +1066,40 @@ def test_a_row_holding_an_invalid_value_is_a_cache_error_naming_shard_row_and_fi
     with pytest.raises(CacheError) as e:
         reader.frame(1)
     assert str(e.value).startswith(f"{cache / info.path}: row 1: world_from_ego is not a rigid transform")
+
+
+def _as_legacy_checksums(cache: Path) -> None:
+    """Rewrites ``cache``'s manifest as toolkits before CRC-32C wrote it: zlib CRC-32s of the same
+    ranges and a SHA-256 of each file, no ``checksum`` field."""
+    d = read_manifest(cache)
+    for entry in d["shards"]:
+        legacy = shards.shard_info(
+            cache / entry["path"], entry["scene_id"], [row[0] for row in entry["row_index"]], "crc32"
+        )
+        entry.update(row_index=legacy.row_index, footer_crc32=legacy.footer_crc32, sha256=legacy.sha256)
+        del entry["checksum"], entry["file_crc32c"]
+    write_manifest(cache, d)
+
+
+def test_a_cache_with_the_older_crc32_and_sha256_entries_reads_and_verifies(
+    tiny_cache: Path, tmp_path: Path
+) -> None:
+    cache = copy_cache(tiny_cache, tmp_path / "cache")
+    _as_legacy_checksums(cache)
+    manifest = Manifest.load(cache)
+    assert {sh.checksum for sh in manifest.shards} == {"crc32"} and all(sh.sha256 for sh in manifest.shards)
+    assert verify_cache(cache).ok
+    fresh = CacheReader(tiny_cache)
+    assert all(CacheReader(cache).read(i).equals(fresh.read(i)) for i in range(len(fresh)))
+    info = manifest.shards[0]
+    path = cache / info.path
+    buffer = pa.py_buffer(path.read_bytes())
+    lo, hi = shards.column_range(pa.ipc.open_file(buffer).get_batch(1).column("cameras"), buffer.address)
+    data = bytearray(path.read_bytes())
+    data[(lo + hi) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    assert verify_cache(cache).errors == [
+        f"{path}: row 1, column 'cameras': CRC-32 mismatch (SHA-256 mismatch: the file is corrupt)"
+    ]
+    with pytest.raises(CacheError, match=r"row 1, column 'cameras' is corrupt \(CRC-32 mismatch"):
+        CacheReader(cache).read(1)

@@ -334,6 +334,18 @@ def test_beam_inclination_count_mismatch() -> None:
         convert.laser_points(RawLaser(1, ri, None, pose), good, np.eye(4))
 
 
+@pytest.fixture(autouse=True, params=["native", "numpy"])
+def range_kernel(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Every test here on both range-image paths: the native kernel (where it builds) and numpy."""
+    from phigenesis.data.native import load_range_points
+
+    if request.param == "numpy":
+        monkeypatch.setattr(convert, "load_range_points", lambda: None)
+    elif load_range_points() is None:
+        pytest.skip("the native range-image kernel is not built here")
+    return str(request.param)
+
+
 GLOBAL_T = np.array([41234.567, -38765.4321, 123.45])
 
 

@@ -7,13 +7,15 @@ Layout of a cache directory::
     .phigenesis.lock       held by the one prep run writing the cache (see cache_lock.py)
     .phigenesis-staging/   the new version an ``overwrite`` run builds before swapping it in
 
-Integrity: the manifest records each shard's size and SHA-256 and, for every record batch (row),
-where it ends, where its body starts, the CRC-32 of its metadata and the CRC-32 of each top-level
-column's bytes, plus the CRC-32 of the file footer. The reader checks a shard's size and footer
-when it opens it, and a row's metadata and the columns it returns when it reads the row: a flipped
-byte in anything a caller reads raises an error naming the shard, row and column, and reading only
-the images of a frame never hashes its LiDAR. :func:`verify_cache` re-hashes everything. The
-writer computes all of these from the bytes as it writes them, never reading a shard back.
+Integrity: the manifest records each shard's size and CRC-32C and, for every record batch (row),
+where it ends, where its body starts, the CRC-32C of its metadata and of each top-level column's
+bytes, plus the CRC-32C of the file footer (caches written before CRC-32C carry zlib CRC-32s and a
+SHA-256 of the file instead, and are read and verified as such; see :data:`SHARD_CHECKSUM`). The
+reader checks a shard's size and footer when it opens it, and a row's metadata and the columns it
+returns when it reads the row: a flipped byte in anything a caller reads raises an error naming the
+shard, row and column, and reading only the images of a frame never hashes its LiDAR.
+:func:`verify_cache` re-hashes everything. The writer computes all of these from the bytes as it
+writes them, never reading a shard back.
 
 Trust: a manifest is untrusted input. :meth:`Manifest.load` checks it against the cache's schema
 once (every field's type and range, the row index's shape, scenes and shards agreeing with each
@@ -43,6 +45,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
 
+import google_crc32c
 import pyarrow as pa
 
 from phigenesis.errors import CacheError, PrepError
@@ -123,6 +126,49 @@ def sha256_file(path: Path, chunk: int = 1 << 22) -> str:
     return h.hexdigest()
 
 
+def crc32c_file(path: Path, chunk: int = 1 << 22) -> int:
+    """CRC-32C of a whole file (what a shard's ``file_crc32c`` records)."""
+    crc = 0
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            crc = google_crc32c.extend(crc, block)
+    return crc
+
+
+# --------------------------------------------------------------------------------------------
+# Checksums
+
+#: The checksum of every shard this toolkit writes: CRC-32C (Castagnoli, as TFRecord and ext4 use),
+#: which SSE 4.2 / ARMv8 compute at over 20 GB/s, of every row's metadata, every column, the footer
+#: and the whole file. ``"crc32"`` (zlib's CRC-32 of the same ranges, with a SHA-256 of the whole
+#: file) is the format of caches written before it: still read and verified.
+SHARD_CHECKSUM = "crc32c"
+CHECKSUMS = ("crc32c", "crc32")
+
+
+def crc_of(checksum: str, data: pa.Buffer) -> int:
+    """The ``checksum`` (one of :data:`CHECKSUMS`) of the bytes of ``data`` (no copy)."""
+    if checksum == "crc32c":
+        return google_crc32c.value(data)
+    return zlib.crc32(data)
+
+
+def _crc_range(checksum: str, data: pa.Buffer, lo: int, hi: int) -> int:
+    """:func:`crc_of` of ``data[lo:hi]``."""
+    return crc_of(checksum, data.slice(lo, hi - lo))
+
+
+def _crc_name(info: ShardInfo) -> str:
+    return "CRC-32C" if info.checksum == "crc32c" else "CRC-32"
+
+
+if google_crc32c.implementation != "c":
+    log.warning(
+        "google-crc32c has no compiled implementation here: cache checksums will be slow "
+        "(reinstall google-crc32c from a binary wheel)"
+    )
+
+
 # --------------------------------------------------------------------------------------------
 # Shard writer
 
@@ -136,22 +182,36 @@ class ShardInfo:
         scene_id: the scene whose frames it holds.
         rows: number of rows (frames), one record batch each.
         bytes: file size.
-        sha256: hex digest of the whole file.
+        sha256: hex digest of the whole file (``checksum`` ``"crc32"`` only), else None.
         columns: the top-level columns, in schema order.
-        row_index: per row ``[end, body_start, metadata_crc32, crc32 of each column...]``: the byte
+        row_index: per row ``[end, body_start, metadata_crc, crc of each column...]``: the byte
             offset where the row's record batch ends, where its body (the column buffers) starts,
-            the CRC-32 of the bytes from the row's start to its body, and of each column's bytes.
-        footer_crc32: CRC-32 of the bytes from the last row's end to the end of the file.
+            the CRC of the bytes from the row's start to its body, and of each column's bytes.
+        footer_crc32: CRC of the bytes from the last row's end to the end of the file (the name is
+            the manifest's field; its algorithm is ``checksum``'s).
+        checksum: the CRC of every range above (:data:`CHECKSUMS`); ``"crc32"`` for manifests
+            written before CRC-32C, which name none.
+        file_crc32c: CRC-32C of the whole file (``checksum`` ``"crc32c"``), else None.
     """
 
     path: str
     scene_id: str
     rows: int
     bytes: int
-    sha256: str
+    sha256: str | None
     columns: list[str] = field(default_factory=list)
     row_index: list[list[int]] = field(default_factory=list)
     footer_crc32: int = 0
+    checksum: str = "crc32"
+    file_crc32c: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The manifest's entry (the whole-file digest of the other checksum left out)."""
+        d = asdict(self)
+        for name in ("sha256", "file_crc32c"):
+            if d[name] is None:
+                del d[name]
+        return d
 
     def row_start(self, row: int) -> int:
         """Byte offset where ``row``'s record batch starts (row 0 starts with the file)."""
@@ -208,11 +268,11 @@ _start_writeback = _writeback_starter()
 
 class _HashingSink:
     """The sink a shard's IPC writer writes into: it holds what the writer writes until
-    :meth:`take` passes it on to the file and to the file's SHA-256 (in file order), and returns
+    :meth:`take` passes it on to the file and to the file's CRC-32C (in file order), and returns
     it for indexing. The writer takes each row as soon as ``write_batch`` returns, and the footer
-    at the end, so the shard's hashes are computed from the bytes as they are written and nothing
-    is read back. The buffer is reused from row to row (fresh pages for every row would cost the
-    kernel's zeroing of them)."""
+    at the end, so the shard's checksums are computed from the bytes as they are written and
+    nothing is read back. The buffer is reused from row to row (fresh pages for every row would
+    cost the kernel's zeroing of them)."""
 
     def __init__(self, file: Any):
         self._file = file
@@ -220,7 +280,8 @@ class _HashingSink:
         # fsync that completes the shard does not wait for all of it (it cost 2.5-3 ms a frame).
         fileno = getattr(file, "fileno", None)
         self._fd: int | None = fileno() if fileno is not None and _start_writeback is not None else None
-        self.sha256 = hashlib.sha256()
+        #: CRC-32C of the bytes passed on to the file so far.
+        self.file_crc32c = 0
         #: Bytes passed on to the file so far.
         self.flushed = 0
         self._buffer = bytearray(1 << 20)
@@ -239,14 +300,14 @@ class _HashingSink:
         self._held = end
         return len(chunk)
 
-    def take(self) -> memoryview:
+    def take(self) -> pa.Buffer:
         """What was written since the last call (valid until the next write), after writing it to
-        the file and adding it to the SHA-256."""
-        data = self._view[: self._held]
+        the file and adding it to the file's CRC-32C."""
+        data = pa.py_buffer(self._view[: self._held])
         self._file.write(data)
         if self._fd is not None and _start_writeback is not None:
             _start_writeback(self._fd, self.flushed, self._held)  # advisory: the fsync checks the write
-        self.sha256.update(data)
+        self.file_crc32c = google_crc32c.extend(self.file_crc32c, data)
         self.flushed += self._held
         self._held = 0
         return data
@@ -270,17 +331,16 @@ class _HashingSink:
         self._file.close()
 
 
-def _row_entry(row: memoryview, start: int, schema: pa.Schema, where: str) -> list[int]:
-    """The row index entry ``[end, body_start, metadata_crc32, crc32 of each column...]`` of one
-    record batch, from the bytes the IPC writer wrote for it (``row``, starting at file offset
-    ``start``; row 0 also holds the file's magic and schema).
+def _row_entry(buffer: pa.Buffer, start: int, schema: pa.Schema, where: str) -> list[int]:
+    """The row index entry ``[end, body_start, metadata_crc, crc of each column...]`` (CRC-32C) of
+    one record batch, from the bytes the IPC writer wrote for it (``buffer``, starting at file
+    offset ``start``; row 0 also holds the file's magic and schema).
 
-    The batch is decoded zero-copy from ``row``, so each column's byte range is the span of its
+    The batch is decoded zero-copy from ``buffer``, so each column's byte range is the span of its
     buffers' addresses, as :func:`shard_info` finds them in a finished file."""
-    buffer = pa.py_buffer(row)
     skip = 0
     if start == 0:
-        if bytes(row[: len(_IPC_FILE_MAGIC)]) != _IPC_FILE_MAGIC:
+        if buffer.slice(0, len(_IPC_FILE_MAGIC)).to_pybytes() != _IPC_FILE_MAGIC:
             raise CacheError(f"{where}: the IPC writer did not start the file with Arrow's magic bytes")
         skip = len(_IPC_FILE_MAGIC)
     messages = pa.ipc.MessageReader.open_stream(buffer.slice(skip))
@@ -288,12 +348,13 @@ def _row_entry(row: memoryview, start: int, schema: pa.Schema, where: str) -> li
     while message.type != "record batch":
         message = messages.read_next_message()
     ranges = column_ranges(pa.ipc.read_record_batch(message, schema), buffer.address)
-    end = len(row)
+    end = buffer.size
     body_start = min((lo for lo, hi in ranges if hi > lo), default=end)
     if not all(0 <= lo <= hi <= end for lo, hi in ranges if hi > lo):
         raise CacheError(f"{where}: a row's buffers lie outside its record batch; cannot index it")
-    return [start + end, start + body_start, zlib.crc32(row[:body_start])] + [
-        zlib.crc32(row[lo:hi]) for lo, hi in ranges
+    crc = SHARD_CHECKSUM
+    return [start + end, start + body_start, _crc_range(crc, buffer, 0, body_start)] + [
+        _crc_range(crc, buffer, lo, hi) for lo, hi in ranges
     ]
 
 
@@ -305,8 +366,8 @@ class ShardWriter:
     complete shards comes back from :meth:`close`. Use as a context manager: on an exception the
     unfinished temporary file is removed.
 
-    The manifest's hashes of a shard (its SHA-256, each row's metadata and column CRC-32s, the
-    footer's) are computed from the bytes as they are written (:class:`_HashingSink`): the same
+    The manifest's checksums of a shard (CRC-32C of the whole file, of each row's metadata and
+    columns, of the footer) are computed from the bytes as they are written (:class:`_HashingSink`): the same
     values :func:`shard_info` computes by reading the finished file back.
     """
 
@@ -370,8 +431,9 @@ class ShardWriter:
     def _finish_shard(self) -> None:
         assert self._writer is not None and self._sink is not None and self._tmp is not None
         self._writer.close()
-        footer_crc32 = zlib.crc32(self._sink.take())  # from the last row's end to the end of the file
-        size, sha256 = self._sink.flushed, self._sink.sha256.hexdigest()
+        # The footer: from the last row's end to the end of the file.
+        footer_crc32 = crc_of(SHARD_CHECKSUM, self._sink.take())
+        size, file_crc32c = self._sink.flushed, self._sink.file_crc32c
         self._sink.close()
         with open(self._tmp, "rb+") as fh:
             os.fsync(fh.fileno())
@@ -385,10 +447,12 @@ class ShardWriter:
                 scene_id=self.scene_id,
                 rows=len(rows),
                 bytes=size,
-                sha256=sha256,
+                sha256=None,
                 columns=list(self.schema.names),
                 row_index=rows,
                 footer_crc32=footer_crc32,
+                checksum=SHARD_CHECKSUM,
+                file_crc32c=file_crc32c,
             )
         )
         self._writer = self._sink = self._tmp = None
@@ -421,16 +485,17 @@ class ShardWriter:
         self._writer = self._sink = self._tmp = None
 
 
-def shard_info(path: Path, scene_id: str, row_ends: list[int]) -> ShardInfo:
-    """Size, SHA-256 and the per-row, per-column CRC index of a finished shard file, read back
-    from disk: the reference the writer's hashes (computed as it writes) are tested against.
+def shard_info(path: Path, scene_id: str, row_ends: list[int], checksum: str = SHARD_CHECKSUM) -> ShardInfo:
+    """Size, whole-file digest and the per-row, per-column CRC index of a finished shard file, read
+    back from disk: the reference the writer's checksums (computed as it writes) are tested against.
 
-    ``row_ends`` are the file positions after each record batch, as the writer saw them.
+    ``row_ends`` are the file positions after each record batch, as the writer saw them;
+    ``checksum`` one of :data:`CHECKSUMS` (``"crc32"`` gives the older format: zlib CRC-32s and a
+    SHA-256).
     """
     data = Path(path).read_bytes()
     buffer = pa.py_buffer(data)
     reader = pa.ipc.open_file(buffer)
-    view = memoryview(data)
     if reader.num_record_batches != len(row_ends):
         raise CacheError(
             f"{path}: {reader.num_record_batches} record batches, the writer wrote {len(row_ends)}"
@@ -442,19 +507,22 @@ def shard_info(path: Path, scene_id: str, row_ends: list[int]) -> ShardInfo:
         if not all(start <= lo <= hi <= end for lo, hi in ranges if hi > lo):
             raise CacheError(f"{path}: row {i}'s buffers lie outside its record batch; cannot index it")
         row_index.append(
-            [end, body_start, zlib.crc32(view[start:body_start])]
-            + [zlib.crc32(view[lo:hi]) for lo, hi in ranges]
+            [end, body_start, _crc_range(checksum, buffer, start, body_start)]
+            + [_crc_range(checksum, buffer, lo, hi) for lo, hi in ranges]
         )
         start = end
+    legacy = checksum == "crc32"
     return ShardInfo(
         path=Path(path).name,
         scene_id=scene_id,
         rows=reader.num_record_batches,
         bytes=len(data),
-        sha256=hashlib.sha256(data).hexdigest(),
+        sha256=hashlib.sha256(data).hexdigest() if legacy else None,
         columns=list(reader.schema.names),
         row_index=row_index,
-        footer_crc32=zlib.crc32(view[start:]),
+        footer_crc32=_crc_range(checksum, buffer, start, len(data)),
+        checksum=checksum,
+        file_crc32c=None if legacy else crc_of("crc32c", buffer),
     )
 
 
@@ -518,6 +586,7 @@ class Manifest:
 
     def to_json(self) -> str:
         d = asdict(self)
+        d["shards"] = [sh.to_dict() for sh in self.shards]
         return json.dumps(d, indent=1, sort_keys=False)
 
     def save(self, cache_dir: Path) -> None:
@@ -717,15 +786,24 @@ def _parse_shard(file: Path, i: int, value: object) -> ShardInfo:
     scene_id = f.string("scene_id")
     rows = f.integer("rows")
     size = f.integer("bytes")
-    sha256 = f.string("sha256")
-    if len(sha256) != 64 or not set(sha256) <= set("0123456789abcdef"):
-        raise f.error("sha256", f"{_show(sha256)} is not a SHA-256 hex digest")
+    checksum = f.string("checksum", "crc32")
+    if checksum not in CHECKSUMS:
+        raise f.error("checksum", f"{_show(checksum)} is not one of {list(CHECKSUMS)}")
+    sha256, file_crc32c = None, None
+    if checksum == "crc32":
+        sha256 = f.string("sha256")
+        if len(sha256) != 64 or not set(sha256) <= set("0123456789abcdef"):
+            raise f.error("sha256", f"{_show(sha256)} is not a SHA-256 hex digest")
+    else:
+        file_crc32c = f.integer("file_crc32c", 0, CRC32_MAX)
     columns = f.strings("columns")
     if len(set(columns)) != len(columns):
         raise f.error("columns", f"{_show(columns)} names a column twice")
     row_index = _parse_row_index(f, rows, len(columns), size)
     footer_crc32 = f.integer("footer_crc32", 0, CRC32_MAX)
-    return ShardInfo(path, scene_id, rows, size, sha256, columns, row_index, footer_crc32)
+    return ShardInfo(
+        path, scene_id, rows, size, sha256, columns, row_index, footer_crc32, checksum, file_crc32c
+    )
 
 
 def _parse_row_index(f: _Fields, rows: int, columns: int, size: int) -> list[list[int]]:
@@ -742,7 +820,7 @@ def _parse_row_index(f: _Fields, rows: int, columns: int, size: int) -> list[lis
         if not isinstance(entry, list) or len(entry) != width:
             raise CacheError(
                 f"{where}: {_show(entry)} is not {width} integers "
-                f"(end, body start, metadata CRC-32 and a CRC-32 for each of {columns} columns)"
+                f"(end, body start, metadata CRC and a CRC for each of {columns} columns)"
             )
         for k, v in enumerate(entry):
             problem = _integer_problem(v, 0, CRC32_MAX if k >= 2 else None)
@@ -846,7 +924,6 @@ class ShardReader:
             )
         self._mmap = pa.memory_map(str(self.path), "r")
         self._buffer = self._mmap.read_buffer()
-        self._view = memoryview(self._buffer)
         if check_crc:
             self._check(info.footer_start, info.bytes, info.footer_crc32, "the footer")
         try:
@@ -861,8 +938,10 @@ class ShardReader:
         self._checked: set[tuple[int, int]] = set()  # (row, column index; -1: metadata) seen intact
 
     def _check(self, start: int, end: int, expected: int, what: str) -> None:
-        if zlib.crc32(self._view[start:end]) != expected:
-            raise CacheError(f"{self.path}: {what} is corrupt (CRC-32 mismatch in bytes {start}..{end})")
+        if _crc_range(self.info.checksum, self._buffer, start, end) != expected:
+            raise CacheError(
+                f"{self.path}: {what} is corrupt ({_crc_name(self.info)} mismatch in bytes {start}..{end})"
+            )
 
     def __len__(self) -> int:
         return self.info.rows
@@ -1064,28 +1143,31 @@ def _shard_problems(cache_dir: Path, info: ShardInfo, schema_version: int) -> li
     size = path.stat().st_size
     if size != info.bytes:
         return [f"{path}: {size} bytes, manifest says {info.bytes}"]
+    digest = "SHA-256" if info.checksum == "crc32" else "whole-file CRC-32C"
     try:
         with pa.memory_map(str(path)) as mm:
             buffer = mm.read_buffer()
-            sha_ok = hashlib.sha256(memoryview(buffer)).hexdigest() == info.sha256
+            if info.checksum == "crc32":
+                file_ok = hashlib.sha256(memoryview(buffer)).hexdigest() == info.sha256
+            else:
+                file_ok = crc_of("crc32c", buffer) == info.file_crc32c
             damage = _content_problems(info, buffer, schema_version)
     except (OSError, pa.ArrowException) as e:
         return [f"{path}: cannot be read ({e})"]
-    if sha_ok:
-        why = "the file matches its SHA-256: the manifest's index of it is wrong"
+    if file_ok:
+        why = f"the file matches its {digest}: the manifest's index of it is wrong"
         return [f"{path}: {d} ({why})" for d in damage]
     if not damage:
-        return [f"{path}: SHA-256 mismatch (corrupt between the checked byte ranges)"]
-    return [f"{path}: {d} (SHA-256 mismatch: the file is corrupt)" for d in damage]
+        return [f"{path}: {digest} mismatch (corrupt between the checked byte ranges)"]
+    return [f"{path}: {d} ({digest} mismatch: the file is corrupt)" for d in damage]
 
 
 def _content_problems(info: ShardInfo, buffer: pa.Buffer, schema_version: int) -> list[str]:
     """What in a shard's bytes disagrees with its manifest entry: the footer, the Arrow
     structure (rows, columns, schema version), each row's metadata and each column's CRC."""
-    view = memoryview(buffer)
     problems = []
-    if zlib.crc32(view[info.footer_start :]) != info.footer_crc32:
-        problems.append("footer: CRC-32 mismatch")
+    if _crc_range(info.checksum, buffer, info.footer_start, buffer.size) != info.footer_crc32:
+        problems.append(f"footer: {_crc_name(info)} mismatch")
     try:
         reader = pa.ipc.open_file(buffer)
     except pa.ArrowInvalid as e:
@@ -1108,10 +1190,9 @@ def _row_problems(
 ) -> list[str]:
     """The checks the reader makes on one row: its metadata CRC, then each column's CRC over the
     column's bytes (which must lie inside the row)."""
-    view = memoryview(buffer)
     start, (end, body_start, metadata_crc32) = info.row_start(row), info.row_index[row][:3]
-    if zlib.crc32(view[start:body_start]) != metadata_crc32:
-        return [f"row {row} (metadata): CRC-32 mismatch"]
+    if _crc_range(info.checksum, buffer, start, body_start) != metadata_crc32:
+        return [f"row {row} (metadata): {_crc_name(info)} mismatch"]
     if not columns_ok:
         return []
     try:
@@ -1123,8 +1204,8 @@ def _row_problems(
         where = f"row {row}, column {info.columns[k]!r}"
         if hi > lo and not start <= lo <= hi <= end:
             problems.append(f"{where}: bytes {lo}..{hi} lie outside the row ({start}..{end})")
-        elif zlib.crc32(view[lo:hi]) != info.row_index[row][3 + k]:
-            problems.append(f"{where}: CRC-32 mismatch")
+        elif _crc_range(info.checksum, buffer, lo, hi) != info.row_index[row][3 + k]:
+            problems.append(f"{where}: {_crc_name(info)} mismatch")
     return problems
 
 

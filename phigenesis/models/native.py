@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 import platform
 import sys
 import threading
@@ -25,6 +24,8 @@ from pathlib import Path
 from types import ModuleType
 
 import torch
+
+from phigenesis.native_cache import cache_root, cpu_flags, native_enabled
 
 logger = logging.getLogger(__name__)
 
@@ -39,24 +40,6 @@ _module: ModuleType | None = None
 _failure: str | None = None
 
 
-def cache_root() -> Path:
-    """The folder holding native builds (see the module docstring)."""
-    if os.environ.get("PHIGENESIS_NATIVE_DIR"):
-        return Path(os.environ["PHIGENESIS_NATIVE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "phigenesis" / "native"
-
-
-def _cpu_flags() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith(("flags", "Features")):
-                return line
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def build_directory() -> Path:
     """Where this machine's build of the current source lives."""
     digest = hashlib.sha256()
@@ -65,7 +48,7 @@ def build_directory() -> Path:
         digest.update(source.read_bytes())
     for part in (repr((CFLAGS, LDFLAGS)).encode(), torch.__version__.encode()):
         digest.update(part)
-    digest.update(f"{sys.version_info[:2]} {platform.machine()} {_cpu_flags()}".encode())
+    digest.update(f"{sys.version_info[:2]} {platform.machine()} {cpu_flags()}".encode())
     return cache_root() / f"rasterize_cpu-{digest.hexdigest()[:16]}"
 
 
@@ -85,7 +68,7 @@ def load_rasterizer() -> ModuleType | None:
     with _lock:
         if _module is not None or _failure is not None:
             return _module
-        if os.environ.get("PHIGENESIS_NATIVE", "1") == "0":
+        if not native_enabled():
             _failure = "disabled by PHIGENESIS_NATIVE=0"
             return None
         build_dir = build_directory()

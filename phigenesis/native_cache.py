@@ -1,0 +1,38 @@
+"""Where compiled parts of the package live, and what a build depends on beyond its source.
+
+Native code (the CPU rasterizer, the range-image kernel) is compiled on first use into a cache
+folder, once per machine: ``$PHIGENESIS_NATIVE_DIR`` if set, else
+``$XDG_CACHE_HOME/phigenesis/native`` (``~/.cache/...``). Builds use ``-march=native``, so a build
+folder's name hashes this CPU's instruction set too (:func:`cpu_flags`): a shared home never hands
+one machine another's build. ``PHIGENESIS_NATIVE=0`` turns every native part off.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+
+
+def cache_root() -> Path:
+    """The folder holding native builds (see the module docstring)."""
+    if os.environ.get("PHIGENESIS_NATIVE_DIR"):
+        return Path(os.environ["PHIGENESIS_NATIVE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "phigenesis" / "native"
+
+
+def cpu_flags() -> str:
+    """This CPU's instruction-set flags line (``/proc/cpuinfo``), else the processor's name."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("flags", "Features")):
+                return line
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def native_enabled() -> bool:
+    """False when ``PHIGENESIS_NATIVE=0`` turns native code off."""
+    return os.environ.get("PHIGENESIS_NATIVE", "1") != "0"
