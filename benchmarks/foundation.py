@@ -427,8 +427,8 @@ def frame_costs(cache: SizedCache, passes: int) -> list[list[str]]:
     ms = {k: 1e3 * t / len(indices) for k, t in interleaved_medians(runs, passes).items()}
     total = ms["loader"]
     steps = [
-        (f"read the frame's {len(columns[0])} columns, CRC-32s checked", ms["read"]),
-        ("  of which the CRC-32 checks", ms["read"] - ms["read_unchecked"]),
+        (f"read the frame's {len(columns[0])} columns, CRC-32Cs checked", ms["read"]),
+        ("  of which the CRC-32C checks", ms["read"] - ms["read_unchecked"]),
         ("decode the JPEGs (the floor)", ms["floor"]),
         ("FrameDataset[i]: read + decode + de-interleave", ms["item"]),
         ("  beyond read and decode", ms["item"] - ms["read"] - ms["floor"]),
@@ -469,7 +469,7 @@ def report_image_sizes(report: Report, caches: list[SizedCache], passes: int) ->
         ["size", "step", "ms/frame", "share of DataLoader time"],
         cost_rows,
         "Medians of interleaved rounds as above; the indented rows are differences of the others. "
-        "Reading checks the CRC-32 of every column it returns: the `cameras` column holds every PNG "
+        "Reading checks the CRC-32C of every column it returns: the `cameras` column holds every PNG "
         "of the frame's cameras, not only the JPEGs, so its check covers more bytes than are decoded.",
     )
 
