@@ -267,6 +267,24 @@ def pose_to_transform(translation: ArrayLike, quaternion: ArrayLike) -> F64:
     return make_transform(quaternion_to_matrix(quaternion), translation)
 
 
+def pose_at_time(times: ArrayLike, poses: ArrayLike, quaternions: ArrayLike, t: float) -> F64:
+    """The 4x4 pose at time ``t`` of a track of ``poses`` (K, 4, 4) at strictly increasing ``times``
+    (K,) whose rotations are ``quaternions`` (K, 4) wxyz: position linear and rotation slerped
+    between the two times around ``t``, a recorded pose exactly at its time, the nearest end's pose
+    held outside the recorded span."""
+    times = np.asarray(times)
+    poses = np.asarray(poses, dtype=np.float64)
+    j = int(np.searchsorted(times, t))
+    if j < len(times) and times[j] == t:
+        return poses[j].copy()
+    if j == 0 or j == len(times):
+        return poses[0 if j == 0 else -1].copy()
+    i = j - 1
+    s = (t - times[i]) / (times[j] - times[i])
+    q = quaternion_slerp(quaternions[i], quaternions[j], s)
+    return pose_to_transform((1 - s) * poses[i, :3, 3] + s * poses[j, :3, 3], q)
+
+
 def yaw_pose_to_transform(translation: ArrayLike, yaw_rad: ArrayLike) -> F64:
     """4x4 transforms of upright poses (rotation about +z only)."""
     return make_transform(rotation_z(yaw_rad), translation)

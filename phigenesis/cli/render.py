@@ -5,8 +5,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from phigenesis.cli.common import Parser, positive, run, size_hw
+
+if TYPE_CHECKING:
+    from phigenesis.infer.insert import InsertSpec
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -41,6 +46,54 @@ def build_parser() -> argparse.ArgumentParser:
         default=1,
         help="join the Gaussians of this many frames up to each frame (default 1: the frame's own)",
     )
+    parser.add_argument(
+        "--insert",
+        metavar="ASSET",
+        help="insert this asset into every frame: a mesh trimesh reads (OBJ, GLB/GLTF, PLY, STL) made into "
+        "surface Gaussians, or a 3DGS PLY; its box joins the frames' boxes (needs --insert-pose or "
+        "--insert-path, and --insert-class)",
+    )
+    parser.add_argument(
+        "--insert-pose",
+        action="append",
+        metavar="POSE",
+        help="x,y,z[,yaw_deg][@t_s]: the asset's position (metres) and heading (degrees about +z) at t_s "
+        "seconds after the scene's first frame; repeat for a path (each with @t_s; linear in position, "
+        "slerped in heading; held before the first and after the last)",
+    )
+    parser.add_argument(
+        "--insert-path",
+        metavar="PATH",
+        help="a JSON or YAML file of keyframes instead of --insert-pose: "
+        "{keyframes: [{t_s, xyz, yaw_deg} or {t_s, world_from_asset}, ...]}",
+    )
+    parser.add_argument(
+        "--insert-frame",
+        choices=("world", "ego"),
+        default="world",
+        help="poses in the cache's world frame (default) or in the ego frame of each scene's first frame",
+    )
+    parser.add_argument("--insert-class", metavar="NAME", help="the asset's class (car, person, truck, ...)")
+    parser.add_argument(
+        "--insert-scale", type=float, default=1.0, help="the asset file's unit in metres (default 1)"
+    )
+    parser.add_argument(
+        "--insert-spacing",
+        type=float,
+        metavar="METRES",
+        help="spacing of a mesh's surface Gaussians (default: its bounding-box diagonal / 100)",
+    )
+    parser.add_argument(
+        "--insert-up",
+        choices=("z", "y"),
+        default="z",
+        help="the asset file's up axis: z (x forward, y left; default) or y (glTF: +Z forward)",
+    )
+    parser.add_argument(
+        "--export-ply",
+        metavar="DIR",
+        help="also write each scene's first rendered frame's (edited) Gaussians to DIR/<scene id>.ply",
+    )
     parser.add_argument("--threads", type=positive, help="torch threads")
     parser.add_argument("--out", required=True, help="new folder for the rendered cache (or a run to resume)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -48,10 +101,40 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _insert_specs(args: argparse.Namespace) -> list[InsertSpec]:
+    """The --insert options as InsertSpecs (AssetError naming the option that is wrong)."""
+    from phigenesis.infer.insert import AssetError, InsertSpec, load_path_file, parse_keyframe
+
+    given = [name for name in ("insert_pose", "insert_path", "insert_class") if getattr(args, name)]
+    if args.insert is None:
+        if given:
+            raise AssetError(f"--{given[0].replace('_', '-')} needs --insert ASSET")
+        return []
+    if (args.insert_pose is None) == (args.insert_path is None):
+        raise AssetError("--insert needs its pose: --insert-pose (repeatable) or --insert-path, not both")
+    if args.insert_class is None:
+        raise AssetError("--insert needs --insert-class NAME (the class of the asset's box)")
+    if args.insert_path is not None:
+        keyframes = load_path_file(args.insert_path)
+    else:
+        keyframes = [parse_keyframe(text) for text in args.insert_pose]
+    spec = InsertSpec(
+        Path(args.insert),
+        tuple(keyframes),
+        args.insert_class,
+        frame=args.insert_frame,
+        scale=args.insert_scale,
+        spacing_m=args.insert_spacing,
+        up=args.insert_up,
+    )
+    return [spec]
+
+
 def _render(args: argparse.Namespace) -> int:
     from phigenesis.infer.rig_render import render
 
     height, width = args.size if args.size else (None, None)
+    inserts = _insert_specs(args)
     result = render(
         args.ckpt,
         args.shards,
@@ -66,6 +149,8 @@ def _render(args: argparse.Namespace) -> int:
         history_frames=args.history_frames,
         progress=not args.no_progress,
         threads=args.threads,
+        insert=inserts,
+        export_ply=args.export_ply,
     )
     per_frame = result.seconds / max(result.frames, 1)
     print(
@@ -75,6 +160,8 @@ def _render(args: argparse.Namespace) -> int:
     if result.skipped:
         print(f"already rendered, skipped: {', '.join(result.skipped)}")
     print(f"cache: {result.out} (phigenesis-prep verify {result.out})")
+    if args.export_ply:
+        print(f"edited Gaussians: {args.export_ply}/<scene id>.ply")
     return 0
 
 

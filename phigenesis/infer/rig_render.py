@@ -27,6 +27,13 @@ drawn per scene), and written as a new cache in the same frame schema:
 - **Carried over unchanged**: the frame's pose and time, its LiDAR sweep and its 3D boxes (world
   frame), the scene's metadata (its ego body) plus the rig the scene was rendered with
   (``rendered_rig``).
+- **Inserted assets** (``insert``, :mod:`phigenesis.infer.insert`): each asset's Gaussians join the
+  frame's at their pose at each camera's own time, so they hide and are hidden by the scene like
+  its own Gaussians; their class labels the rendered pseudo labels; the frame's LiDAR points behind
+  an asset (in a camera's view) leave that camera's sparse depth; each asset's box (at the frame's
+  time) joins the frame's boxes. The LiDAR sweep itself is not edited. ``export_ply`` writes each
+  scene's first rendered frame's (edited) Gaussians as a 3DGS PLY, ``<export_ply>/<scene id>.ply``
+  (at the frame's time).
 
 The output verifies, previews and loads like any cache; its manifest (source ``rendered``) names
 the source cache and its fingerprint, the checkpoint and its SHA-256, the geometry, the rig
@@ -44,6 +51,7 @@ import json
 import logging
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -80,6 +88,15 @@ from phigenesis.infer.conditions import (
     render_condition,
     stage1_scene,
     truth_maps,
+)
+from phigenesis.infer.insert import (
+    Asset,
+    AssetError,
+    AssetPlacement,
+    InsertSpec,
+    asset_box,
+    placed_gaussians,
+    with_inserted_box,
 )
 from phigenesis.infer.rigs import RandomRigRanges, Rig, resolve_rig
 from phigenesis.models.gaussians import GaussianScene
@@ -124,17 +141,7 @@ class PoseTrack:
 
     def at(self, t_micros: int) -> np.ndarray:
         """(4, 4) float64 world_from_ego at ``t_micros``."""
-        times = self.times_micros
-        j = int(np.searchsorted(times, t_micros))
-        if j < len(times) and times[j] == t_micros:
-            return self.poses[j].copy()
-        if j == 0 or j == len(times):
-            return self.poses[0 if j == 0 else -1].copy()
-        i = j - 1
-        s = (t_micros - times[i]) / (times[j] - times[i])
-        q = geometry.quaternion_slerp(self.quaternions[i], self.quaternions[j], s)
-        position = (1 - s) * self.poses[i][:3, 3] + s * self.poses[j][:3, 3]
-        return geometry.pose_to_transform(position, q)
+        return geometry.pose_at_time(self.times_micros, self.poses, self.quaternions, t_micros)
 
 
 def scene_pose_track(frames: list[Frame]) -> PoseTrack:
@@ -249,14 +256,30 @@ def _sparse_depth(camera: CameraImage, frame: Frame, ego_boxes: list[dict]) -> C
     return depth
 
 
+def _hidden_by(sparse: CameraDepth, occluder: CameraRender) -> CameraDepth:
+    """``sparse`` without the points farther than what ``occluder`` (an inserted asset) covers."""
+    hidden = (occluder.depth_m > 0) & (sparse.sparse_m > occluder.depth_m)
+    if not hidden.any():
+        return sparse
+    keep = ~hidden
+    return CameraDepth(
+        np.where(keep, sparse.sparse_m, 0).astype(np.float32),
+        np.where(keep, sparse.sparse_confidence, 0).astype(np.float32),
+        np.where(keep, sparse.sparse_origin, 0).astype(np.uint8),
+    )
+
+
 def rendered_camera(
     frame: Frame, cal: CameraCalibration, t_micros: int, world_from_ego: np.ndarray, out: CameraRender,
-    ego_boxes: list[dict],
+    ego_boxes: list[dict], occluder: CameraRender | None = None,
 ) -> CameraImage:  # fmt: skip
     """The new camera's :class:`CameraImage` record: the render as image, dense depth and pseudo
-    labels, the frame's LiDAR as sparse depth."""
+    labels, the frame's LiDAR as sparse depth (less the points behind ``occluder``, the render of
+    the inserted assets alone, where there is one)."""
     camera = CameraImage(cal, int(t_micros), world_from_ego, encode_rgb(out.rgb))
     sparse = _sparse_depth(camera, frame, ego_boxes)
+    if occluder is not None:
+        sparse = _hidden_by(sparse, occluder)
     has = out.depth_m > 0
     depth = CameraDepth(
         sparse.sparse_m,
@@ -337,6 +360,29 @@ def _gaussians(geometry: str, clip: Clip, model: Stage1Model | None) -> Gaussian
     return lifted_scene(clip, *truth_maps(clip))
 
 
+def _placed(
+    assets: list[Asset], placements: list[AssetPlacement], t_micros: int, like: GaussianScene
+) -> GaussianScene:
+    """The Gaussians of every inserted asset at ``t_micros`` (one scene, like ``like``)."""
+    parts = [placed_gaussians(a, p, t_micros, like) for a, p in zip(assets, placements, strict=True)]
+    return GaussianScene.concatenate(parts) if len(parts) > 1 else parts[0]
+
+
+def _export(
+    gaussians: GaussianScene, assets: list[Asset], placements: list[AssetPlacement], t_micros: int,
+    folder: Path, scene_id: str,
+) -> Path:  # fmt: skip
+    """Writes the (edited) Gaussians at ``t_micros`` to ``folder/<scene_id>.ply``."""
+    from phigenesis.export.ply import write_ply
+
+    if assets:
+        gaussians = GaussianScene.concatenate([gaussians, _placed(assets, placements, t_micros, gaussians)])
+    folder.mkdir(parents=True, exist_ok=True)
+    path = write_ply(gaussians, folder / f"{scene_id}.ply", t_s=gaussians.seconds(t_micros))
+    log.info("%s: %d Gaussians written to %s", scene_id, len(gaussians), path)
+    return path
+
+
 def _open_output(out: Path, fp: str) -> Manifest | None:
     """The manifest of a folder to resume (same fingerprint), None for a new or empty folder."""
     if not out.exists():
@@ -373,6 +419,8 @@ def render(
     history_frames: int = 1,
     progress: bool = True,
     threads: int | None = None,
+    insert: Sequence[InsertSpec] = (),
+    export_ply: str | os.PathLike[str] | None = None,
 ) -> RenderResult:
     """Writes the cache ``shards`` as rig ``rig`` sees it into ``out`` (see the module docstring).
 
@@ -388,10 +436,15 @@ def render(
         history_frames: the Gaussians of this many frames up to each frame are joined (a multiple of
             the Stage 1 model's ``frames``): a rig that looks where the source's cameras did not (a
             rear camera) sees what they saw earlier; moving Gaussians move at their velocities.
+        insert: assets to insert into every frame (:class:`~phigenesis.infer.insert.InsertSpec`; their
+            track ids must differ from each other and from the frames' boxes').
+        export_ply: a folder to write each rendered scene's first frame's Gaussians into, as
+            ``<scene id>.ply`` (3DGS PLY at the frame's time; not part of the cache or its manifest).
 
     Returns a :class:`RenderResult`. Raises ValueError naming what is wrong (an unknown scene or
     geometry, a missing checkpoint, an output folder holding something else), RigError for a bad
-    rig, CheckpointError for a checkpoint that is not Stage 1's.
+    rig, CheckpointError for a checkpoint that is not Stage 1's, AssetError for an asset, pose or
+    track id that cannot be used.
     """
     from tqdm import tqdm
 
@@ -417,6 +470,11 @@ def render(
         raise ValueError(f"history_frames must be at least 1, got {history_frames}")
     if max_frames is not None and max_frames < 1:
         raise ValueError(f"max_frames must be at least 1, got {max_frames}")
+    inserts = list(insert)
+    track_ids = [spec.track_id for spec in inserts]
+    if len(set(track_ids)) != len(track_ids):
+        raise AssetError(f"inserted assets need distinct track ids, got {track_ids}")
+    assets = [spec.load() for spec in inserts]
     model: Stage1Model | None = None
     checkpoint = None
     if geometry == "stage1":
@@ -448,6 +506,8 @@ def render(
         "max_frames": max_frames,
         "history_frames": int(history_frames),
     }
+    if inserts:  # only then: a run without assets keeps the fingerprint it always had
+        arguments["insert"] = [{**s.to_dict(), "asset_sha256": _sha256(s.asset)} for s in inserts]
     pipeline = {"name": SOURCE_NAME, "output": {"camera_truth": [], "depth": True, "pseudo_semantics": True}}
     fp = fingerprint(SOURCE_NAME, arguments, pipeline)
     manifest = _open_output(out, fp)
@@ -492,6 +552,7 @@ def render(
         )
         rigs[scene_id] = scene_rig.to_dict()
         track = scene_pose_track(frames)
+        placements = [s.placement(frames[0].timestamp_micros, frames[0].world_from_ego) for s in inserts]
         grids = [distortion_grid_of(cal) for cal in scene_rig.cameras]
         schema = frame_schema(
             CacheContents(
@@ -520,6 +581,8 @@ def render(
                 clip = data.clip(scene_id, start, [], keep_frames=geometry == "truth")
                 gaussians = _gaussians(geometry, clip, model)
                 sky = None if model is not None else _sky_colour(clip)
+                if export_ply is not None and k == 0:
+                    _export(gaussians, assets, placements, frame.timestamp_micros, Path(export_ply), scene_id)
                 cameras = []
                 for cal, offset, grid in zip(
                     scene_rig.cameras, scene_rig.time_offsets_micros, grids, strict=True
@@ -531,12 +594,23 @@ def render(
                         )
                     pose = track.at(t_cam)
                     t_s = (t_cam - clip.time_origin_micros) * 1e-6
-                    shot = render_camera(gaussians, cal, pose, t_s, sky, model, grid)
-                    cameras.append(rendered_camera(frame, cal, t_cam, pose, shot, ego_boxes))
+                    occluder = None
+                    if assets:
+                        placed = _placed(assets, placements, t_cam, gaussians)
+                        shot = render_camera(
+                            GaussianScene.concatenate([gaussians, placed]), cal, pose, t_s, sky, model, grid
+                        )
+                        occluder = render_camera(placed, cal, pose, t_s, None, None, grid)
+                    else:
+                        shot = render_camera(gaussians, cal, pose, t_s, sky, model, grid)
+                    cameras.append(rendered_camera(frame, cal, t_cam, pose, shot, ego_boxes, occluder))
+                boxes = frame.boxes if frame.boxes is not None else Boxes.empty()
+                for asset, placement, spec in zip(assets, placements, inserts, strict=True):
+                    box = asset_box(asset, placement, frame.timestamp_micros, spec.track_id)
+                    boxes = with_inserted_box(boxes, box)
                 new = Frame(
-                    scene_id, k, frame.timestamp_micros, frame.world_from_ego, cameras, frame.lidar,
-                    frame.boxes if frame.boxes is not None else Boxes.empty(),
-                )  # fmt: skip
+                    scene_id, k, frame.timestamp_micros, frame.world_from_ego, cameras, frame.lidar, boxes
+                )
                 writer.write(frame_to_batch(new, SOURCE_NAME, schema))
                 total += 1
             written = writer.close()
