@@ -131,6 +131,123 @@ def test_windows_in_a_facade_take_its_plane():
     assert out.confidence[window].max() < out.confidence[30:42, 16:19].min()
 
 
+def two_tone_facade(upper_rgb=(120, 100, 80), ledge: int = 50):
+    """:func:`facade_scene` whose rows ``roof:ledge`` are another material (a segment of their own,
+    without depth: above the LiDAR's top beam), with the sky labelled."""
+    depth, conf, rgb, truth, sky, roof, known_from, _ = facade_scene()
+    rgb[roof:ledge] = textured((ledge - roof, W), upper_rgb, 6)
+    return depth, conf, rgb, truth, sky, roof, ledge, known_from
+
+
+def test_the_upper_part_of_a_facade_takes_the_plane_below_it():
+    depth, conf, rgb, truth, sky, roof, ledge, known_from = two_tone_facade()
+    out = complete(depth, conf, rgb, sky=sky)
+    top = slice(roof, ledge)
+    assert len(np.unique(out.segments[top])) < len(np.unique(out.segments))  # its own segment(s)
+    assert not np.isin(out.segments[top], out.segments[known_from:]).any()
+    assert np.all(out.origin[top] == PLANE)
+    np.testing.assert_allclose(out.depth_m[top], truth[top], rtol=1e-4)  # the same exact plane
+    assert not np.any(out.depth_m[:roof]), "the sky above stays empty"
+    # Its own, lower confidence: below the facade's own completed pixels next to it.
+    p = CompletionParams()
+    assert out.confidence[top].max() <= p.max_confidence * p.upward_confidence + 1e-6
+    assert out.confidence[ledge - 1].max() < out.confidence[ledge].min()
+    # The sky above, were it not labelled, is blue: no facade.
+    unlabelled = complete(depth, conf, rgb, sky=np.zeros((H, W), bool))
+    np.testing.assert_allclose(unlabelled.depth_m[top], truth[top], rtol=1e-4)
+    assert not np.any(unlabelled.depth_m[:roof])
+    # Switched off, or without sky labels (nothing tells a roofline then), it stays empty.
+    off = complete(depth, conf, rgb, sky=sky, params=CompletionParams(propagate_up=False))
+    assert not np.any(off.depth_m[top])
+    assert not np.any(complete(depth, conf, rgb).depth_m[top])
+
+
+def test_nothing_climbs_from_the_ground_or_into_a_tree():
+    # A segment without depth standing on a known road (a wall beyond the LiDAR's range) stays
+    # empty: the ground is no facade.
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[:] = SKY_RGB
+    horizon = (H - 1) // 2
+    rgb[horizon - 25 : horizon + 8] = textured((33, W), (170, 150, 130), 7)  # the far wall
+    rgb[horizon + 8 :] = textured((H - horizon - 8, W), (90, 90, 90), 8)  # the road
+    r = rays().reshape(H, W, 3)
+    road = 1.6 / np.maximum(r[..., 1], 1e-9)  # a level road 1.6 m below the camera
+    depth = np.zeros((H, W), np.float32)
+    depth[horizon + 20 :] = road[horizon + 20 :]
+    conf = (depth > 0).astype(np.float32) * 0.9
+    sky = np.zeros((H, W), bool)
+    sky[: horizon - 25] = True
+    out = complete(depth, conf, rgb, sky=sky)
+    assert np.any(out.origin[horizon + 8 :] == PLANE)  # the road is completed ...
+    assert not np.any(out.depth_m[: horizon + 8]), "... the wall on it is not"
+    # A green crown above a facade's known part is not the facade.
+    depth, conf, rgb, _, sky, roof, ledge, _ = two_tone_facade(upper_rgb=(50, 130, 50))
+    out = complete(depth, conf, rgb, sky=sky)
+    assert not np.any(out.depth_m[roof : ledge - 1])
+
+
+def test_a_plane_climbs_only_into_segments_the_lidar_did_not_see():
+    # Sparse depth on the upper segment (the LiDAR saw it, at another depth): no climbing.
+    depth, conf, rgb, _, sky, roof, ledge, _ = two_tone_facade()
+    sparse = np.zeros((H, W), np.float32)
+    sparse[roof:ledge:4, ::4] = 30.0  # something far behind
+    out = complete(depth, conf, rgb, sky=sky, sparse_m=sparse, sparse_confidence=(sparse > 0) * 0.9)
+    # (A sliver of the texture's own segments with too few of those points may still take it.)
+    assert np.mean(out.depth_m[roof:ledge] > 0) < 0.05
+
+
+def test_a_lawn_known_only_from_sparse_scan_lines_takes_their_ground_plane():
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[:] = SKY_RGB
+    horizon = (H - 1) // 2
+    rgb[horizon + 1 :] = textured((H - horizon - 1, W), (100, 140, 80), 9)
+    r = rays().reshape(H, W, 3)
+    truth = np.where(r[..., 1] > 0.01, 1.6 / np.maximum(r[..., 1], 1e-9), 0)
+    sparse = np.zeros((H, W), np.float32)
+    sparse[horizon + 6 :: 2] = truth[horizon + 6 :: 2]  # scan lines on every other row
+    zeros = np.zeros((H, W), np.float32)
+    sky = np.zeros((H, W), bool)
+    sky[:horizon] = True
+    out = complete(zeros, zeros, rgb, sky=sky, sparse_m=sparse, sparse_confidence=(sparse > 0) * 0.9)
+    lawn = out.origin == PLANE
+    assert lawn[horizon + 6 :].mean() > 0.8 and lawn[H - 30 :].mean() > 0.95
+    np.testing.assert_allclose(out.depth_m[lawn], truth[lawn], rtol=1e-4)
+    p = CompletionParams()
+    assert out.confidence[lawn].max() <= p.max_confidence * p.sparse_plane_confidence + 1e-6
+    off = complete(
+        zeros,
+        zeros,
+        rgb,
+        sky=sky,
+        sparse_m=sparse,
+        sparse_confidence=(sparse > 0) * 0.9,
+        params=CompletionParams(sparse_planes=False),
+    )
+    assert not np.any(off.origin == PLANE)
+
+
+def test_a_near_wall_seen_over_a_few_decimetres_is_a_vertical_plane():
+    # The side of a bus 2 m away: 0.2 m of it between two beams, 2 m long.
+    up = np.array([0.0, -1.0, 0.0])
+    u, v = np.meshgrid(np.linspace(-1, 1, 40), np.linspace(0, 0.2, 8))
+    band = np.stack([u.ravel(), -v.ravel(), np.full(u.size, 2.0)], axis=1)
+    p = CompletionParams()
+    fits, _ = fit_planes(
+        np.zeros(len(band), np.intp), band, np.ones(len(band)), 1, up, p, np.random.default_rng(0)
+    )
+    assert fits.kind[0] == KIND_VERTICAL
+    fits, _ = fit_planes(
+        np.zeros(len(band), np.intp),
+        band,
+        np.ones(len(band)),
+        1,
+        up,
+        CompletionParams(min_height_rel=1.0),
+        np.random.default_rng(0),
+    )
+    assert fits.kind[0] != KIND_VERTICAL  # min_height_m alone
+
+
 def test_a_pole_is_filled_up_at_its_base_depth_and_nothing_else():
     rgb = np.zeros((H, W, 3), np.uint8)
     rgb[:] = SKY_RGB

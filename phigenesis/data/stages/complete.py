@@ -23,10 +23,14 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    near-horizontal one (``ground_planes``). A plane passes with ``min_inliers`` inliers (within
    ``inlier_tol_m + inlier_tol_rel * z``), an RMS residual of at most ``max_residual_rel`` of
    their depth, a free 3D fit of them tilted less than ``max_tilt_deg`` (a slanted roof or
-   windscreen fails) and, if vertical, ``min_height_m`` of vertical extent (a row of ground
-   points fails). A segment whose plane explains less than ``min_inlier_share`` of its known
-   pixels gets a second plane from the rest (a corner of a building; a bus in front of a facade
-   of the same grey); with two, each must explain ``min_plane_share``.
+   windscreen fails) and, if vertical, ``min_height_m`` of vertical extent, or
+   ``min_height_rel`` of their depth if less (a row of ground points fails; the side of a bus two
+   metres away, seen over a few decimetres between two beams, passes). A segment whose plane
+   explains less than ``min_inlier_share`` of its known pixels gets a second plane from the rest
+   (a corner of a building; a bus in front of a facade of the same grey); with two, each must
+   explain ``min_plane_share``. A segment with fewer than ``min_inliers`` dense pixels is fitted
+   to its sparse (LiDAR) depth instead, if that covers ``sparse_min_share`` of it
+   (``sparse_planes``: the densifier leaves out the scan lines on a far lawn).
 3. **Filling**: an empty pixel of the segment takes the plane of the segment's known pixel
    nearest to it (none if that pixel is an outlier), within ``max_extrapolation_ref_px``; where
    the two planes of a segment do not meet along their seam (one stands in front of the other),
@@ -45,9 +49,23 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    agree and rise ``min_height_m`` vertically, with ``min_thin_trusted`` trusted pixels among
    them, is filled in the columns of that evidence with the vertical plane facing the camera
    through its base (the median depth of its lowest ``base_band_ref_px`` rows of evidence).
+7. **Facades above the data** (``propagate_up``; origin ``plane``): the upper part of a facade,
+   above the LiDAR's top beam, is often a segment of its own (cut off by a ledge, a row of
+   windows) without depth. A segment the LiDAR did not see (fewer than ``min_inliers`` pixels of
+   dense or sparse depth), not labelled a thing (vehicles end at their box), not green (excess
+   green ``2 g - r - b`` at most ``upward_max_green``: a crown above a roof) and not blue (excess
+   blue ``2 b - r - g`` at most ``upward_max_blue``: sky the sky labels missed), takes the
+   vertical plane whose region (its segment's inliers and completed pixels) runs along its lower
+   boundary for ``min_boundary_ref_px`` and ``upward_boundary_share`` of the part of that
+   boundary that has depth; or the one whose region holds nine tenths of its whole boundary
+   (windows between two such segments). Then it is part of that region, so a facade climbs
+   through ``upward_steps`` segments at most. Only with sky labels (nothing else tells the sky
+   above a roofline from a wall), and only from planes of dense depth (sparse depth leaks into
+   the sky at silhouettes). Ground planes never climb.
 
 Everything else stays empty (0): tree crowns, vehicles' curved parts, what no LiDAR point
-anchors (buildings beyond the LiDAR's range or hidden behind others), the sky.
+anchors (buildings beyond the LiDAR's range or hidden behind others, unless a facade below them
+is known), the sky.
 
 Confidence of a completed pixel, never above that of the data it extends::
 
@@ -59,7 +77,10 @@ known pixels its plane(s) explain, ``rms`` / ``z`` their RMS residual and mean d
 ``rel0`` = ``conf_relative_residual``, ``d`` the distance in pixels to the nearest known pixel
 (rows above the evidence for thin structures), ``d0`` = ``conf_distance_ref_px``; ``cap`` is
 ``max_confidence`` (``vertical_confidence`` for thin structures), ``factor`` 1 for a segment's
-own pixels, ``hole_confidence`` for holes and ``propagate_confidence`` for ground beyond the data.
+own pixels, ``hole_confidence`` for holes and ``propagate_confidence`` for ground beyond the data,
+times ``sparse_plane_confidence`` for planes of sparse depth; a facade's climb multiplies its
+factor by ``upward_confidence`` per segment climbed, ``d`` then being the rows up from the
+boundary it climbed over plus that boundary's own distance to the data.
 
 Error: on an exact plane the completion is exact (the ray-plane intersection of the fitted plane;
 ``tests/test_complete_depth.py``). With measurement noise ``sigma`` on known pixels spanning
@@ -126,10 +147,17 @@ class CompletionParams:
         inlier_tol_m, inlier_tol_rel: a point is an inlier within ``tol_m + tol_rel * z`` metres.
         max_residual_rel: largest RMS residual of the inliers, relative to their mean depth.
         min_height_m: least vertical extent of a vertical plane's inliers (and of a thin
-            structure's evidence).
+            structure's evidence) ...
+        min_height_rel: ... or, if less, this share of their mean depth (the side of a bus a
+            metre or two away shows a few decimetres of it between the LiDAR's beams).
         max_tilt_deg: largest tilt from vertical of a free fit to a vertical plane's inliers, and
             of a ground plane's normal from up.
         ground_planes: also fit near-horizontal planes (roads, terrain).
+        sparse_planes: a segment with fewer than ``min_inliers`` dense pixels is fitted to its
+            sparse (LiDAR) depth if that has as many ...
+        sparse_min_share: ... on at least this share of its pixels (a lawn's scan lines, not the
+            few depths that leak across a silhouette).
+        sparse_plane_confidence: confidence factor of such a segment's pixels.
         ransac_iterations: hypotheses per fit.
         ransac_points: points of a segment each hypothesis is scored on.
         fit_points: known pixels per segment a fit uses (at random); all are scored at the end.
@@ -142,6 +170,16 @@ class CompletionParams:
         min_boundary_ref_px: least boundary such a segment shares with that neighbour.
         propagate_color_tol: largest difference of their mean colours.
         propagate_confidence: confidence factor of such pixels.
+        propagate_up: fill segments without depth above a vertical plane's region from that plane.
+        upward_steps: how many segments such a plane may climb, one above the other.
+        upward_boundary_share: least share of such a segment's lower boundary (with segments
+            other than the sky) along the top of that plane's region.
+        upward_max_green: a segment whose mean colour has a larger excess green (``2 g - r - b``,
+            a vegetation index) is not climbed into (a tree's crown above a roof) ...
+        upward_max_blue: ... nor one with a larger excess blue (``2 b - r - g``): the sky above a
+            roofline that the sky labels missed (the geometric ones cannot label the sky above a
+            facade taller than the LiDAR's field).
+        upward_confidence: confidence factor of such pixels, once per segment climbed.
         max_thin_width_ref_px: widest mean width of a thin vertical segment.
         min_thin_aspect: least height / mean width of a thin vertical segment.
         min_thin_height_ref_px: least height of a thin vertical segment.
@@ -171,8 +209,12 @@ class CompletionParams:
     inlier_tol_rel: float = 0.01
     max_residual_rel: float = 0.01
     min_height_m: float = 0.3
+    min_height_rel: float = 0.05
     max_tilt_deg: float = 8.0
     ground_planes: bool = True
+    sparse_planes: bool = True
+    sparse_min_share: float = 0.5
+    sparse_plane_confidence: float = 0.7
     ransac_iterations: int = 32
     ransac_points: int = 64
     fit_points: int = 256
@@ -186,6 +228,12 @@ class CompletionParams:
     min_boundary_ref_px: float = 20.0
     propagate_color_tol: float = 24.0
     propagate_confidence: float = 0.5
+    propagate_up: bool = True
+    upward_steps: int = 3
+    upward_boundary_share: float = 0.5
+    upward_confidence: float = 0.6
+    upward_max_green: float = 20.0
+    upward_max_blue: float = 40.0
     max_thin_width_ref_px: float = 30.0
     min_thin_aspect: float = 4.0
     min_thin_height_ref_px: float = 40.0
@@ -208,6 +256,10 @@ class CompletionParams:
             "min_thin_evidence",
             "hole_confidence",
             "propagate_confidence",
+            "upward_boundary_share",
+            "sparse_plane_confidence",
+            "sparse_min_share",
+            "upward_confidence",
             "max_confidence",
             "vertical_confidence",
         )
@@ -241,6 +293,7 @@ class CompletionParams:
             "merge_edge_tol",
             "inlier_tol_rel",
             "min_height_m",
+            "min_height_rel",
             "min_depth_m",
             "min_boundary_ref_px",
             "propagate_color_tol",
@@ -268,6 +321,7 @@ class CompletionParams:
             ("fit_points", 3),
             ("min_thin_known", 1),
             ("min_thin_trusted", 0),
+            ("upward_steps", 0),
             ("max_side_px", 16),
             ("seed", 0),
         ):
@@ -394,7 +448,7 @@ def complete_depth_map(
         segments = _complete_coarse(inputs, up, focal_px, p, scale)
     else:
         segments = segment_image(rgb, focal_px, p)
-        if known.any() and fillable.any():
+        if (known.any() or (p.sparse_planes and sparse is not None)) and fillable.any():
             _Completer(inputs, segments, up, focal_px, p).run()
     # Completed depths are finite and positive by construction; checked once more so that no NaN
     # or infinity can ever reach a cache.
@@ -453,7 +507,7 @@ def _complete_coarse(
     segments = segment_image(small.rgb, focal_small, p)
     ry = np.minimum((np.arange(h) * h2 / h).astype(np.intp), h2 - 1)
     rx = np.minimum((np.arange(w) * w2 / w).astype(np.intp), w2 - 1)
-    if small.known.any() and small.fillable.any():
+    if (small.known.any() or (p.sparse_planes and small.sparse is not None)) and small.fillable.any():
         completer = _Completer(small, segments, up, focal_small, p)
         completer.run()
         cell = (ry[:, None] * w2 + rx[None, :]).reshape(-1)  # the grid cell of every pixel
@@ -830,7 +884,8 @@ def _refine_and_accept(
     surface = val[:, 1] > 0.01 * np.maximum(val[:, 2], 1e-12)  # spread over an area, not a line
     if kind == KIND_VERTICAL:
         height_var = np.einsum("i,gij,j->g", up, cov, up)
-        ok &= np.sqrt(12.0 * np.maximum(height_var, 0.0)) >= p.min_height_m  # extent, if uniform
+        least = np.minimum(p.min_height_m, p.min_height_rel * mean[:, 2])
+        ok &= np.sqrt(12.0 * np.maximum(height_var, 0.0)) >= least  # extent, if uniform
         ok &= ~(surface & (np.abs(free @ up) > np.sin(np.radians(p.max_tilt_deg))))
     else:
         ok &= surface & (np.abs(free @ up) >= np.cos(np.radians(p.max_tilt_deg)))
@@ -859,6 +914,14 @@ class _Completer:
         # The plane each completed pixel took (to complete a finer grid from this one).
         self.plane_normal = np.zeros((self.depth.size, 3), np.float32)
         self.plane_offset = np.zeros(self.depth.size, np.float32)
+        # Each completed pixel's distance to the data its plane was fitted to (pixels).
+        self.fill_dist = np.zeros(self.depth.size, np.float32)
+        # The vertical plane each pixel lies on (its segment's inliers and completed pixels), an
+        # index into ``facades`` ((fits, segment of fits, confidence factor, family)); -1 none. Planes
+        # climb from these into the segments above (step 7).
+        self.facade_of = np.full(self.depth.size, -1, np.int32)
+        self.facades: list[tuple[PlaneFits, int, float, int]] = []  # (..., family: the first's index)
+        self.sky = None if inputs.sky is None else inputs.sky.reshape(-1)
         # Thin structures' evidence: the dense depth, and the sparse depth where it has none.
         self.thin_depth, self.thin_conf = self.depth.copy(), self.conf.copy()
         if inputs.sparse is not None:
@@ -878,7 +941,25 @@ class _Completer:
         full = self.sizes > 0
         self.r0[full], self.r1[full] = np.minimum.reduceat(rows, first), np.maximum.reduceat(rows, first) + 1
         self.c0[full], self.c1[full] = np.minimum.reduceat(cols, first), np.maximum.reduceat(cols, first) + 1
-        self.n_known = np.bincount(flat, weights=self.known, minlength=n)
+        self.n_dense = np.bincount(flat, weights=self.known, minlength=n)
+        # Anchors, the pixels planes are fitted to: the dense depth, and in segments with fewer than
+        # ``min_inliers`` of it, the sparse depth (the densifier leaves out the scan lines on a far
+        # lawn) if it has that many.
+        self.anchor, self.anchor_depth, self.anchor_conf = self.known, self.depth, self.conf
+        self.seg_factor = np.ones(n)
+        self.sparse_seg = np.zeros(n, bool)
+        if p.sparse_planes and inputs.sparse is not None:
+            extra = (self.n_dense < p.min_inliers)[flat] & (self.thin_depth > 0) & ~self.known
+            n_sparse = np.bincount(flat, weights=extra, minlength=n)
+            sparse_seg = (n_sparse >= p.min_inliers) & (n_sparse >= p.sparse_min_share * self.sizes)
+            extra &= sparse_seg[flat]
+            if extra.any():
+                self.anchor = self.known | extra
+                self.anchor_depth = np.where(extra, self.thin_depth, self.depth)
+                self.anchor_conf = np.where(extra, self.thin_conf, self.conf)
+                self.seg_factor[sparse_seg] = p.sparse_plane_confidence
+                self.sparse_seg = sparse_seg
+        self.n_known = np.bincount(flat, weights=self.anchor, minlength=n)
         self.n_fill = np.bincount(flat, weights=self.fillable, minlength=n)
         self.skip = np.zeros(n, bool)
         if inputs.sky is not None:
@@ -887,6 +968,11 @@ class _Completer:
             )
         if inputs.classes is not None:
             self.skip |= _majority_never_filled(flat, inputs.classes.reshape(-1), n)
+        # Segments labelled things (vehicles, people): they end where their box does, so no plane
+        # climbs from them.
+        self.thing = np.zeros(n, bool)
+        if inputs.classes is not None:
+            self.thing = _majority_in(flat, inputs.classes.reshape(-1), n, tx.THING_IDS)
 
     def pixels(self, s: int) -> NDArray[np.intp]:
         """Flat indices of the pixels of segment ``s``."""
@@ -916,12 +1002,17 @@ class _Completer:
                 self.fill_holes(s, planes, *filled)
         if p.propagate_ground:
             below = np.bincount(self.flat, weights=(self.rays @ self.up) > 0, minlength=self.count) == 0
-            empty = todo & ~thin & (self.n_known < p.min_inliers) & below
+            completed = np.bincount(self.flat, (self.depth > 0) & ~self.known, self.count)
+            empty = todo & ~thin & (self.n_dense < p.min_inliers) & (completed == 0) & below
             self.propagate(np.flatnonzero(empty), planes[0], planes[0].kind == KIND_GROUND)
         evidence = np.bincount(self.flat, weights=self.thin_depth > 0, minlength=self.count)
         enough = evidence >= np.maximum(p.min_thin_known, p.min_thin_evidence * self.sizes)
-        for s in np.flatnonzero(todo & thin & enough & (self.n_known >= p.min_thin_trusted)).tolist():
+        for s in np.flatnonzero(todo & thin & enough & (self.n_dense >= p.min_thin_trusted)).tolist():
             self.fill_thin(s)
+        # Thin ones too (the wall between two columns of windows); only with sky labels: nothing
+        # else tells the sky above a roofline from a wall.
+        if p.propagate_up and self.sky is not None:
+            self.propagate_up(todo)
 
     # -- planes ------------------------------------------------------------------------------
 
@@ -932,7 +1023,7 @@ class _Completer:
         each = dataclasses.replace(p, min_inlier_share=p.min_plane_share)
         chosen = np.zeros(self.count, bool)
         chosen[segs] = True
-        kn = self.order[self.known[self.order] & chosen[self.flat[self.order]]]  # sorted by segment
+        kn = self.order[self.anchor[self.order] & chosen[self.flat[self.order]]]  # sorted by segment
         groups = self.flat[kn]
         first = self._fit(kn, segs, each)
         on_first = self._on_plane(kn, first)
@@ -966,16 +1057,16 @@ class _Completer:
         sub = kn[self.rng.random(len(kn)) < (p.fit_points / np.maximum(count, 1))[groups]]
         compact = np.full(self.count, -1, np.intp)
         compact[segs] = np.arange(len(segs))
-        points = self.rays[sub] * self.depth[sub, None]
-        conf = self.conf[sub].astype(np.float64)
+        points = self.rays[sub] * self.anchor_depth[sub, None]
+        conf = self.anchor_conf[sub].astype(np.float64)
         fits, _ = fit_planes(compact[self.flat[sub]], points, conf, len(segs), self.up, p, self.rng)
         return fits.scattered(segs, self.count)
 
     def _on_plane(self, kn: NDArray[np.intp], fits: PlaneFits) -> Mask:
         """Whether each known pixel of ``kn`` lies on its segment's plane of ``fits``."""
         g = self.flat[kn]
-        res = np.einsum("ij,ij->i", self.rays[kn], fits.normal[g]) * self.depth[kn] + fits.offset[g]
-        tol = self.p.inlier_tol_m + self.p.inlier_tol_rel * self.depth[kn]
+        res = np.einsum("ij,ij->i", self.rays[kn], fits.normal[g]) * self.anchor_depth[kn] + fits.offset[g]
+        tol = self.p.inlier_tol_m + self.p.inlier_tol_rel * self.anchor_depth[kn]
         return (fits.kind[g] != KIND_NONE) & (np.abs(res) <= tol)
 
     def fill_segment(
@@ -988,7 +1079,7 @@ class _Completer:
         rs, cs = self.crop(s)
         w = self.shape[1]
         seg = self.segments[rs, cs] == s
-        dist, nearest = _nearest_pixel(seg & self.known.reshape(self.shape)[rs, cs])
+        dist, nearest = _nearest_pixel(seg & self.anchor.reshape(self.shape)[rs, cs])
         nr, nc = np.divmod(nearest, cs.stop - cs.start)
         which = plane_px[(nr + rs.start) * w + (nc + cs.start)]
         apart = planes[1].kind[s] != KIND_NONE and not self.planes_meet(s, planes, which, seg, rs, cs)
@@ -997,7 +1088,25 @@ class _Completer:
         empty = self.fillable.reshape(self.shape)[rs, cs] & (self.depth.reshape(self.shape)[rs, cs] == 0)
         for k, fits in enumerate(planes, start=1):
             tr, tc = np.nonzero(seg & empty & (which == k))
-            self._fill((tr + rs.start) * w + (tc + cs.start), fits, s, dist[tr, tc], 1.0, ORIGIN["plane"])
+            self._fill(
+                (tr + rs.start) * w + (tc + cs.start),
+                fits,
+                s,
+                dist[tr, tc],
+                self.seg_factor[s],
+                ORIGIN["plane"],
+            )
+            # Planes of the sparse depth alone do not climb: it leaks at silhouettes, most of all
+            # into the sky beside a roofline.
+            if fits.kind[s] == KIND_VERTICAL and not self.thing[s] and not self.sparse_seg[s]:
+                # The plane's region: its inliers and the pixels it completed.
+                idx = self.pixels(s)
+                mine = plane_px[idx] == k
+                tr, tc = np.nonzero(seg & empty & (which == k))
+                done = (tr + rs.start) * w + (tc + cs.start)
+                done = done[self.depth[done] > 0]
+                self.facade_of[idx[mine]] = self.facade_of[done] = len(self.facades)
+                self.facades.append((fits, s, float(self.seg_factor[s]), len(self.facades)))
         return None if apart else (which, dist)
 
     def planes_meet(
@@ -1081,7 +1190,9 @@ class _Completer:
         for k, fits in enumerate(planes, start=1):
             sel = empty & (k_of == k)
             dist = data_dist[hr[sel], hc[sel]]
-            self._fill(pixels[sel], fits, s, dist, self.p.hole_confidence, ORIGIN["plane"])
+            self._fill(
+                pixels[sel], fits, s, dist, self.p.hole_confidence * self.seg_factor[s], ORIGIN["plane"]
+            )
 
     def propagate(self, segs: NDArray[np.intp], fits: PlaneFits, source: Mask) -> None:
         """Fills each segment of ``segs`` (without depth) with the plane of the ``source`` segment
@@ -1112,6 +1223,98 @@ class _Completer:
             empty = idx[self.fillable[idx] & (self.depth[idx] == 0)]
             dist = np.abs(empty // w - (self.r0[src] + self.r1[src]) / 2).astype(np.float32)
             self._fill(empty, fits, src, dist, self.p.propagate_confidence, ORIGIN["plane"])
+
+    def segment_colours(self) -> F64:
+        """(S, 3) mean colour of each segment."""
+        colour = self.image.reshape(-1, 3).astype(np.float64)
+        sums = np.stack([np.bincount(self.flat, colour[:, c], self.count) for c in range(3)], axis=1)
+        return sums / np.maximum(self.sizes, 1)[:, None]
+
+    def propagate_up(self, todo: Mask) -> None:
+        """Vertical planes climb into the segments above them (step 7): the upper part of a
+        facade, beyond the LiDAR's top beam, is often a segment of its own (cut off by a ledge, a
+        row of windows), without depth.
+
+        A candidate is a segment of ``todo`` not labelled a thing, neither green nor blue
+        (``upward_max_green``, ``upward_max_blue``),
+        with fewer than ``min_inliers`` pixels of depth (dense or sparse: the LiDAR did not see it)
+        and none completed. It takes the vertical plane whose region (:attr:`facade_of`: one plane
+        and the segments it climbed into) runs along its lower boundary for at least
+        ``min_boundary_ref_px`` and ``upward_boundary_share`` of the part of that boundary that has
+        depth; or the plane whose region holds all but a tenth of its whole boundary (the windows
+        between two of those segments). Then it is that plane's region too, for the segments above
+        it: ``upward_steps`` rounds. Its pixels' distance to the data: the rows up from that
+        boundary, plus the boundary's own. Sky pixels are left out of every boundary.
+        """
+        p = self.p
+        h, w = self.shape
+        if h < 2 or not self.facades:
+            return
+        mean = self.segment_colours()
+        green, blue = mean @ np.array([-1.0, 2.0, -1.0]), mean @ np.array([-1.0, -1.0, 2.0])
+        evidence = np.bincount(self.flat, self.thin_depth > 0, self.count)
+        todo = todo & ~self.thing & (self.n_known < p.min_inliers) & (evidence < p.min_inliers)
+        # Excess green (2 g - r - b), a vegetation index: a tree's crown above a roof is not the
+        # facade; nor is the sky above it that the labels missed, blue (2 b - r - g).
+        todo &= (green <= p.upward_max_green) & (blue <= p.upward_max_blue)
+        i, j = _adjacent_pixels(self.shape)
+        cut = self.flat[i] != self.flat[j]
+        i, j = i[cut], j[cut]
+        # Every boundary pair both ways: (pixel of the candidate, its neighbour, neighbour below).
+        a, b = np.concatenate([i, j]), np.concatenate([j, i])
+        below = b - a == w
+        if self.sky is not None:
+            keep = ~self.sky[b]
+            a, b, below = a[keep], b[keep], below[keep]
+        seg_a = self.flat[a].astype(np.int64)
+        least = max(p.min_boundary_ref_px * self.scale, 1.0)
+        done = np.zeros(self.count, bool)
+        for _ in range(p.upward_steps):
+            completed = np.bincount(self.flat, (self.depth > 0) & ~self.known, self.count)
+            cand = todo & ~done & (completed == 0)
+            on = cand[seg_a]
+            if not on.any():
+                return
+            sa, bb, down = seg_a[on], b[on], below[on]
+            fid = self.facade_of[bb]
+            family = np.array([f[3] for f in self.facades] + [-1], np.int64)[fid]  # -1: none
+            n_f = len(self.facades) + 1
+            # Below: support of each (segment, family), and what has depth there at all.
+            with_depth = np.bincount(sa[down], self.depth[bb[down]] > 0, self.count)
+            keys, support = np.unique(
+                sa[down & (fid >= 0)] * n_f + family[down & (fid >= 0)], return_counts=True
+            )
+            seg, fam = np.divmod(keys, n_f)
+            ok = (support >= least) & (support >= p.upward_boundary_share * with_depth[seg])
+            # All around: enclosed by one plane's region.
+            total = np.bincount(sa, minlength=self.count)
+            keys2, around = np.unique(sa[fid >= 0] * n_f + family[fid >= 0], return_counts=True)
+            seg2, fam2 = np.divmod(keys2, n_f)
+            enclosed = around >= 0.9 * total[seg2]
+            seg = np.concatenate([seg[ok], seg2[enclosed]])
+            fam = np.concatenate([fam[ok], fam2[enclosed]])
+            length = np.concatenate([support[ok], around[enclosed]])
+            if len(seg) == 0:
+                return
+            order = np.lexsort((-length, seg))  # by segment, longest boundary first
+            seg, fam = seg[order], fam[order]
+            first = np.concatenate([[True], seg[1:] != seg[:-1]])
+            for s, q in zip(seg[first].tolist(), fam[first].tolist(), strict=True):
+                done[s] = True
+                mine = (sa == s) & (family == q)
+                ref = bb[mine & down] if np.any(mine & down) else bb[mine]
+                k = int(np.bincount(fid[mine]).argmax())  # the region's part it touches most
+                fits, t, factor, _ = self.facades[k]
+                idx = self.pixels(s)
+                empty = idx[self.fillable[idx] & (self.depth[idx] == 0)]
+                rows = np.maximum(float(np.mean(ref // w)) - empty // w, 0)
+                dist = (rows + float(np.mean(self.fill_dist[ref]))).astype(np.float32)
+                factor *= p.upward_confidence
+                self._fill(empty, fits, t, dist, factor, ORIGIN["plane"])
+                filled = empty[self.depth[empty] > 0]
+                if len(filled):
+                    self.facade_of[filled] = len(self.facades)
+                    self.facades.append((fits, t, factor, q))
 
     # -- thin vertical structures ------------------------------------------------------------
 
@@ -1206,6 +1409,7 @@ class _Completer:
         self.origin[pixels] = code
         self.plane_normal[pixels] = normal
         self.plane_offset[pixels] = offset
+        self.fill_dist[pixels] = dist
 
 
 def _nearest_pixel(sources: Mask) -> tuple[F32, NDArray[np.intp]]:
@@ -1224,12 +1428,22 @@ def _nearest_pixel(sources: Mask) -> tuple[F32, NDArray[np.intp]]:
 def _majority_never_filled(flat: NDArray[np.int32], classes: NDArray[np.uint8], count: int) -> Mask:
     """(S,) whether the most frequent label of each segment (among its labelled pixels) is in
     :data:`NEVER_FILLED_CLASSES`."""
+    return _majority_in(flat, classes, count, NEVER_FILLED_CLASSES)
+
+
+def _majority_in(
+    flat: NDArray[np.int32], classes: NDArray[np.uint8], count: int, ids: frozenset[int]
+) -> Mask:
+    """(S,) whether the most frequent label of each segment (among its labelled pixels) is in
+    ``ids`` and labels at least a quarter of its pixels (the few labelled pixels of a facade that a
+    person in front of it has merged into its segment do not make it a person)."""
     labelled = classes != tx.IGNORE_ID
     if not labelled.any():
         return np.zeros(count, bool)
     votes = np.zeros((count, 256), np.int64)
     np.add.at(votes, (flat[labelled], classes[labelled]), 1)
-    return np.isin(votes.argmax(axis=1), list(NEVER_FILLED_CLASSES)) & (votes.sum(axis=1) > 0)
+    sizes = np.bincount(flat, minlength=count)
+    return np.isin(votes.argmax(axis=1), list(ids)) & (votes.max(axis=1) >= 0.25 * np.maximum(sizes, 1))
 
 
 # --------------------------------------------------------------------------------------------
