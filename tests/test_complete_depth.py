@@ -162,6 +162,25 @@ def test_the_upper_part_of_a_facade_takes_the_plane_below_it():
     assert not np.any(complete(depth, conf, rgb).depth_m[top])
 
 
+def test_no_plane_climbs_from_a_segment_partly_labelled_a_vehicle():
+    # A car's side in one image segment with the facade behind it (labels cover a part of it)
+    # would carry the car's depth up the facade: nothing climbs from such a segment.
+    depth, conf, rgb, truth, sky, roof, ledge, known_from = two_tone_facade()
+    top = slice(roof, ledge)
+    classes = np.full((H, W), tx.BUILDING, np.uint8)
+    classes[sky] = tx.SKY
+    clean = complete(depth, conf, rgb, sky=sky, classes=classes)
+    np.testing.assert_allclose(clean.depth_m[top], truth[top], rtol=1e-4)  # labels alone change nothing
+    car = classes.copy()
+    car[known_from:, : W // 8] = tx.CAR  # an eighth of the lower segment's columns
+    out = complete(depth, conf, rgb, sky=sky, classes=car)
+    assert not np.any(out.depth_m[top])
+    loose = CompletionParams(upward_max_thing_share=1.0)
+    np.testing.assert_allclose(
+        complete(depth, conf, rgb, sky=sky, classes=car, params=loose).depth_m[top], truth[top], rtol=1e-4
+    )
+
+
 def test_nothing_climbs_from_the_ground_or_into_a_tree():
     # A segment without depth standing on a known road (a wall beyond the LiDAR's range) stays
     # empty: the ground is no facade.

@@ -52,7 +52,8 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
 7. **Facades above the data** (``propagate_up``; origin ``plane``): the upper part of a facade,
    above the LiDAR's top beam, is often a segment of its own (cut off by a ledge, a row of
    windows) without depth. A segment the LiDAR did not see (fewer than ``min_inliers`` pixels of
-   dense or sparse depth), not labelled a thing (vehicles end at their box), not green (excess
+   dense or sparse depth), with at most ``upward_max_thing_share`` of its pixels labelled things
+   (vehicles end at their box; nor does a plane climb from such a segment), not green (excess
    green ``2 g - r - b`` at most ``upward_max_green``: a crown above a roof) and not blue (excess
    blue ``2 b - r - g`` at most ``upward_max_blue``: sky the sky labels missed), takes the
    vertical plane whose region (its segment's inliers and completed pixels) runs along its lower
@@ -180,6 +181,9 @@ class CompletionParams:
             roofline that the sky labels missed (the geometric ones cannot label the sky above a
             facade taller than the LiDAR's field).
         upward_confidence: confidence factor of such pixels, once per segment climbed.
+        upward_max_thing_share: no plane climbs from, or into, a segment with a larger share of
+            pixels labelled things (vehicles, people): a car's side in one segment with the facade
+            behind it would carry the car's depth up the facade.
         max_thin_width_ref_px: widest mean width of a thin vertical segment.
         min_thin_aspect: least height / mean width of a thin vertical segment.
         min_thin_height_ref_px: least height of a thin vertical segment.
@@ -234,6 +238,7 @@ class CompletionParams:
     upward_confidence: float = 0.6
     upward_max_green: float = 20.0
     upward_max_blue: float = 40.0
+    upward_max_thing_share: float = 0.02
     max_thin_width_ref_px: float = 30.0
     min_thin_aspect: float = 4.0
     min_thin_height_ref_px: float = 40.0
@@ -969,10 +974,16 @@ class _Completer:
         if inputs.classes is not None:
             self.skip |= _majority_never_filled(flat, inputs.classes.reshape(-1), n)
         # Segments labelled things (vehicles, people): they end where their box does, so no plane
-        # climbs from them.
+        # climbs from them; nor from, or into, a segment with a few of their pixels
+        # (``upward_max_thing_share``): a car's side merged with the facade behind it would carry
+        # the car's depth up the facade.
         self.thing = np.zeros(n, bool)
+        self.thing_touched = np.zeros(n, bool)
         if inputs.classes is not None:
             self.thing = _majority_in(flat, inputs.classes.reshape(-1), n, tx.THING_IDS)
+            things = np.isin(inputs.classes.reshape(-1), list(tx.THING_IDS))
+            share = np.bincount(flat, weights=things, minlength=n) / np.maximum(self.sizes, 1)
+            self.thing_touched = share > p.upward_max_thing_share
 
     def pixels(self, s: int) -> NDArray[np.intp]:
         """Flat indices of the pixels of segment ``s``."""
@@ -1098,7 +1109,7 @@ class _Completer:
             )
             # Planes of the sparse depth alone do not climb: it leaks at silhouettes, most of all
             # into the sky beside a roofline.
-            if fits.kind[s] == KIND_VERTICAL and not self.thing[s] and not self.sparse_seg[s]:
+            if fits.kind[s] == KIND_VERTICAL and not self.thing_touched[s] and not self.sparse_seg[s]:
                 # The plane's region: its inliers and the pixels it completed.
                 idx = self.pixels(s)
                 mine = plane_px[idx] == k
@@ -1235,7 +1246,8 @@ class _Completer:
         facade, beyond the LiDAR's top beam, is often a segment of its own (cut off by a ledge, a
         row of windows), without depth.
 
-        A candidate is a segment of ``todo`` not labelled a thing, neither green nor blue
+        A candidate is a segment of ``todo`` with at most ``upward_max_thing_share`` of its pixels
+        labelled things, neither green nor blue
         (``upward_max_green``, ``upward_max_blue``),
         with fewer than ``min_inliers`` pixels of depth (dense or sparse: the LiDAR did not see it)
         and none completed. It takes the vertical plane whose region (:attr:`facade_of`: one plane
@@ -1253,7 +1265,7 @@ class _Completer:
         mean = self.segment_colours()
         green, blue = mean @ np.array([-1.0, 2.0, -1.0]), mean @ np.array([-1.0, -1.0, 2.0])
         evidence = np.bincount(self.flat, self.thin_depth > 0, self.count)
-        todo = todo & ~self.thing & (self.n_known < p.min_inliers) & (evidence < p.min_inliers)
+        todo = todo & ~self.thing_touched & (self.n_known < p.min_inliers) & (evidence < p.min_inliers)
         # Excess green (2 g - r - b), a vegetation index: a tree's crown above a roof is not the
         # facade; nor is the sky above it that the labels missed, blue (2 b - r - g).
         todo &= (green <= p.upward_max_green) & (blue <= p.upward_max_blue)
