@@ -161,7 +161,7 @@ def _render(args: argparse.Namespace) -> int:
         print(f"already rendered, skipped: {', '.join(result.skipped)}")
     print(f"cache: {result.out} (phigenesis-prep verify {result.out})")
     if args.export_ply:
-        print(f"edited Gaussians: {args.export_ply}/<scene id>.ply")
+        print(f"edited Gaussians: {Path(args.export_ply) / '<scene id>.ply'}")
     return 0
 
 
