@@ -80,11 +80,14 @@ def score(out: Path, source: Path, mesh: trimesh.Trimesh, spec: InsertSpec) -> d
     reader = CacheReader(out)
     asset = spec.load()
     ious, abs_rels, shows, hidden = [], [], [0, 0], [0, 0]
+    scenes: dict[str, tuple] = {}  # scene id -> (placement, like), from its first frame
     for i in range(len(reader)):
         frame = reader.frame(i)
-        first = reader.frame(reader.frames_of(frame.scene_id)[0], decode_truth=False)
-        placement = spec.placement(first.timestamp_micros, first.world_from_ego)
-        like = dataclasses.replace(asset.gaussians, time_origin_micros=first.timestamp_micros)
+        if frame.scene_id not in scenes:
+            first = reader.frame(reader.frames_of(frame.scene_id)[0], decode_truth=False)
+            like = dataclasses.replace(asset.gaussians, time_origin_micros=first.timestamp_micros)
+            scenes[frame.scene_id] = (spec.placement(first.timestamp_micros, first.world_from_ego), like)
+        placement, like = scenes[frame.scene_id]
         for cam in frame.cameras:
             t = cam.timestamp_micros
             exact = mesh_depth(mesh, placement.pose_at(t), cam)

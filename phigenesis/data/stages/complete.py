@@ -973,14 +973,12 @@ class _Completer:
             )
         if inputs.classes is not None:
             self.skip |= _majority_never_filled(flat, inputs.classes.reshape(-1), n)
-        # Segments labelled things (vehicles, people): they end where their box does, so no plane
-        # climbs from them; nor from, or into, a segment with a few of their pixels
-        # (``upward_max_thing_share``): a car's side merged with the facade behind it would carry
-        # the car's depth up the facade.
-        self.thing = np.zeros(n, bool)
+        # Segments with more than a few pixels labelled things (vehicles, people;
+        # ``upward_max_thing_share``): things end where their box does, so no plane climbs from or
+        # into them; a car's side merged with the facade behind it would carry the car's depth up
+        # the facade.
         self.thing_touched = np.zeros(n, bool)
         if inputs.classes is not None:
-            self.thing = _majority_in(flat, inputs.classes.reshape(-1), n, tx.THING_IDS)
             things = np.isin(inputs.classes.reshape(-1), list(tx.THING_IDS))
             share = np.bincount(flat, weights=things, minlength=n) / np.maximum(self.sizes, 1)
             self.thing_touched = share > p.upward_max_thing_share
