@@ -125,6 +125,13 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--rollout-frames", type=int, nargs="*", default=[50])
     ap.add_argument("--omegas", type=float, nargs="*", default=[0.0, 1.0, 2.0, 3.0])
+    ap.add_argument(
+        "--sweep-rollout-frames",
+        type=int,
+        nargs="*",
+        default=[50],
+        help="rollout frames of the omega sweep (shorter than the ablation's, to save time)",
+    )
     ap.add_argument("--sample-steps", type=int, default=10)
     ap.add_argument("--fid-model", type=Path, help="local TorchScript Inception (default_1.pt) for FID/KID")
     ap.add_argument("--rows", nargs="*", help="only these rows (by uncertainty name), for a partial run")
@@ -235,7 +242,16 @@ def main() -> None:
             path = runs[(lp_name, args.seeds[0])] / f"eval-omega{omega:g}.json"
             sweep[omega] = path
             if not path.exists():
-                jobs.append(_eval_cmd(runs[(lp_name, args.seeds[0])], eval_cache, path, args, omega))
+                jobs.append(
+                    _eval_cmd(
+                        runs[(lp_name, args.seeds[0])],
+                        eval_cache,
+                        path,
+                        args,
+                        omega,
+                        rollout_frames=args.sweep_rollout_frames,
+                    )
+                )
         _in_pairs(jobs)
 
     results = {key: json.loads((out / "eval.json").read_text()) for key, out in runs.items()}
@@ -244,7 +260,14 @@ def main() -> None:
     report.write()
 
 
-def _eval_cmd(run: Path, eval_cache: Path, out: Path, args: argparse.Namespace, omega: float) -> list[str]:
+def _eval_cmd(
+    run: Path,
+    eval_cache: Path,
+    out: Path,
+    args: argparse.Namespace,
+    omega: float,
+    rollout_frames: list[int] | None = None,
+) -> list[str]:
     cmd = [
         str(BIN / "phigenesis-eval"),
         "stage2",
@@ -261,7 +284,7 @@ def _eval_cmd(run: Path, eval_cache: Path, out: Path, args: argparse.Namespace, 
         "--threads",
         "1",
         "--rollout-frames",
-        *[str(k) for k in args.rollout_frames],
+        *[str(k) for k in (args.rollout_frames if rollout_frames is None else rollout_frames)],
     ]
     if omega == 1.0 and out.name == "eval.json":
         cmd += ["--picture", str(run / "eval.png")]
