@@ -59,6 +59,7 @@ ROWS = (
     ("truth geometry (LP)", "localization_potential", "truth"),
 )
 SECTIONS_SHOWN = ("+5", "+10", "shift_1m", "shift_2m", "shift_4m")
+CEILING = "VAE reconstruction of the truth (ceiling)"
 
 
 def _cmd(cmd: list[str], env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
@@ -256,7 +257,17 @@ def main() -> None:
 
     results = {key: json.loads((out / "eval.json").read_text()) for key, out in runs.items()}
     _report_tables(report, args, rows, runs, results, sweep, precompute_s, train_wall, eval_wall)
-    report.text(f"The whole run took {(time.perf_counter() - t_all) / 60:.1f} min.")
+    # A re-invocation that reuses the work folder adds its own time to the first one's.
+    timing = work / "wall_minutes.json"
+    spent = json.loads(timing.read_text()) if timing.exists() else []
+    spent.append(round((time.perf_counter() - t_all) / 60, 1))
+    timing.write_text(json.dumps(spent))
+    parts = (
+        f" ({' + '.join(f'{m:.1f}' for m in spent)} min over {len(spent)} invocations)"
+        if len(spent) > 1
+        else ""
+    )
+    report.text(f"The whole run took {sum(spent):.1f} min{parts}.")
     report.write()
 
 
@@ -304,18 +315,31 @@ def _report_tables(report, args, rows, runs, results, sweep, precompute_s, train
     rollout_sections = [f"rollout_{k}" for k in args.rollout_frames]
     sections = [*SECTIONS_SHOWN, *rollout_sections]
     first = results[(rows[0][0], seeds[0])]["sections"]
+    # The same for every row (no Stage 2 model in it); older evaluations did not score it.
+    with_ceiling = [
+        r["sections"] for r in results.values() if "vae_reconstruction" in r["sections"].get("+5", {})
+    ]
 
-    def render_only(key: str, digits: int) -> list[str]:
-        return [f"{first[s]['render_only'][key]:.{digits}f}" if s in first else "—" for s in sections]
+    def fixed_row(secs: dict, renderer: str, key: str, digits: int) -> list[str]:
+        cells = []
+        for s in sections:
+            value = secs.get(s, {}).get(renderer, {}).get(key)
+            cells.append("—" if value is None else f"{value:.{digits}f}")
+        return cells
 
     for key, label, digits in (
         ("psnr_db", "PSNR (dB)", 2),
         ("ssim", "SSIM", 3),
         ("abs_rel", "depth AbsRel", 3),
     ):
-        table = (
-            [] if key == "abs_rel" else [["render only (Stage 1, no diffusion)", *render_only(key, digits)]]
-        )
+        table = []
+        if key != "abs_rel":
+            table.append(
+                ["render only (Stage 1, no diffusion)", *fixed_row(first, "render_only", key, digits)]
+            )
+            if with_ceiling:
+                row = fixed_row(with_ceiling[0], "vae_reconstruction", key, digits)
+                table.append([CEILING, *row])
         table += [
             [name, *[_metric(results, name, seeds, s, key, digits) for s in sections]] for name, _, _ in rows
         ]
@@ -323,6 +347,9 @@ def _report_tables(report, args, rows, runs, results, sweep, precompute_s, train
     if args.fid_model is not None:
         cols = [(s, k) for s in rollout_sections for k in ("fid", "kid")]
         fid_rows = [[name, *[_metric(results, name, seeds, s, k, 3) for s, k in cols]] for name, _, _ in rows]
+        if with_ceiling:
+            cells = [with_ceiling[0].get(s, {}).get("vae_reconstruction", {}).get(k) for s, k in cols]
+            fid_rows.append([CEILING, *["—" if c is None else f"{c:.3f}" for c in cells]])
         report.table(
             "Rollout FID / KID against the true frames",
             ["row", *[f"{s} {k.upper()}" for s, k in cols]],

@@ -464,3 +464,18 @@ def test_the_stage2_evaluation_scores_rollouts_against_the_truth(
     assert gen["psnr_db"] == pytest.approx(float(psnr(result.images[1], truth).mean()), abs=1e-4)
     rollout = report["sections"]["rollout_6"]["generated"]
     assert rollout["fid"] >= 0 and rollout["fid_images"] == 25 and math.isfinite(rollout["kid"])
+    # The VAE ceiling: the true window (frames start .. start + 4) encoded and decoded as one.
+    window = [
+        resize_images(runner.data._frame("synthetic-s7-0000", start + j)["images"], SIZE).permute(0, 2, 3, 1)
+        for j in range(runner.window)
+    ]
+    video = torch.stack(window).permute(0, 1, 4, 2, 3)[None]
+    recon = runner.stage1.decode(runner.stage1.encode(video))[0, 1].permute(0, 2, 3, 1).clamp(0, 1)
+    ceiling = report["sections"]["+2"]["vae_reconstruction"]
+    assert ceiling["psnr_db"] == pytest.approx(float(psnr(recon, truth).mean()), abs=1e-4)
+    assert ceiling["images"] == 5 and "abs_rel" not in ceiling
+    assert report["sections"]["shift_1m"]["vae_reconstruction"]["images"] == 25
+    # Rollout frame 6 sits in its second window (generated frames 5 .. 9): one frame per view, and
+    # its FID over the frames of that window that end at 6 (one, x 5 views).
+    rollout_ceiling = report["sections"]["rollout_6"]["vae_reconstruction"]
+    assert rollout_ceiling["images"] == 5 and rollout_ceiling["fid_images"] == 5

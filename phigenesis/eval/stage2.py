@@ -17,10 +17,12 @@ the history, the rollout from ``T + 1`` on), sections:
   the true frames of the same window (with ``fid_model``, a local TorchScript Inception:
   :mod:`phigenesis.eval.fid`). Scenes shorter than ``k`` frames after their start skip ``k``.
 
-Every section scores two renderers: ``generated`` (the rollout: the VAE's decoding of the
-generated latents; depth from the Gaussians Stage 1 builds of them) and ``render_only`` (the
+Every section scores three renderers: ``generated`` (the rollout: the VAE's decoding of the
+generated latents; depth from the Gaussians Stage 1 builds of them), ``render_only`` (the
 history's Stage 1 Gaussians rendered at the same cameras, Stage 1's sky behind: the ablation row
-"render only, no diffusion"). Depth is scored under the standard protocol
+"render only, no diffusion") and ``vae_reconstruction`` (the true frames of the same window
+encoded and decoded by the frozen VAE, as a generated window is decoded: the ceiling of anything
+generated in the VAE's latent space; no depth). Depth is scored under the standard protocol
 (:mod:`phigenesis.eval.depth_protocol`) against the synthetic truth depth.
 
 Units: PSNR in dB on RGB in [0, 1] at the Stage 1 model's size; depth in metres.
@@ -48,7 +50,7 @@ from phigenesis.models.losses import psnr, ssim
 
 log = logging.getLogger(__name__)
 
-RENDERERS = ("generated", "render_only")
+RENDERERS = ("generated", "render_only", "vae_reconstruction")
 
 
 @dataclass
@@ -97,6 +99,17 @@ def _truth_frame(runner: Stage2Runner, scene: str, index: int) -> tuple[Tensor, 
     return images, frame_truth(sample, size).depth  # type: ignore[arg-type]
 
 
+def _vae_reconstruction(runner: Stage2Runner, truth_rgb: list[Tensor]) -> Tensor:
+    """[F, V, H, W, 3] of the true frames ``truth_rgb`` (F <= one window, each [V, H, W, 3] in
+    [0, 1]) encoded as one window and decoded by the frozen VAE; a short window is padded with its
+    last frame, as a rollout pads its last window."""
+    frames = list(truth_rgb) + [truth_rgb[-1]] * (runner.window - len(truth_rgb))
+    video = torch.stack(frames).permute(0, 1, 4, 2, 3)[None]  # [1, F, V, 3, H, W]
+    with torch.no_grad():
+        out = runner.stage1.decode(runner.stage1.encode(video))[0]
+    return out[: len(truth_rgb)].permute(0, 1, 3, 4, 2).clamp(0, 1)
+
+
 def _render_only(runner: Stage2Runner, clip: Any, cams: TargetCameras) -> tuple[Tensor, Tensor]:
     """(rgb [F, V, H, W, 3] with Stage 1's sky behind, depth [F, V, H, W]) of the history's Stage 1
     Gaussians at ``cams``."""
@@ -138,7 +151,7 @@ def evaluate_stage2(
     """Scores the Stage 2 checkpoint on the held-out cache ``shards`` (see the module docstring).
 
     Returns ``{"checkpoint", "shards", "options", "clips", "seconds", "seconds_per_frame",
-    "sections": {name: {"generated": {...}, "render_only": {...}}}}``; FID/KID (and their sample
+    "sections": {name: {"generated": {...}, "render_only": {...}, "vae_reconstruction": {...}}}}``; FID/KID (and their sample
     counts) in the rollout sections when ``fid_model`` is given. Writes it as JSON to ``out_json``.
     Raises ValueError when no scene is long enough for any section, CheckpointError for a
     checkpoint that is not Stage 2's."""
@@ -167,7 +180,8 @@ def evaluate_stage2(
     first_picture: dict[str, Tensor] | None = None
     for scene in sorted(runner.data.scenes):
         length = runner.data.scene_length(scene)
-        need = max([*offsets, window if shifts_m else 0, 1])
+        # Whole windows: the VAE reconstruction encodes the true frames of a scored frame's window.
+        need = max([*(math.ceil(k / window) * window for k in offsets), window if shifts_m else 0, 1])
         for start in clip_starts(length, t_h, need, clips_per_scene):
             clips += 1
             # Future frames along the recorded trajectory.
@@ -182,6 +196,10 @@ def evaluate_stage2(
                     s = section(_section_name("offset", k))
                     s["generated"].add(result.images[k - 1], images, result.depth[k - 1], depth)
                     s["render_only"].add(ro_rgb[k - 1], images, ro_depth[k - 1], depth)
+                    w0 = (k - 1) // window * window  # the first frame of the window holding k
+                    true_window = [_truth_frame(runner, scene, start + j)[0] for j in range(w0, w0 + window)]
+                    recon = _vae_reconstruction(runner, true_window)[k - 1 - w0]
+                    s["vae_reconstruction"].add(recon, images, None, None)
                 if first_picture is None:
                     k = max(offsets)
                     first_picture = {
@@ -201,17 +219,19 @@ def evaluate_stage2(
                     ro_rgb, ro_depth = _render_only(runner, clip, cams)
                     s = section(_section_name("shift", d))
                     size = tuple(runner.stage1.config.image_size)
-                    for j in range(window):
-                        sample = runner.data._frame(scene, start + j)
+                    samples = [runner.data._frame(scene, start + j) for j in range(window)]
+                    views = [shifted_views(truth, clip, f, d, size) for f in samples]  # type: ignore[arg-type]
+                    recon = _vae_reconstruction(runner, [v.images for v in views])
+                    for j, (sample, view) in enumerate(zip(samples, views, strict=True)):
                         why = shift_collision(sample, d)
                         if why is not None:
                             log.info("%s frame %d: not scoring the %g m shift: %s", scene, start + j, d, why)
                             for r in RENDERERS:
                                 s[r].skipped_frames += 1
                             continue
-                        views = shifted_views(truth, clip, sample, d, size)  # type: ignore[arg-type]
-                        s["generated"].add(result.images[j], views.images, result.depth[j], views.depth)
-                        s["render_only"].add(ro_rgb[j], views.images, ro_depth[j], views.depth)
+                        s["generated"].add(result.images[j], view.images, result.depth[j], view.depth)
+                        s["render_only"].add(ro_rgb[j], view.images, ro_depth[j], view.depth)
+                        s["vae_reconstruction"].add(recon[j], view.images, None, None)
         # One long rollout per scene.
         reach = [k for k in rollout_frames if t_h + k <= length]
         if reach:
@@ -226,10 +246,19 @@ def evaluate_stage2(
                 s = section(_section_name("rollout", k))
                 s["generated"].add(result.images[k - 1], images, result.depth[k - 1], depth)
                 s["render_only"].add(ro_rgb[k - 1], images, ro_depth[k - 1], depth)
-                bucket = long_frames.setdefault(k, {"generated": [], "truth": []})
+                w0 = (k - 1) // window * window
+                true_window = [
+                    _truth_frame(runner, scene, start + j)[0]
+                    for j in range(w0, min(w0 + window, length - start))
+                ]
+                recon = _vae_reconstruction(runner, true_window)
+                s["vae_reconstruction"].add(recon[k - 1 - w0], images, None, None)
+                bucket = long_frames.setdefault(k, {"generated": [], "truth": [], "vae_reconstruction": []})
                 for j in range(max(k - window, 0), k):
                     bucket["generated"].append(result.images[j])
                     bucket["truth"].append(_truth_frame(runner, scene, start + j)[0])
+                    if j >= w0:
+                        bucket["vae_reconstruction"].append(recon[j - w0])
     if not scores:
         raise ValueError(
             f"{shards}: no scene is long enough for any section (history {t_h}, window {window})"
@@ -240,13 +269,16 @@ def evaluate_stage2(
 
         extractor = load_feature_extractor(fid_model)
         for k, bucket in long_frames.items():
-            gen = torch.cat(bucket["generated"]).permute(0, 3, 1, 2)
             tru = torch.cat(bucket["truth"]).permute(0, 3, 1, 2)
-            fa, fb = image_features(extractor, gen), image_features(extractor, tru)
-            entry = sections[_section_name("rollout", k)]["generated"]
-            entry["fid"] = float(fid(fa, fb))
-            score = kid(fa, fb)
-            entry |= {"kid": float(score.mean), "kid_std": float(score.std), "fid_images": float(len(fa))}
+            fb = image_features(extractor, tru)
+            for renderer in ("generated", "vae_reconstruction"):
+                if not bucket[renderer]:
+                    continue
+                fa = image_features(extractor, torch.cat(bucket[renderer]).permute(0, 3, 1, 2))
+                entry = sections[_section_name("rollout", k)][renderer]
+                entry["fid"] = float(fid(fa, fb))
+                score = kid(fa, fb)
+                entry |= {"kid": float(score.mean), "kid_std": float(score.std), "fid_images": float(len(fa))}
     report = {
         "checkpoint": str(checkpoint),
         "shards": str(shards),
