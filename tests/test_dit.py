@@ -96,6 +96,50 @@ def test_output_depends_on_the_condition_once_its_embedding_is_nonzero() -> None
     assert (model(z, t, u_only, rays) - without).abs().max() > 1e-3
 
 
+def test_x0_skip_starts_as_the_velocity_towards_the_condition() -> None:
+    """Untrained, ``x0_skip`` predicts the clean latent u * z_ren: v = (u z_ren - z_t) / max(t, t_min)."""
+    from phigenesis.models.dit import X0_MIN_TIME
+
+    model = _tiny(prediction="x0_skip")
+    z, _, cond, rays = _inputs(v=3)
+    t = torch.tensor([[0.5, 0.01]])  # per latent frame; the second below t_min
+    out = model(z, t, cond, rays)
+    x0 = cond[:, :, :C]
+    expected = torch.stack(
+        [(x0[:, :, :, 0] - z[:, :, :, 0]) / 0.5, (x0[:, :, :, 1] - z[:, :, :, 1]) / X0_MIN_TIME], 3
+    )
+    torch.testing.assert_close(out, expected, rtol=1e-5, atol=1e-5)
+    # A zero condition (guidance's unconditional branch) has no skip: x0 is the network's alone.
+    zero = model(z, t, torch.zeros_like(cond), rays)
+    torch.testing.assert_close(
+        zero, expected - x0 / torch.tensor([0.5, X0_MIN_TIME])[None, None, None, :, None, None]
+    )
+
+
+def test_x0_skip_untrained_euler_sampling_lands_on_the_render_latent() -> None:
+    """Euler steps of at least t_min end exactly at the predicted clean latent: with u = 1 the
+    untrained model returns z_ren from pure noise, and a trained one corrects it from there."""
+    from phigenesis.infer.flow import euler_sample
+
+    model = _tiny(prediction="x0_skip")
+    z, _, _, rays = _inputs(v=3)
+    z_ren = torch.randn(z.shape, generator=torch.Generator().manual_seed(7))
+    cond = torch.cat([z_ren, torch.ones_like(z_ren[:, :, :1])], dim=2)
+    noise = torch.randn(z.shape, generator=torch.Generator().manual_seed(8))
+    out = euler_sample(lambda x, t, c: model(x, t, c, rays), noise, steps=10, condition=cond)
+    torch.testing.assert_close(out, z_ren, rtol=1e-4, atol=1e-4)
+    # The velocity default is unchanged: the untrained model's velocity is 0 and noise stays noise.
+    vel = _tiny()
+    same = euler_sample(lambda x, t, c: vel(x, t, c, rays), noise, steps=10, condition=cond)
+    assert torch.equal(same, noise)
+
+
+def test_old_configs_without_a_prediction_load_as_velocity() -> None:
+    values = CONFIGS["stage2_tiny"].to_dict()
+    values.pop("prediction")
+    assert DiTConfig.from_dict(values).prediction == "velocity"
+
+
 # --------------------------------------------------------------------------------------------
 # Cross-view attention
 
@@ -270,6 +314,8 @@ def test_variant_sizes_fit_their_machines() -> None:
 def test_bad_configs_are_rejected() -> None:
     with pytest.raises(ValueError, match="must divide by heads"):
         DiTConfig(hidden=64, heads=5)
+    with pytest.raises(ValueError, match="prediction must be one of"):
+        DiTConfig(prediction="eps")
 
 
 # --------------------------------------------------------------------------------------------

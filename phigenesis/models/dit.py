@@ -37,6 +37,13 @@ spatial patch size, N = (h / p) (w / p) tokens per view and latent frame, D the 
   (its zero projection is its gate: a second zero factor would never train).
 - **Final layer**: adaLN-modulated norm and a zero-initialised linear to ``p * p * C``, so the
   initial output is exactly 0; unpatchified to [B, V, C, T, h, w].
+- **Output** (``prediction``): ``velocity`` (the default, the paper's): the final layer's output is
+  the velocity. ``x0_skip``: it is a correction ``r`` to the clean latent, ``x0 = u * z_ren + r``
+  (the Stereo-Forcing condition itself as the skip), turned into the velocity along the path,
+  ``v = (x0 - z_t) / max(t, t_min)`` (JiT's x-prediction with a velocity loss). The untrained
+  model then reproduces the render latent where ``u = 1`` instead of having to learn to copy it
+  through the zero-initialised condition embedding, and with a zero condition (the guidance's
+  unconditional branch) the skip is zero, so the two branches stay one network.
 
 Variants (``phigenesis.models.list_models("dit")``): ``stage2_tiny`` (CPU tests, the ``vae_tiny``
 latent of 4 channels) and ``stage2_base`` (GPUs, 16 latent channels like HunyuanVideo's VAE).
@@ -266,6 +273,12 @@ class FinalLayer(nn.Module):
 # Model
 
 
+#: What the final layer predicts (see the module docstring).
+PREDICTIONS = ("velocity", "x0_skip")
+#: ``x0_skip``: the smallest flow time the velocity divides by (keeps ``1 / t`` bounded).
+X0_MIN_TIME = 0.05
+
+
 @dataclass(frozen=True)
 class DiTConfig:
     """Sizes of a multi-view video diffusion transformer.
@@ -278,6 +291,8 @@ class DiTConfig:
         heads: attention heads in every attention layer.
         mlp_ratio: MLP hidden width over D.
         time_embed_dim: channels of the sinusoidal flow-time features fed to the time MLP.
+        prediction: ``velocity`` (the output is the velocity) or ``x0_skip`` (a correction to
+            the Stereo-Forcing condition as the clean latent; see the module docstring).
     """
 
     latent_channels: int = 16
@@ -287,8 +302,11 @@ class DiTConfig:
     heads: int = 12
     mlp_ratio: float = 4.0
     time_embed_dim: int = 256
+    prediction: str = "velocity"
 
     def __post_init__(self) -> None:
+        if self.prediction not in PREDICTIONS:
+            raise ValueError(f"DiTConfig: prediction must be one of {PREDICTIONS}, got {self.prediction!r}")
         if min(self.latent_channels, self.patch_size, self.hidden, self.depth, self.heads) < 1:
             raise ValueError(f"DiTConfig: sizes must be positive: {self}")
         if self.hidden % self.heads or self.hidden % 4:
@@ -397,8 +415,12 @@ class MultiViewDiT(nn.Module):
         c = self.time_mlp(timestep_embedding(times, self.config.time_embed_dim).to(dtype))  # [B, T, D]
         for block in self.blocks:
             x = block(x, c)
-        out = self.final(x, c)  # [B, V, T, N, p * p * C]
-        return unpatchify(out, p, h, w).to(z_t.dtype)
+        out = unpatchify(self.final(x, c), p, h, w)  # [B, V, C, T, h, w]
+        if self.config.prediction == "x0_skip":
+            x0 = condition[:, :, :-1].to(dtype) + out
+            t_cells = times.clamp_min(X0_MIN_TIME)[:, None, None, :, None, None]
+            out = (x0 - z_t.to(dtype)) / t_cells
+        return out.to(z_t.dtype)
 
     @torch.no_grad()
     def predict(self, z_t: Tensor, t: Tensor, condition: Tensor, plucker: Tensor) -> Tensor:
