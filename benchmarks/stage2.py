@@ -127,6 +127,14 @@ def main() -> None:
     ap.add_argument("--rollout-frames", type=int, nargs="*", default=[50])
     ap.add_argument("--omegas", type=float, nargs="*", default=[0.0, 1.0, 2.0, 3.0])
     ap.add_argument(
+        "--long-rollout-frames",
+        type=int,
+        nargs="*",
+        default=[],
+        help="further rollout frames scored only for --long-rollout-seeds (a long rollout costs minutes)",
+    )
+    ap.add_argument("--long-rollout-seeds", type=int, nargs="*", default=[0])
+    ap.add_argument(
         "--sweep-rollout-frames",
         type=int,
         nargs="*",
@@ -232,7 +240,10 @@ def main() -> None:
                 )
             result = out / "eval.json"
             if not result.exists():
-                eval_jobs.append(_eval_cmd(out, eval_cache, result, args, 1.0))
+                frames = args.rollout_frames + (
+                    args.long_rollout_frames if seed in args.long_rollout_seeds else []
+                )
+                eval_jobs.append(_eval_cmd(out, eval_cache, result, args, 1.0, rollout_frames=frames))
     train_wall = _in_pairs(train_jobs)
     eval_wall = _in_pairs(eval_jobs)
     lp_name = "SF localization potential"
@@ -241,6 +252,8 @@ def main() -> None:
         jobs = []
         for omega in args.omegas:
             path = runs[(lp_name, args.seeds[0])] / f"eval-omega{omega:g}.json"
+            if omega == 1.0:  # the row's own evaluation
+                path = runs[(lp_name, args.seeds[0])] / "eval.json"
             sweep[omega] = path
             if not path.exists():
                 jobs.append(
@@ -312,7 +325,7 @@ def _metric(results: dict, name: str, seeds: list[int], section: str, key: str, 
 
 def _report_tables(report, args, rows, runs, results, sweep, precompute_s, train_wall, eval_wall) -> None:  # type: ignore[no-untyped-def]
     seeds = args.seeds
-    rollout_sections = [f"rollout_{k}" for k in args.rollout_frames]
+    rollout_sections = [f"rollout_{k}" for k in sorted({*args.rollout_frames, *args.long_rollout_frames})]
     sections = [*SECTIONS_SHOWN, *rollout_sections]
     first = results[(rows[0][0], seeds[0])]["sections"]
     # The same for every row (no Stage 2 model in it); older evaluations did not score it.
@@ -357,13 +370,14 @@ def _report_tables(report, args, rows, runs, results, sweep, precompute_s, train
         )
     if sweep:
         sweep_rows = []
+        sweep_sections = [*SECTIONS_SHOWN, *(f"rollout_{k}" for k in args.sweep_rollout_frames)]
         for omega, path in sweep.items():
             sec = json.loads(path.read_text())["sections"]
-            cells = [f"{sec[s]['generated']['psnr_db']:.2f}" if s in sec else "—" for s in sections]
+            cells = [f"{sec[s]['generated']['psnr_db']:.2f}" if s in sec else "—" for s in sweep_sections]
             sweep_rows.append([f"{omega:g}", *cells])
         report.table(
             "Guidance scale omega (SF localization potential, first seed): PSNR dB",
-            ["omega", *sections],
+            ["omega", *sweep_sections],
             sweep_rows,
         )
     speed = []
