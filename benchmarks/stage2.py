@@ -87,15 +87,26 @@ def _run(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, floa
 
 
 def _in_pairs(jobs: list[list[str]]) -> list[tuple[float, float]]:
-    """Runs the commands two at a time (one per core); (wall s, peak RSS GiB) of each."""
-    results: list[tuple[float, float]] = []
-    for i in range(0, len(jobs), 2):
-        batch = jobs[i : i + 2]
-        t0 = time.perf_counter()
-        procs = [(_cmd(c), c) for c in batch]
-        for (_, rss), _c in zip(_wait(procs), batch, strict=True):
-            results.append((time.perf_counter() - t0, rss))
-    return results
+    """Runs the commands two at a time (one per core), starting the next as soon as one ends;
+    (wall s, peak RSS GiB) of each, in the order given."""
+    results: dict[int, tuple[float, float]] = {}
+    # pid -> (index, start, cmd, the Popen: kept so that subprocess never reaps it behind os.wait4)
+    running: dict[int, tuple[int, float, list[str], subprocess.Popen[bytes]]] = {}
+    queue = list(enumerate(jobs))
+    while queue or running:
+        while queue and len(running) < 2:
+            i, cmd = queue.pop(0)
+            proc = _cmd(cmd)
+            running[proc.pid] = (i, time.perf_counter(), cmd, proc)
+        pid, status, usage = os.wait4(-1, 0)
+        if pid not in running:
+            continue
+        i, t0, cmd, proc = running.pop(pid)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        if proc.returncode != 0:
+            raise subprocess.CalledProcessError(proc.returncode, cmd)
+        results[i] = (time.perf_counter() - t0, usage.ru_maxrss / 2**20)
+    return [results[i] for i in range(len(jobs))]
 
 
 def _cache(path: Path, scenes: int, seed: int, frames: int) -> None:
