@@ -138,6 +138,27 @@ def test_old_configs_without_a_prediction_load_as_velocity() -> None:
     values = CONFIGS["stage2_tiny"].to_dict()
     values.pop("prediction")
     assert DiTConfig.from_dict(values).prediction == "velocity"
+    values.pop("latent_mean"), values.pop("latent_std")
+    assert DiTConfig.from_dict(values).latent_mean is None
+
+
+def test_latent_statistics_standardise_and_restore_latents_per_channel() -> None:
+    model = _tiny(latent_mean=[1.0, -2.0, 0.0, 0.5], latent_std=[2.0, 0.5, 1.0, 4.0])
+    assert model.config.latent_mean == (1.0, -2.0, 0.0, 0.5)  # lists (as checkpoints hold them) become tuples
+    z, *_ = _inputs()
+    n = model.normalize_latents(z)
+    assert torch.allclose(n[:, :, 1], (z[:, :, 1] + 2.0) / 0.5)
+    torch.testing.assert_close(model.denormalize_latents(n), z)
+    # [V, C, T, h, w] with the channels at dim 1
+    torch.testing.assert_close(model.normalize_latents(z[0], channel_dim=1), n[0])
+    plain = _tiny()
+    assert plain.normalize_latents(z) is z and plain.denormalize_latents(z) is z
+    with pytest.raises(ValueError, match="latent_std must be positive"):
+        DiTConfig(latent_channels=1, latent_mean=(0.0,), latent_std=(0.0,))
+    with pytest.raises(ValueError, match="come together"):
+        DiTConfig(latent_channels=1, latent_mean=(0.0,))
+    with pytest.raises(ValueError, match="latent_mean must be 4 finite values"):
+        DiTConfig(latent_channels=4, latent_mean=(0.0, math.nan, 0.0, 0.0), latent_std=(1.0,) * 4)
 
 
 # --------------------------------------------------------------------------------------------

@@ -218,6 +218,47 @@ def test_a_batch_holds_history_then_targets_with_the_condition_on_the_targets_on
     assert torch.count_nonzero(none.condition) == 0
 
 
+def test_latent_norm_standardises_every_latent_of_a_batch_by_the_caches_statistics(
+    cache: Path, stage1_checkpoint: Path, latents: Path, tmp_path: Path
+) -> None:
+    from phigenesis.train.stage2 import build_denoiser, latent_statistics
+
+    data = Stage2Latents(latents)
+    mean, std = latent_statistics(data)
+    every = torch.stack([data[i].z_target for i in range(len(data))]).double()  # [N, V, C, T, h, w]
+    by_channel = every.transpose(0, 2).reshape(every.shape[2], -1)
+    assert mean == pytest.approx(by_channel.mean(1).tolist(), abs=1e-9)
+    assert std == pytest.approx(by_channel.std(1, unbiased=False).tolist(), rel=1e-9)
+    model = build_denoiser(_config(latent_norm=True), 4, (mean, std))
+    batch = make_batch([data[0], data[1]], "coverage", 4, model)
+    plain = make_batch([data[0], data[1]], "coverage", 4)
+    m = torch.tensor(mean).float()[None, None, :, None, None, None]
+    s = torch.tensor(std).float()[None, None, :, None, None, None]
+    torch.testing.assert_close(batch.z0, (plain.z0 - m) / s)
+    u = data[0].u["coverage"]
+    z_ren = (data[0].z_render - m[0]) / s[0]
+    torch.testing.assert_close(batch.condition[0, :, :4, 1:], u[:, None] * z_ren)
+    torch.testing.assert_close(model.denormalize_latents(batch.z0), plain.z0, rtol=1e-5, atol=1e-5)
+    # A run trained with it carries the statistics in its checkpoint, and its rollouts stay finite.
+    run = train_stage2(
+        cache,
+        tmp_path / "norm",
+        _config(steps=2, latent_norm=True),
+        stage1=stage1_checkpoint,
+        latents=latents,
+        progress=False,
+    )
+    assert run.checkpoint is not None
+    loaded = load_stage2(run.checkpoint)
+    assert loaded.config.latent_mean == pytest.approx(mean) and loaded.config.latent_std == pytest.approx(std)
+    from phigenesis.infer.generate import GenerateOptions, Stage2Runner
+
+    result, _ = Stage2Runner(run.checkpoint, cache).run(
+        "synthetic-s7-0000", 2, 5, "recorded", GenerateOptions(steps=2, uncertainty="coverage")
+    )
+    assert bool(torch.isfinite(result.images).all()) and result.images.shape[0] == 5
+
+
 def test_the_learning_rate_warms_up_then_restarts_its_cosine() -> None:
     cfg = _config(steps=100, warmup_steps=10, restart_steps=30, lr=1e-3, final_lr_ratio=0.1)
     assert restarted_cosine_lr(0, cfg) == pytest.approx(1e-4)

@@ -151,9 +151,9 @@ def evaluate_stage2(
     """Scores the Stage 2 checkpoint on the held-out cache ``shards`` (see the module docstring).
 
     Returns ``{"checkpoint", "shards", "options", "clips", "seconds", "seconds_per_frame",
-    "sections": {name: {"generated": {...}, "render_only": {...}, "vae_reconstruction": {...}}}}``; FID/KID (and their sample
-    counts) in the rollout sections when ``fid_model`` is given. Writes it as JSON to ``out_json``.
-    Raises ValueError when no scene is long enough for any section, CheckpointError for a
+    "sections": {name: {renderer: {...}}}}`` (the renderers of :data:`RENDERERS`); FID/KID (and
+    their sample counts) in the rollout sections when ``fid_model`` is given. Writes it as JSON to
+    ``out_json``. Raises ValueError when no scene is long enough for any section, CheckpointError for a
     checkpoint that is not Stage 2's."""
     from phigenesis.train.evaluate_stage1 import SyntheticTruth, shift_collision, shifted_views
 

@@ -249,6 +249,7 @@ def _encode(stage1: Stage1Model, images: Tensor) -> Tensor:
 
 
 def _condition(
+    denoiser: MultiViewDiT,
     denoiser_kind: str,
     stage1: Stage1Model,
     buffer_scene: GaussianScene,
@@ -259,7 +260,7 @@ def _condition(
 ) -> tuple[ConditionRender, Tensor, Tensor]:
     """(the render, u [F, V, H, W], the SF condition of the targets [1, V, C + 1, T, h, w])."""
     render = render_condition(buffer_scene, targets)
-    z_render = _encode(stage1, render.rgb.permute(0, 1, 4, 2, 3))
+    z_render = denoiser.normalize_latents(_encode(stage1, render.rgb.permute(0, 1, 4, 2, 3)))
     f, v = targets.frames, targets.views
     if denoiser_kind == "none":
         c = z_render.shape[2]
@@ -331,9 +332,9 @@ def rollout(
         tic = time.perf_counter()
         cams = _cameras(padded[w * window_frames : (w + 1) * window_frames], ego_from_camera, k, origin, size)
         render, u, cond_t = _condition(
-            options.uncertainty, stage1, buffer.scene(), cams, hist_cams, options, generator
+            denoiser, options.uncertainty, stage1, buffer.scene(), cams, hist_cams, options, generator
         )
-        z_hist = _encode(stage1, hist_images)  # [1, V, C, T_zh, h, w]
+        z_hist = denoiser.normalize_latents(_encode(stage1, hist_images))  # [1, V, C, T_zh, h, w]
         t_zh = z_hist.shape[3]
         t_z = cond_t.shape[3]
         v, c = z_hist.shape[1], z_hist.shape[2]
@@ -355,9 +356,9 @@ def rollout(
         z = euler_sample(
             velocity, noise, options.steps, options.shift, options.omega, cond_arg, fixed, generator
         )
-        z_gen = z[:, :, :, t_zh:]
-        if not torch.isfinite(z_gen).all():
+        if not torch.isfinite(z).all():
             raise FloatingPointError(f"window {w}: the sampler produced NaN or Inf latents")
+        z_gen = denoiser.denormalize_latents(z[:, :, :, t_zh:])  # the VAE's latents again
         images = stage1.decode(z_gen)[0]  # [F, V, 3, H, W]
         scene = _window_scene(stage1, z_gen, cams, origin)
         own = render_condition(scene.detach(), cams, semantics=True)

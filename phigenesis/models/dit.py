@@ -293,6 +293,11 @@ class DiTConfig:
         time_embed_dim: channels of the sinusoidal flow-time features fed to the time MLP.
         prediction: ``velocity`` (the output is the velocity) or ``x0_skip`` (a correction to
             the Stereo-Forcing condition as the clean latent; see the module docstring).
+        latent_mean, latent_std: per-channel statistics of the VAE latents the model was trained
+            on (C values each), or None for none. With them the flow runs on ``(z - mean) / std``,
+            as latent diffusion models scale their VAE's latents to unit variance (the noise is
+            N(0, I)); :meth:`MultiViewDiT.normalize_latents` and ``denormalize_latents`` map
+            between the two, and callers (training, rollouts) apply them.
     """
 
     latent_channels: int = 16
@@ -303,8 +308,23 @@ class DiTConfig:
     mlp_ratio: float = 4.0
     time_embed_dim: int = 256
     prediction: str = "velocity"
+    latent_mean: tuple[float, ...] | None = None
+    latent_std: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
+        for name in ("latent_mean", "latent_std"):
+            value = getattr(self, name)
+            if value is not None:
+                value = tuple(float(x) for x in value)  # checkpoints store lists
+                object.__setattr__(self, name, value)
+                if len(value) != self.latent_channels or not all(math.isfinite(x) for x in value):
+                    raise ValueError(
+                        f"DiTConfig: {name} must be {self.latent_channels} finite values, got {value}"
+                    )
+        if (self.latent_mean is None) != (self.latent_std is None):
+            raise ValueError("DiTConfig: latent_mean and latent_std come together")
+        if self.latent_std is not None and min(self.latent_std) <= 0:
+            raise ValueError(f"DiTConfig: latent_std must be positive, got {self.latent_std}")
         if self.prediction not in PREDICTIONS:
             raise ValueError(f"DiTConfig: prediction must be one of {PREDICTIONS}, got {self.prediction!r}")
         if min(self.latent_channels, self.patch_size, self.hidden, self.depth, self.heads) < 1:
@@ -421,6 +441,26 @@ class MultiViewDiT(nn.Module):
             t_cells = times.clamp_min(X0_MIN_TIME)[:, None, None, :, None, None]
             out = (x0 - z_t.to(dtype)) / t_cells
         return out.to(z_t.dtype)
+
+    def _latent_stats(self, z: Tensor, channel_dim: int) -> tuple[Tensor, Tensor] | None:
+        cfg = self.config
+        if cfg.latent_mean is None or cfg.latent_std is None:
+            return None
+        shape = [1] * z.ndim
+        shape[channel_dim] = cfg.latent_channels
+        mean = torch.tensor(cfg.latent_mean, dtype=z.dtype, device=z.device).reshape(shape)
+        return mean, torch.tensor(cfg.latent_std, dtype=z.dtype, device=z.device).reshape(shape)
+
+    def normalize_latents(self, z: Tensor, channel_dim: int = 2) -> Tensor:
+        """VAE latents (channels along ``channel_dim``) as the flow sees them: ``(z - mean) / std``
+        with the config's statistics, ``z`` itself without them."""
+        stats = self._latent_stats(z, channel_dim)
+        return z if stats is None else (z - stats[0]) / stats[1]
+
+    def denormalize_latents(self, z: Tensor, channel_dim: int = 2) -> Tensor:
+        """The inverse of :meth:`normalize_latents`: flow latents back to the VAE's."""
+        stats = self._latent_stats(z, channel_dim)
+        return z if stats is None else z * stats[1] + stats[0]
 
     @torch.no_grad()
     def predict(self, z_t: Tensor, t: Tensor, condition: Tensor, plucker: Tensor) -> Tensor:

@@ -92,6 +92,7 @@ class Stage2TrainConfig:
     condition_dropout: float = 0.1  # probability of dropping the whole condition (guidance)
     history_noise: float = 0.1  # history frames' flow time is uniform in [0, this]
     time_shift: float = 1.0  # resolution shift of the logit-normal training times (1: none)
+    latent_norm: bool = False  # flow on per-channel standardised latents (stats of the latent cache)
     steps: int = 2000
     batch_size: int = 4  # windows per step, over all processes
     lr: float = 1e-3
@@ -224,9 +225,40 @@ def window_condition(sample: Stage2Sample, kind: str) -> Tensor:
     return out
 
 
-def make_batch(samples: list[Stage2Sample], kind: str, temporal_compression: int) -> Stage2Batch:
-    """The :class:`Stage2Batch` of ``samples`` (all of one shape)."""
+def latent_statistics(data: Stage2Latents) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """(mean, std) per channel of the target latents of every window of a latent cache, in float64:
+    the statistics a ``latent_norm`` denoiser standardises its latents with."""
+    total = total_sq = None
+    count = 0
+    for i in range(len(data)):
+        z = data[i].z_target.double()  # [V, C, T, h, w]
+        per_channel = z.transpose(0, 1).reshape(z.shape[1], -1)
+        total = per_channel.sum(1) if total is None else total + per_channel.sum(1)
+        total_sq = per_channel.square().sum(1) if total_sq is None else total_sq + per_channel.square().sum(1)
+        count += per_channel.shape[1]
+    if total is None or total_sq is None or count < 2:
+        raise ValueError("latent_statistics: the latent cache holds no windows")
+    mean = total / count
+    std = (total_sq / count - mean.square()).clamp_min(1e-12).sqrt()
+    return tuple(mean.tolist()), tuple(std.tolist())
+
+
+def make_batch(
+    samples: list[Stage2Sample], kind: str, temporal_compression: int, model: MultiViewDiT | None = None
+) -> Stage2Batch:
+    """The :class:`Stage2Batch` of ``samples`` (all of one shape); the latents (targets, history and
+    render) standardised by ``model``'s latent statistics when it has them."""
+
+    def norm(z: Tensor) -> Tensor:
+        return z if model is None else model.normalize_latents(z, channel_dim=1)
+
     t_h = samples[0].z_history.shape[2]
+    samples = [
+        dataclasses.replace(
+            s, z_history=norm(s.z_history), z_target=norm(s.z_target), z_render=norm(s.z_render)
+        )
+        for s in samples
+    ]
     z0 = torch.stack([torch.cat([s.z_history, s.z_target], dim=2) for s in samples])
     target = torch.zeros(z0.shape[3], dtype=torch.bool)
     target[t_h:] = True
@@ -266,9 +298,16 @@ def stage2_loss(
 # Training
 
 
-def build_denoiser(cfg: Stage2TrainConfig, latent_channels: int) -> MultiViewDiT:
-    """The denoiser of a config, its latent channels those of the Stage 1 model's VAE."""
+def build_denoiser(
+    cfg: Stage2TrainConfig,
+    latent_channels: int,
+    latent_stats: tuple[tuple[float, ...], tuple[float, ...]] | None = None,
+) -> MultiViewDiT:
+    """The denoiser of a config, its latent channels those of the Stage 1 model's VAE, standardising
+    latents by ``latent_stats`` (mean, std per channel) when given."""
     overrides = {"latent_channels": latent_channels, **cfg.model_overrides}
+    if latent_stats is not None:
+        overrides |= {"latent_mean": latent_stats[0], "latent_std": latent_stats[1]}
     model = create_model(cfg.model, **overrides)
     if not isinstance(model, MultiViewDiT):
         raise ValueError(f"Stage2TrainConfig.model {cfg.model!r} is not a Stage 2 denoiser (stage2_*)")
@@ -350,7 +389,8 @@ def _train(
     data = Stage2Latents(latent_dir)
     del stage1
     torch.manual_seed(cfg.seed)
-    model = build_denoiser(cfg, int(data[0].z_target.shape[1]))
+    stats = latent_statistics(data) if cfg.latent_norm else None
+    model = build_denoiser(cfg, int(data[0].z_target.shape[1]), stats)
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0
     if resume_from is not None:
@@ -390,7 +430,7 @@ def _train(
                 pg["lr"] = lr
             g = step_generator(cfg.seed, step, group.rank)
             index = torch.randint(len(data), (local,), generator=g).tolist()
-            batch = make_batch([data[i] for i in index], cfg.uncertainty, tc)
+            batch = make_batch([data[i] for i in index], cfg.uncertainty, tc, model)
             loss, extra = stage2_loss(trainee, batch, cfg, g)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
