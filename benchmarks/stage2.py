@@ -281,6 +281,12 @@ def main() -> None:
 
     results = {key: json.loads((out / "eval.json").read_text()) for key, out in runs.items()}
     _report_tables(report, args, rows, runs, results, sweep, precompute_s, train_wall, eval_wall)
+    picture = _rows_picture([(name, runs[(name, args.seeds[0])] / "eval.png") for name, _, _ in rows])
+    if picture is not None:
+        report.text(
+            f"![history, condition render, u, generated frame and truth at +10, one block per row, seed "
+            f"{args.seeds[0]}]({picture.relative_to(REPO_ROOT)})"
+        )
     # A re-invocation that reuses the work folder adds its own time to the first one's.
     timing = work / "wall_minutes.json"
     spent = json.loads(timing.read_text()) if timing.exists() else []
@@ -293,6 +299,27 @@ def main() -> None:
     )
     report.text(f"The whole run took {sum(spent):.1f} min{parts}.")
     report.write()
+
+
+def _rows_picture(pictures: list[tuple[str, Path]]) -> Path | None:
+    """Stacks the evaluations' pictures (history, condition, u, generated, truth), each under a bar
+    naming its row, into docs/images/stage2_rows.png; None when none exists."""
+    import cv2
+    import numpy as np
+
+    blocks = []
+    for name, path in pictures:
+        image = cv2.imread(str(path)) if path.exists() else None
+        if image is None:
+            continue
+        bar = np.zeros((16, image.shape[1], 3), np.uint8)
+        cv2.putText(bar, name, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+        blocks += [bar, image]
+    if not blocks:
+        return None
+    out = REPO_ROOT / "docs" / "images" / "stage2_rows.png"
+    cv2.imwrite(str(out), np.concatenate(blocks))
+    return out
 
 
 def _eval_cmd(
