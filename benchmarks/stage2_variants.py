@@ -49,6 +49,7 @@ def main() -> None:
     ap.add_argument("--stage2-steps", type=int, default=800)
     ap.add_argument("--rollout-frames", type=int, nargs="*", default=[50, 100])
     ap.add_argument("--sample-steps", type=int, default=10)
+    ap.add_argument("--only", nargs="*", help="train and evaluate only these variants (the table shows all)")
     ap.add_argument("--fid-model", type=Path, help="local TorchScript Inception (default_1.pt) for FID/KID")
     args = ap.parse_args()
     work = args.work
@@ -72,6 +73,8 @@ def main() -> None:
         for name, change in VARIANTS:
             tag = name.replace(" + ", "-").replace("_", "-") + f"-s{seed}"
             out = work / "variants" / tag
+            if (args.only and name not in args.only) and not (out / "eval.json").exists():
+                continue
             runs[(name, seed)] = out
             cfg_path = work / "variants" / f"{tag}.yaml"
             cfg_path.parent.mkdir(parents=True, exist_ok=True)
@@ -111,22 +114,21 @@ def main() -> None:
                 cells = [first.get(s, {}).get(renderer, {}).get(key) for s in sections]
                 table.append([row_name, *["—" if c is None else f"{c:.{digits}f}" for c in cells]])
         for name in names:
+            have = [seed for seed in args.seeds if (name, seed) in results]
             cells = []
             for s in sections:
-                values = [
-                    results[(name, seed)].get(s, {}).get("generated", {}).get(key) for seed in args.seeds
-                ]
+                values = [results[(name, seed)].get(s, {}).get("generated", {}).get(key) for seed in have]
                 cells.append(_mean_std([v for v in values if v is not None], digits))
-            table.append([name, *cells])
-        seeds = ", ".join(str(s) for s in args.seeds)
-        report.table(f"Held-out {label}, seeds {seeds}", ["row", *sections], table)
+            table.append([f"{name} (seeds {', '.join(map(str, have))})", *cells])
+        report.table(f"Held-out {label}, mean ± std over the seeds", ["row", *sections], table)
     if args.fid_model is not None:
         cols = [(f"rollout_{k}", m) for k in args.rollout_frames for m in ("fid", "kid")]
         fid_rows = []
         for name in names:
+            have = [seed for seed in args.seeds if (name, seed) in results]
             cells = []
             for s, m in cols:
-                values = [results[(name, seed)].get(s, {}).get("generated", {}).get(m) for seed in args.seeds]
+                values = [results[(name, seed)].get(s, {}).get("generated", {}).get(m) for seed in have]
                 cells.append(_mean_std([v for v in values if v is not None], 3))
             fid_rows.append([name, *cells])
         report.table("Rollout FID / KID", ["row", *[f"{s} {m.upper()}" for s, m in cols]], fid_rows)
