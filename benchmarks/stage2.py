@@ -318,7 +318,7 @@ def _rows_picture(pictures: list[tuple[str, Path]]) -> Path | None:
     if not blocks:
         return None
     out = REPO_ROOT / "docs" / "images" / "stage2_rows.png"
-    cv2.imwrite(str(out), np.concatenate(blocks))
+    cv2.imwrite(str(out), np.concatenate(blocks), [cv2.IMWRITE_PNG_COMPRESSION, 9])
     return out
 
 
