@@ -60,6 +60,7 @@ ROWS = (
 )
 SECTIONS_SHOWN = ("+5", "+10", "shift_1m", "shift_2m", "shift_4m")
 CEILING = "VAE reconstruction of the truth (ceiling)"
+RENDER_ONLY = "render only (Stage 1, no diffusion)"
 
 
 def _cmd(cmd: list[str], env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
@@ -361,6 +362,16 @@ def _metric(results: dict, name: str, seeds: list[int], section: str, key: str, 
     return _mean_std([math.nan if v is None else v for v in values], digits)
 
 
+def _fixed_row(secs: dict, renderer: str, sections: list[str], key: str, digits: int) -> list[str]:
+    """One renderer's metric per section of one evaluation's ``sections`` ("—" where it has none):
+    the rows that do not depend on the Stage 2 model (render only, the VAE ceiling)."""
+    cells = []
+    for s in sections:
+        value = secs.get(s, {}).get(renderer, {}).get(key)
+        cells.append("—" if value is None else f"{value:.{digits}f}")
+    return cells
+
+
 def _report_tables(report, args, rows, runs, results, sweep, precompute_s, train_wall, eval_wall) -> None:  # type: ignore[no-untyped-def]
     seeds = args.seeds
     rollout_sections = [f"rollout_{k}" for k in sorted({*args.rollout_frames, *args.long_rollout_frames})]
@@ -371,13 +382,6 @@ def _report_tables(report, args, rows, runs, results, sweep, precompute_s, train
         r["sections"] for r in results.values() if "vae_reconstruction" in r["sections"].get("+5", {})
     ]
 
-    def fixed_row(secs: dict, renderer: str, key: str, digits: int) -> list[str]:
-        cells = []
-        for s in sections:
-            value = secs.get(s, {}).get(renderer, {}).get(key)
-            cells.append("—" if value is None else f"{value:.{digits}f}")
-        return cells
-
     for key, label, digits in (
         ("psnr_db", "PSNR (dB)", 2),
         ("ssim", "SSIM", 3),
@@ -385,11 +389,9 @@ def _report_tables(report, args, rows, runs, results, sweep, precompute_s, train
     ):
         table = []
         if key != "abs_rel":
-            table.append(
-                ["render only (Stage 1, no diffusion)", *fixed_row(first, "render_only", key, digits)]
-            )
+            table.append([RENDER_ONLY, *_fixed_row(first, "render_only", sections, key, digits)])
             if with_ceiling:
-                row = fixed_row(with_ceiling[0], "vae_reconstruction", key, digits)
+                row = _fixed_row(with_ceiling[0], "vae_reconstruction", sections, key, digits)
                 table.append([CEILING, *row])
         table += [
             [name, *[_metric(results, name, seeds, s, key, digits) for s in sections]] for name, _, _ in rows

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import yaml
 from _report import REPO_ROOT, Report
-from stage2 import BIN, _eval_cmd, _in_pairs, _mean_std
+from stage2 import BIN, CEILING, RENDER_ONLY, _eval_cmd, _fixed_row, _in_pairs, _metric
 
 #: (name, config changes) of the variants; the first row is the ablation's own run.
 VARIANTS = (
@@ -96,10 +96,11 @@ def main() -> None:
     _in_pairs(train_jobs)
     _in_pairs(eval_jobs)
 
-    results = {key: json.loads((out / "eval.json").read_text())["sections"] for key, out in runs.items()}
+    results = {key: json.loads((out / "eval.json").read_text()) for key, out in runs.items()}
     sections = [*SECTIONS, *(f"rollout_{k}" for k in args.rollout_frames)]
-    first = results[(BASELINE, args.seeds[0])]
+    first = results[(BASELINE, args.seeds[0])]["sections"]
     names = [BASELINE, *(n for n, _ in VARIANTS)]
+    have = {name: [seed for seed in args.seeds if (name, seed) in results] for name in names}
     for key, label, digits in (
         ("psnr_db", "PSNR (dB)", 2),
         ("ssim", "SSIM", 3),
@@ -107,30 +108,17 @@ def main() -> None:
     ):
         table = []
         if key != "abs_rel":
-            for renderer, row_name in (
-                ("render_only", "render only (Stage 1, no diffusion)"),
-                ("vae_reconstruction", "VAE reconstruction of the truth (ceiling)"),
-            ):
-                cells = [first.get(s, {}).get(renderer, {}).get(key) for s in sections]
-                table.append([row_name, *["—" if c is None else f"{c:.{digits}f}" for c in cells]])
+            table.append([RENDER_ONLY, *_fixed_row(first, "render_only", sections, key, digits)])
+            table.append([CEILING, *_fixed_row(first, "vae_reconstruction", sections, key, digits)])
         for name in names:
-            have = [seed for seed in args.seeds if (name, seed) in results]
-            cells = []
-            for s in sections:
-                values = [results[(name, seed)].get(s, {}).get("generated", {}).get(key) for seed in have]
-                cells.append(_mean_std([v for v in values if v is not None], digits))
-            table.append([f"{name} (seeds {', '.join(map(str, have))})", *cells])
+            cells = [_metric(results, name, have[name], s, key, digits) for s in sections]
+            table.append([f"{name} (seeds {', '.join(map(str, have[name]))})", *cells])
         report.table(f"Held-out {label}, mean ± std over the seeds", ["row", *sections], table)
     if args.fid_model is not None:
         cols = [(f"rollout_{k}", m) for k in args.rollout_frames for m in ("fid", "kid")]
         fid_rows = []
         for name in names:
-            have = [seed for seed in args.seeds if (name, seed) in results]
-            cells = []
-            for s, m in cols:
-                values = [results[(name, seed)].get(s, {}).get("generated", {}).get(m) for seed in have]
-                cells.append(_mean_std([v for v in values if v is not None], 3))
-            fid_rows.append([name, *cells])
+            fid_rows.append([name, *[_metric(results, name, have[name], s, m, 3) for s, m in cols]])
         report.table("Rollout FID / KID", ["row", *[f"{s} {m.upper()}" for s, m in cols]], fid_rows)
     report.text(f"The whole run took {(time.perf_counter() - t_all) / 60:.1f} min.")
     report.write()
