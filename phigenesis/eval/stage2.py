@@ -30,6 +30,7 @@ Units: PSNR in dB on RGB in [0, 1] at the Stage 1 model's size; depth in metres.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -180,6 +181,10 @@ def evaluate_stage2(
     first_picture: dict[str, Tensor] | None = None
     for scene in sorted(runner.data.scenes):
         length = runner.data.scene_length(scene)
+        # Each true frame is read and decoded once per scene: the sections, the VAE ceiling's
+        # windows and the FID windows share frames.
+        truth_at = functools.lru_cache(maxsize=None)(functools.partial(_truth_frame, runner, scene))
+
         # Whole windows: the VAE reconstruction encodes the true frames of a scored frame's window.
         need = max([*(math.ceil(k / window) * window for k in offsets), window if shifts_m else 0, 1])
         for start in clip_starts(length, t_h, need, clips_per_scene):
@@ -192,12 +197,12 @@ def evaluate_stage2(
                 cams = _rollout_cameras(result, clip)
                 ro_rgb, ro_depth = _render_only(runner, clip, cams)
                 for k in offsets:
-                    images, depth = _truth_frame(runner, scene, start + k - 1)
+                    images, depth = truth_at(start + k - 1)
                     s = section(_section_name("offset", k))
                     s["generated"].add(result.images[k - 1], images, result.depth[k - 1], depth)
                     s["render_only"].add(ro_rgb[k - 1], images, ro_depth[k - 1], depth)
                     w0 = (k - 1) // window * window  # the first frame of the window holding k
-                    true_window = [_truth_frame(runner, scene, start + j)[0] for j in range(w0, w0 + window)]
+                    true_window = [truth_at(start + j)[0] for j in range(w0, w0 + window)]
                     recon = _vae_reconstruction(runner, true_window)[k - 1 - w0]
                     s["vae_reconstruction"].add(recon, images, None, None)
                 if first_picture is None:
@@ -207,7 +212,7 @@ def evaluate_stage2(
                         "condition": result.condition_rgb[k - 1],
                         "u": result.u[k - 1][..., None].expand(*result.u.shape[1:], 3),
                         "generated": result.images[k - 1],
-                        "truth": _truth_frame(runner, scene, start + k - 1)[0],
+                        "truth": truth_at(start + k - 1)[0],
                     }
             # Novel trajectories: the recorded one moved sideways.
             if truth is not None:
@@ -242,21 +247,18 @@ def evaluate_stage2(
             cams = _rollout_cameras(result, clip)
             ro_rgb, ro_depth = _render_only(runner, clip, cams)
             for k in reach:
-                images, depth = _truth_frame(runner, scene, start + k - 1)
+                images, depth = truth_at(start + k - 1)
                 s = section(_section_name("rollout", k))
                 s["generated"].add(result.images[k - 1], images, result.depth[k - 1], depth)
                 s["render_only"].add(ro_rgb[k - 1], images, ro_depth[k - 1], depth)
                 w0 = (k - 1) // window * window
-                true_window = [
-                    _truth_frame(runner, scene, start + j)[0]
-                    for j in range(w0, min(w0 + window, length - start))
-                ]
+                true_window = [truth_at(start + j)[0] for j in range(w0, min(w0 + window, length - start))]
                 recon = _vae_reconstruction(runner, true_window)
                 s["vae_reconstruction"].add(recon[k - 1 - w0], images, None, None)
                 bucket = long_frames.setdefault(k, {"generated": [], "truth": [], "vae_reconstruction": []})
                 for j in range(max(k - window, 0), k):
                     bucket["generated"].append(result.images[j])
-                    bucket["truth"].append(_truth_frame(runner, scene, start + j)[0])
+                    bucket["truth"].append(truth_at(start + j)[0])
                     if j >= w0:
                         bucket["vae_reconstruction"].append(recon[j - w0])
     if not scores:
