@@ -39,7 +39,7 @@ from torch.utils.data import DataLoader
 
 from phigenesis import prep
 from phigenesis._open3d import open3d
-from phigenesis.data.loader import FrameDataset, collate_frames
+from phigenesis.data.loader import FrameDataset, auto_decode_threads, collate_frames
 from phigenesis.data.schema import TRUTH_MAPS, cameras_of
 from phigenesis.data.shards import CacheReader
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene
@@ -288,8 +288,8 @@ def stored_bytes(cache_dir: Path, with_truth: bool) -> list[list[tuple[np.ndarra
     return out
 
 
-def interleaved_medians(runs: dict[str, Callable[[], None]], passes: int) -> dict[str, float]:
-    """Median wall time of each run over ``passes`` rounds, after one untimed warm-up round.
+def interleaved_times(runs: dict[str, Callable[[], None]], passes: int) -> dict[str, list[float]]:
+    """Wall times of each run in each of ``passes`` rounds, after one untimed warm-up round.
 
     The runs take turns within each round, so drift in the machine's speed (a shared VM) affects
     all of them alike and their ratios stay meaningful.
@@ -302,7 +302,18 @@ def interleaved_medians(runs: dict[str, Callable[[], None]], passes: int) -> dic
             t0 = time.perf_counter()
             run()
             times[name].append(time.perf_counter() - t0)
-    return {name: float(np.median(t)) for name, t in times.items()}
+    return dict(times)
+
+
+def interleaved_medians(runs: dict[str, Callable[[], None]], passes: int) -> dict[str, float]:
+    """Median wall time of each run over ``passes`` interleaved rounds (:func:`interleaved_times`)."""
+    return {name: float(np.median(t)) for name, t in interleaved_times(runs, passes).items()}
+
+
+def round_ratio(times: list[float], floor: list[float]) -> float:
+    """Median over rounds of a run's time over the floor's time in the same round: on a VM whose
+    speed drifts by tens of percent within minutes, steadier than the ratio of the medians."""
+    return float(np.median(np.asarray(times) / np.asarray(floor)))
 
 
 def decode_pass(encoded: list[list[tuple[np.ndarray, int]]]) -> Callable[[], None]:
@@ -317,10 +328,15 @@ def decode_pass(encoded: list[list[tuple[np.ndarray, int]]]) -> Callable[[], Non
 
 
 def loader_pass(
-    cache_dir: Path, fields: Sequence[str], workers: int, batch_size: int, repeat: int = 1
+    cache_dir: Path,
+    fields: Sequence[str],
+    workers: int,
+    batch_size: int,
+    repeat: int = 1,
+    decode_threads: int | None = None,
 ) -> Callable[[], None]:
     """One full pass of a DataLoader over the cache's frames, ``repeat`` times each (persistent workers)."""
-    dataset = FrameDataset(cache_dir, fields=fields)
+    dataset = FrameDataset(cache_dir, fields=fields, decode_threads=decode_threads)
     loader = DataLoader(
         dataset,
         batch_size=batch_size,
@@ -336,12 +352,21 @@ def loader_pass(
     return run_pass
 
 
-#: (workers, batch size) of the DataLoader variants measured.
-LOADER_VARIANTS = ((0, 1), (2, 1), (2, 4))
+#: (workers, batch size, decode threads) of the DataLoader variants measured; None: the default
+#: (``auto_decode_threads``: the cores in the main process, the cores per worker in a worker).
+LOADER_VARIANTS = ((0, 1, 1), (0, 1, None), (2, 1, None), (2, 4, None))
 
 
 def goal_cell(ratio: float) -> str:
     return f"≤ {FLOOR_RATIO_GOAL}: " + ("met" if ratio <= FLOOR_RATIO_GOAL else "missed")
+
+
+def _loader_label(workers: int, batch: int, threads: int | None) -> str:
+    label = f"DataLoader, {workers} workers, batch {batch}"
+    if threads is not None:
+        return label + f", {threads} decode thread" + ("s" if threads != 1 else "")
+    threads = auto_decode_threads(workers)
+    return label + f" (default: {threads} decode thread" + ("s" if threads != 1 else "") + ")"
 
 
 def loader_rows(
@@ -351,15 +376,23 @@ def loader_rows(
     measured in one interleaved run."""
     encoded = stored_bytes(cache_dir, with_truth=fields != IMAGE_FIELDS) * repeat
     runs = {"floor": decode_pass(encoded)}
-    for workers, batch in LOADER_VARIANTS:
-        runs[f"{workers}/{batch}"] = loader_pass(cache_dir, fields, workers, batch, repeat)
-    seconds = interleaved_medians(runs, passes)
-    floor = seconds.pop("floor")
+    for workers, batch, threads in LOADER_VARIANTS:
+        runs[f"{workers}/{batch}/{threads}"] = loader_pass(cache_dir, fields, workers, batch, repeat, threads)
+    times = interleaved_times(runs, passes)
+    floor = times.pop("floor")
     loads = len(encoded)
-    rows = [[label, f"decode floor ({floor_label})", f"{loads / floor:.1f}", "1.00", "—"]]
-    for (workers, batch), t in zip(LOADER_VARIANTS, seconds.values(), strict=True):
-        reader = f"DataLoader, {workers} workers, batch {batch}"
-        rows.append([label, reader, f"{loads / t:.1f}", f"{t / floor:.2f}", goal_cell(t / floor)])
+    rows = [[label, f"decode floor ({floor_label})", f"{loads / float(np.median(floor)):.1f}", "1.00", "—"]]
+    for variant, t in zip(LOADER_VARIANTS, times.values(), strict=True):
+        ratio = round_ratio(t, floor)
+        rows.append(
+            [
+                label,
+                _loader_label(*variant),
+                f"{loads / float(np.median(t)):.1f}",
+                f"{ratio:.2f}",
+                goal_cell(ratio),
+            ]
+        )
     return rows
 
 
@@ -374,10 +407,13 @@ def report_loader(report: Report, cache_dir: Path, passes: int) -> None:
         ["fields", "reader", "frames/s", "time / floor", "goal"],
         rows,
         f"{frames} frames per pass with `collate_frames` and FrameDataset defaults (the CRCs of every "
-        f"column read are checked); median of {passes} rounds after one warm-up round, the floor and "
-        "the loaders taking turns within each round (workers are persistent, so their start-up is not "
-        "timed). The decode floor decodes the same stored buffers, already in memory, with "
-        "`cv2.imdecode` in one process. Images alone: the next table.",
+        f"column read are checked); {passes} rounds after one warm-up round, the floor and the loaders "
+        "taking turns within each round (workers are persistent, so their start-up is not timed). "
+        "frames/s: from the median pass time; time / floor: the median over rounds of the pass time "
+        "over the floor's in the same round. The decode floor decodes the same stored buffers, already "
+        "in memory, with `cv2.imdecode` in one process, on one thread. `decode threads`: the threads "
+        "FrameDataset decodes a frame's cameras on (OpenCV releases the GIL); the 1-thread row is the "
+        "loader's own cost. Images alone: the next table.",
     )
 
 
@@ -408,11 +444,11 @@ class SizedCache:
 def frame_costs(cache: SizedCache, passes: int) -> list[list[str]]:
     """Where an image-only frame's time goes in one process: reading its columns with and without
     their CRC checks, decoding its JPEGs, FrameDataset[i] and a DataLoader with 0 workers."""
-    dataset = FrameDataset(cache.path, fields=IMAGE_FIELDS)
-    unchecked = FrameDataset(cache.path, fields=IMAGE_FIELDS, check_crc=False)
+    dataset = FrameDataset(cache.path, fields=IMAGE_FIELDS, decode_threads=1)
+    unchecked = FrameDataset(cache.path, fields=IMAGE_FIELDS, check_crc=False, decode_threads=1)
     indices = list(range(len(dataset))) * cache.repeat
     columns = [dataset._columns(i) for i in range(len(dataset))]
-    loader = loader_pass(cache.path, IMAGE_FIELDS, 0, 1, cache.repeat)
+    loader = loader_pass(cache.path, IMAGE_FIELDS, 0, 1, cache.repeat, decode_threads=1)
 
     def read(ds: FrameDataset) -> Callable[[], None]:
         return lambda: collections.deque((ds.reader.read(i, columns[i]) for i in indices), maxlen=0)
@@ -457,9 +493,10 @@ def report_image_sizes(report: Report, caches: list[SizedCache], passes: int) ->
         f"Field group `images` only (each frame's 5 JPEGs, decoded into `uint8 [C, 3, H, W]`); "
         f"{'; '.join(origin(c) for c in caches)}. A pass loads each frame "
         f"{' / '.join(str(c.repeat) for c in caches)} times (at least {MIN_LOADS_PER_PASS} loads); "
-        f"median of {passes} rounds, the floor and the loaders taking turns within each round. The "
-        "decode floor runs in one process; 2 workers can beat it on 2 cores. Worker batches travel "
-        "in pooled shared-memory segments (`phigenesis.data.batch_pool`).",
+        f"{passes} rounds, the floor and the loaders taking turns within each round; frames/s and time / "
+        "floor as above. The decode floor runs in one process on one thread; 2 workers, or 2 decode "
+        "threads, can beat it on 2 cores. Worker batches travel in pooled shared-memory segments "
+        "(`phigenesis.data.batch_pool`).",
     )
     cost_rows = []
     for cache in caches:
@@ -468,7 +505,8 @@ def report_image_sizes(report: Report, caches: list[SizedCache], passes: int) ->
         "Image-only loading: where a frame's time goes (one process)",
         ["size", "step", "ms/frame", "share of DataLoader time"],
         cost_rows,
-        "Medians of interleaved rounds as above; the indented rows are differences of the others. "
+        "Medians of interleaved rounds as above, everything on one decode thread; the indented rows "
+        "are differences of the others. "
         "Reading checks the CRC-32C of every column it returns: the `cameras` column holds every PNG "
         "of the frame's cameras, not only the JPEGs, so its check covers more bytes than are decoded.",
     )
@@ -501,7 +539,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     frames = args.frames if args.frames is not None else (2 if args.quick else 20)
     scenes = args.scenes if args.scenes is not None else (1 if args.quick else 2)
-    passes = 2 if args.quick else 7
+    passes = 2 if args.quick else 11
     frames_r2 = 1 if args.quick else 4
 
     report = Report(

@@ -257,3 +257,56 @@ def test_samples_held_while_later_frames_are_decoded_stay_intact(tiny_cache: Pat
     assert len(addresses) == 1  # a freed frame's allocation is reused
     kept = ds[0]
     assert ds[0]["images"].untyped_storage().data_ptr() != kept["images"].untyped_storage().data_ptr()
+
+
+def test_decoding_on_several_threads_gives_the_same_samples(
+    tiny_cache: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(loader, "MIN_THREADED_PIXELS", 0)  # the tiny frames would decode on one thread
+    one = FrameDataset(tiny_cache, fields=FIELD_GROUPS, decode_threads=1)
+    three = FrameDataset(tiny_cache, fields=FIELD_GROUPS, decode_threads=3)
+    for i in range(len(one)):
+        assert_same(three[i], one[i], f"frame {i}")
+
+
+def _camera_fields(images: list[bytes], height: int, width: int) -> dict[str, Any]:
+    import pyarrow as pa
+
+    n = len(images)
+    return {
+        "height": pa.array([height] * n),
+        "width": pa.array([width] * n),
+        "image": pa.array(images, pa.binary()),
+    }
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_an_image_that_does_not_decode_is_named_by_its_camera_on_any_thread_count(
+    threads: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import cv2
+
+    monkeypatch.setattr(loader, "MIN_THREADED_PIXELS", 0)
+    good = cv2.imencode(".jpg", np.full((8, 12, 3), 128, np.uint8))[1].tobytes()
+    wrong_size = cv2.imencode(".jpg", np.full((8, 10, 3), 128, np.uint8))[1].tobytes()
+    jobs = [loader._IMAGE_JOB]
+    cf = _camera_fields([good, b"not a jpeg", good, good], 8, 12)
+    with pytest.raises(ValueError, match=r"^camera B: image does not decode$"):
+        loader._decode_maps(cf, ["A", "B", "C", "D"], jobs, loader._Arenas(), threads)
+    cf = _camera_fields([good, good, good, wrong_size], 8, 12)
+    with pytest.raises(ValueError, match=r"^camera D: image is 10x8, the calibration says 12x8$"):
+        loader._decode_maps(cf, ["A", "B", "C", "D"], jobs, loader._Arenas(), threads)
+    out = loader._decode_maps(
+        _camera_fields([good] * 4, 8, 12), list("ABCD"), jobs, loader._Arenas(), threads
+    )
+    assert out["images"].shape == (4, 3, 8, 12)
+    assert int((out["images"].int() - 128).abs().max()) <= 1
+
+
+def test_decode_threads_are_checked_and_shared_out_among_workers(tiny_cache: Path) -> None:
+    with pytest.raises(ValueError, match="decode_threads must be >= 1"):
+        FrameDataset(tiny_cache, decode_threads=0)
+    cores = loader.usable_cores()
+    assert loader.auto_decode_threads() == min(loader.MAX_DECODE_THREADS, cores)  # not in a worker
+    assert loader.auto_decode_threads(num_workers=cores) == 1
+    assert loader.auto_decode_threads(num_workers=4 * cores) == 1

@@ -62,8 +62,10 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import weakref
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -231,10 +233,53 @@ class _Arenas:
         return torch.from_numpy(use)
 
 
+#: Most threads a frame's maps are decoded on in one process (more gave nothing on 2-8 cores).
+MAX_DECODE_THREADS = 4
+#: Frames with fewer decoded pixels than this decode on one thread (a handoff costs ~20 us).
+MIN_THREADED_PIXELS = 50_000
+
+_pools: dict[tuple[int, int], ThreadPoolExecutor] = {}
+_pools_lock = threading.Lock()
+
+
+def _forget_pools() -> None:
+    """In a forked child: the parent's threads do not exist there."""
+    _pools.clear()
+
+
+os.register_at_fork(after_in_child=_forget_pools)
+
+
+def _decode_pool(threads: int) -> ThreadPoolExecutor:
+    """This process's pool of ``threads`` decode threads (made on first use)."""
+    key = (os.getpid(), threads)
+    with _pools_lock:
+        pool = _pools.get(key)
+        if pool is None:
+            pool = _pools[key] = ThreadPoolExecutor(threads, thread_name_prefix="phigenesis-decode")
+        return pool
+
+
+def usable_cores() -> int:
+    """The cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def auto_decode_threads(num_workers: int | None = None) -> int:
+    """Threads to decode a frame on: the usable cores (at most :data:`MAX_DECODE_THREADS`), shared
+    out among ``num_workers`` DataLoader workers (default: this process's DataLoader's, if it is
+    a worker, else none)."""
+    if num_workers is None:
+        info = torch.utils.data.get_worker_info()
+        num_workers = info.num_workers if info is not None else 0
+    return max(1, min(MAX_DECODE_THREADS, usable_cores() // max(1, num_workers)))
+
+
 def _decode_maps(
-    cf: Mapping[str, pa.Array], names: list[str], jobs: list[_MapJob], arenas: _Arenas
+    cf: Mapping[str, pa.Array], names: list[str], jobs: list[_MapJob], arenas: _Arenas, threads: int = 1
 ) -> dict[str, Any]:
-    """Decodes every job's map of every camera straight into its output.
+    """Decodes every job's map of every camera straight into its output, on ``threads`` threads
+    (OpenCV's decoders and numpy's conversions release the GIL, so the cameras decode in parallel).
 
     When all cameras share a size, each job's maps form one [C, (channels,) H, W] tensor and all
     jobs' tensors are carved out of a single allocation, taken from ``arenas``: separate arrays
@@ -257,6 +302,7 @@ def _decode_maps(
             offsets.append(offsets[-1] + (n + 63) // 64 * 64)
         arena = arenas.take(offsets[-1])
     out: dict[str, Any] = {}
+    tasks: list[tuple[MapDecoder, str, np.ndarray, np.ndarray]] = []
     for k, job in enumerate(jobs):
         views = _binary_views(cf[job.column])
         if any(v is None for v in views):
@@ -269,13 +315,33 @@ def _decode_maps(
             outputs = list(stacked.numpy())
         else:
             outputs = [np.empty((*lead(job), *size), job.dtype) for size in sizes]
-        for name, data, target in zip(names, views, outputs, strict=True):
-            try:
-                job.decode(data, target)
-            except ValueError as e:  # wrong size or type: name the camera
-                raise ValueError(f"camera {name}: {e}") from e
+        tasks += [
+            (job.decode, name, data, target) for name, data, target in zip(names, views, outputs, strict=True)
+        ]
         out[job.key] = stacked if uniform else [torch.from_numpy(o) for o in outputs]
+    pixels = sum(h * w for h, w in sizes) * len(jobs)
+    threads = min(threads, len(tasks)) if pixels >= MIN_THREADED_PIXELS else 1
+    # One share per thread, this thread taking the first: one handoff per helper thread, not one
+    # per map (a handoff through the executor costs about as much as decoding a 160x240 JPEG).
+    shares = [tasks[i::threads] for i in range(threads)]
+    helpers = [_decode_pool(threads - 1).submit(_decode_all, share) for share in shares[1:]]
+    errors = _decode_all(shares[0]) + [e for future in helpers for e in future.result()]
+    if errors:
+        raise errors[0]
     return out
+
+
+def _decode_all(tasks: list[tuple[MapDecoder, str, np.ndarray, np.ndarray]]) -> list[ValueError]:
+    """Runs each decode; a wrong size or type comes back as an error naming the camera."""
+    errors = []
+    for decode, name, data, target in tasks:
+        try:
+            decode(data, target)
+        except ValueError as e:
+            error = ValueError(f"camera {name}: {e}")
+            error.__cause__ = e
+            errors.append(error)
+    return errors
 
 
 _TORCH_DTYPES = {
@@ -293,6 +359,10 @@ class FrameDataset(Dataset):
     """Random access to a cache's frames as dicts of tensors (see the module docstring).
 
     Works with any number of DataLoader workers (each opens the memory-mapped shards itself).
+    A frame's images and maps decode on ``decode_threads`` threads; the default (None) is
+    :func:`auto_decode_threads` in each process: the usable cores in the main process (at most
+    :data:`MAX_DECODE_THREADS`), the cores per worker in a DataLoader worker (1 for 2 workers on
+    2 cores). Results do not depend on it.
     """
 
     def __init__(
@@ -300,6 +370,7 @@ class FrameDataset(Dataset):
         cache_dir: str | os.PathLike[str],
         fields: Sequence[str] = ("images", "cameras", "truth", "boxes"),
         check_crc: bool = True,
+        decode_threads: int | None = None,
     ):
         groups = FIELD_GROUPS + RANGE_FIELD_GROUPS
         unknown = set(fields) - set(groups)
@@ -314,6 +385,10 @@ class FrameDataset(Dataset):
             + (list(_PSEUDO_JOBS) if "pseudo" in self.fields else [])
         )
         self._arenas = _Arenas()
+        if decode_threads is not None and decode_threads < 1:
+            raise ValueError(f"decode_threads must be >= 1 or None (auto), got {decode_threads}")
+        #: Threads a frame's maps are decoded on; None: :func:`auto_decode_threads` in each process.
+        self.decode_threads = decode_threads
 
     def __len__(self) -> int:
         return len(self.reader)
@@ -347,7 +422,8 @@ class FrameDataset(Dataset):
         n_cam = len(cf["camera_name"])
         names = cf["camera_name"].to_pylist()
         out["camera_names"] = names
-        out.update(_decode_maps(cf, names, self._map_jobs, self._arenas))
+        threads = self.decode_threads or auto_decode_threads()
+        out.update(_decode_maps(cf, names, self._map_jobs, self._arenas, threads))
         if "cameras" in self.fields:
             out["intrinsics"] = torch.from_numpy(
                 _flat(cf["intrinsics"]).reshape(n_cam, 3, 3).astype(np.float32)
@@ -410,6 +486,8 @@ def collate_frames(samples: list[dict[str, Any]]) -> FrameBatch:
             v.shape == values[0].shape and v.dtype == values[0].dtype for v in values
         ):
             plan.append((key, "stack", values))
+        elif all(type(v) is int for v in values) and all(-(2**63) <= v < 2**63 for v in values):
+            plan.append((key, "tensor", torch.from_numpy(np.array(values, np.int64))))  # torch.tensor's 1/3
         elif all(isinstance(v, (int, float)) for v in values):
             plan.append((key, "tensor", torch.tensor(values)))
         elif all(isinstance(v, torch.Tensor) for v in values) and all(
