@@ -389,9 +389,18 @@ class FrameDataset(Dataset):
             raise ValueError(f"decode_threads must be >= 1 or None (auto), got {decode_threads}")
         #: Threads a frame's maps are decoded on; None: :func:`auto_decode_threads` in each process.
         self.decode_threads = decode_threads
+        self._auto_threads = (-1, 1)  # (pid, threads): auto_decode_threads once per process
 
     def __len__(self) -> int:
         return len(self.reader)
+
+    def _threads(self) -> int:
+        """This process's decode threads (a DataLoader worker is a process of its own)."""
+        if self.decode_threads is not None:
+            return self.decode_threads
+        if self._auto_threads[0] != os.getpid():
+            self._auto_threads = (os.getpid(), auto_decode_threads())
+        return self._auto_threads[1]
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         batch = self.reader.read(index, self._columns(index))
@@ -422,8 +431,7 @@ class FrameDataset(Dataset):
         n_cam = len(cf["camera_name"])
         names = cf["camera_name"].to_pylist()
         out["camera_names"] = names
-        threads = self.decode_threads or auto_decode_threads()
-        out.update(_decode_maps(cf, names, self._map_jobs, self._arenas, threads))
+        out.update(_decode_maps(cf, names, self._map_jobs, self._arenas, self._threads()))
         if "cameras" in self.fields:
             out["intrinsics"] = torch.from_numpy(
                 _flat(cf["intrinsics"]).reshape(n_cam, 3, 3).astype(np.float32)
