@@ -751,33 +751,19 @@ def fail_fsync_of(monkeypatch: pytest.MonkeyPatch, name_part: str, error: OSErro
     monkeypatch.setattr(shards.os, "fsync", fsync)
 
 
-class DiskFillsAfter:
-    """A file that refuses writes beyond ``limit`` bytes, as a full disk does."""
+def disk_fills_after(monkeypatch: pytest.MonkeyPatch, limit: int) -> None:
+    """Makes the shard writer's writes fail as a full disk does once a file would pass ``limit``
+    bytes: what fits is written, then ENOSPC."""
+    real_writev = os.writev
 
-    def __init__(self, path: str, limit: int):
-        self.file = open(path, "wb")  # noqa: SIM115 - closed by the writer through close()
-        self.limit = limit
-
-    def write(self, data: bytes) -> int:
-        if self.file.tell() + len(data) > self.limit:
+    def writev(fd: int, pieces: list[Any]) -> int:
+        room = limit - os.fstat(fd).st_size
+        data = b"".join(bytes(p) for p in pieces)
+        if room <= 0:
             raise OSError(errno.ENOSPC, ENOSPC_REASON)
-        return self.file.write(data)
+        return real_writev(fd, [data[:room]])
 
-    def tell(self) -> int:
-        return self.file.tell()
-
-    def flush(self) -> None:
-        self.file.flush()
-
-    def close(self) -> None:
-        self.file.close()
-
-    @property
-    def closed(self) -> bool:
-        return self.file.closed
-
-    def writable(self) -> bool:
-        return True
+    monkeypatch.setattr(shards.os, "writev", writev)
 
 
 def test_a_full_disk_while_writing_rows_removes_the_unfinished_shard_and_names_it(
@@ -785,7 +771,7 @@ def test_a_full_disk_while_writing_rows_removes_the_unfinished_shard_and_names_i
 ) -> None:
     batches = list(CacheReader(tiny_cache))
     limit = int(1.5 * Manifest.load(tiny_cache).shards[0].row_index[0][0])  # room for one row
-    monkeypatch.setattr(shards.pa, "OSFile", lambda path, mode: DiskFillsAfter(path, limit))
+    disk_fills_after(monkeypatch, limit)
     writer = ShardWriter(tmp_path, "scene-a", batches[0].schema)
     writer.write(batches[0])
     with pytest.raises(CacheWriteError) as error:

@@ -91,3 +91,99 @@ def test_the_writer_never_reads_a_shard_back(tmp_path: Path, monkeypatch: pytest
     monkeypatch.undo()
     for info in infos:
         assert dataclasses.asdict(info) == dataclasses.asdict(reread(tmp_path, info))
+
+
+def _count_fallbacks(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Counts the rows indexed by decoding (:func:`shards._row_entry`) instead of from metadata."""
+    calls: list[int] = []
+    decode = shards._row_entry
+
+    def counting(*args: object, **kwargs: object) -> list[int]:
+        calls.append(1)
+        return decode(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(shards, "_row_entry", counting)
+    return calls
+
+
+def test_rows_are_indexed_from_their_metadata_as_decoding_them_indexes_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    fallbacks = _count_fallbacks(monkeypatch)
+    batches = rows(9, image_bytes=20_000, seed=3).to_batches(max_chunksize=1)
+    infos = write(tmp_path, batches, max_bytes=70_000)
+    assert not fallbacks and len(infos) > 1  # every row (file starts included) from the metadata
+    for info in infos:
+        assert dataclasses.asdict(info) == dataclasses.asdict(reread(tmp_path, info))
+
+
+def test_a_type_the_metadata_reader_does_not_know_is_indexed_by_decoding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    fallbacks = _count_fallbacks(monkeypatch)
+    schema = pa.schema([("frame_index", pa.int64()), ("nothing", pa.null())])
+    table = pa.table({"frame_index": [0, 1, 2], "nothing": pa.nulls(3)}, schema=schema)
+    with ShardWriter(tmp_path, "scene-a", schema, 1 << 30) as writer:
+        for batch in table.to_batches(max_chunksize=1):
+            writer.write(batch)
+    (info,) = writer.shards
+    assert len(fallbacks) == 3
+    again = shards.shard_info(tmp_path / info.path, info.scene_id, [row[0] for row in info.row_index])
+    again.path = info.path
+    assert dataclasses.asdict(info) == dataclasses.asdict(again)
+
+
+def test_short_writes_are_continued_where_they_stopped(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    writev = shards.os.writev
+
+    def short(fd: int, pieces: list[object]) -> int:  # at most 1,000 bytes a call, split mid-piece
+        data = b"".join(bytes(p) for p in pieces)[:1000]  # type: ignore[call-overload]
+        return writev(fd, [data])
+
+    monkeypatch.setattr(shards.os, "writev", short)
+    batches = rows(3, image_bytes=9_000).to_batches(max_chunksize=1)
+    (info,) = write(tmp_path, batches, max_bytes=1 << 30)
+    monkeypatch.undo()
+    assert dataclasses.asdict(info) == dataclasses.asdict(reread(tmp_path, info))
+    reader = ShardReader(tmp_path, info)
+    assert [reader.read(r).column("image")[0].as_py() for r in range(3)] == [
+        b.column("image")[0].as_py() for b in batches
+    ]
+
+
+def test_shards_are_flushed_behind_the_writer_and_a_failed_flush_names_the_shard(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    flushed: list[int] = []
+    fdatasync = shards.os.fdatasync
+
+    def counting(fd: int) -> None:
+        flushed.append(fd)
+        fdatasync(fd)
+
+    monkeypatch.setattr(shards, "FLUSH_BYTES", 15_000)
+    monkeypatch.setattr(shards.os, "fdatasync", counting)
+    (info,) = write(tmp_path / "a", rows(6, image_bytes=10_000).to_batches(max_chunksize=1), 1 << 30)
+    assert flushed  # flushed along the way (fdatasync), not only by the closing fsync
+    assert dataclasses.asdict(info) == dataclasses.asdict(reread(tmp_path / "a", info))
+
+    def failing(fd: int) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(shards.os, "fdatasync", failing)
+    with pytest.raises(shards.CacheWriteError, match=r"scene-a-00000\.arrow: cannot write .*No space left"):
+        write(tmp_path / "b", rows(6, image_bytes=10_000).to_batches(max_chunksize=1), 1 << 30)
+    assert list((tmp_path / "b" / shards.SHARDS_DIR).iterdir()) == []  # the unfinished file is gone
+
+
+def test_the_cache_schemas_buffer_counts_are_the_ipc_buffers_of_their_columns() -> None:
+    from phigenesis.data.ipc_layout import column_buffer_counts
+    from phigenesis.data.schema import CacheContents, frame_schema
+
+    every = CacheContents(depth=True, pseudo_semantics=True, range_view=True, lidar_range_image=True)
+    for schema in (frame_schema(), frame_schema(every), SCHEMA):
+        columns = [pa.nulls(1, f.type) for f in schema]  # every nested buffer, in pre-order
+        assert column_buffer_counts(schema) == [len(c.buffers()) for c in columns]
+    assert column_buffer_counts(pa.schema([("x", pa.null())])) is None
