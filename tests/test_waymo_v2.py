@@ -410,3 +410,15 @@ def test_a_file_whose_frames_interleave_row_by_row_still_reads_each_frame(
         rows = shuffled.take(pa.array(positions))
         assert got.ids == rows.column("key.laser_object_id").to_pylist()
         assert sorted(got.ids) == sorted(want[i].labels.ids)
+
+
+def test_list_values_of_a_sliced_column_with_null_rows() -> None:
+    from phigenesis.data.sources.waymo import v2
+
+    column = pa.array([[9.0], [1.0, 2.0], None, [], [3.0, None, 4.0], [8.0]], pa.list_(pa.float32()))
+    table = pa.table({"values": column}).slice(1, 4)  # the offsets index a child shared with row 0
+    got = v2._list_values(table, "values")
+    assert [None if g is None else g.tolist() for g in got[:3]] == [[1.0, 2.0], None, []]
+    assert np.array_equal(got[3], [3.0, np.nan, 4.0], equal_nan=True)
+    assert v2._floats(pa.table({"x": pa.array([1.5, None])}), "x", fill=-1.0).tolist() == [1.5, -1.0]
+    assert v2._ints(pa.table({"x": pa.array([2, None], pa.int32())}), "x").tolist() == [2, -1]

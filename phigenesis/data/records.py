@@ -146,6 +146,9 @@ def _listed(values: NDArray) -> str:
     return f"[{shown}{', ...' if flat.size > 16 else ''}]"
 
 
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
 def check_transform(name: str, value: Any) -> NDArray[np.float64]:
     """``value`` as a (4, 4) float64 rigid transform ``target_from_source``.
 
@@ -158,7 +161,9 @@ def check_transform(name: str, value: Any) -> NDArray[np.float64]:
     t = _check_array(name, value, (4, 4), np.float64)
     if not np.all(np.isfinite(t)):
         raise InvalidRecord(name, f"has non-finite entries {_listed(t)}")
-    if not np.allclose(t[3], [0, 0, 0, 1]):
+    # np.allclose's test (|a - b| <= 1e-8 + 1e-5 |b|) written out: allclose itself costs 0.2 ms a
+    # call, and a Waymo frame checks 17 transforms.
+    if not (np.abs(t[3] - _LAST_ROW) <= 1e-8 + 1e-5 * _LAST_ROW).all():
         raise InvalidRecord(name, f"is not a rigid transform: last row is {_listed(t[3])}")
     rotation = t[:3, :3]
     with np.errstate(over="ignore", invalid="ignore"):
