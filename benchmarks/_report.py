@@ -15,6 +15,7 @@ import os
 import platform
 import re
 import shlex
+import statistics
 import subprocess
 import sys
 from collections.abc import Sequence
@@ -32,6 +33,12 @@ _TITLE = (
     "Timings are medians over repeated runs unless a table says otherwise.\n"
 )
 _NUMBER = re.compile(r"^[-+]?[\d,]*\.?\d+(e[-+]?\d+)?\s*[%×x]?$", re.IGNORECASE)
+
+
+def round_ratio(times: list[float], floor: list[float]) -> float:
+    """Median over rounds of a run's time over the floor's time in the same round: on a VM whose
+    speed drifts by tens of percent within minutes, steadier than the ratio of the medians."""
+    return statistics.median(t / f for t, f in zip(times, floor, strict=True))
 
 
 def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:

@@ -34,7 +34,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pyarrow as pa
-from _report import Report
+from _report import Report, round_ratio
 from torch.utils.data import DataLoader
 
 from phigenesis import prep
@@ -308,12 +308,6 @@ def interleaved_times(runs: dict[str, Callable[[], None]], passes: int) -> dict[
 def interleaved_medians(runs: dict[str, Callable[[], None]], passes: int) -> dict[str, float]:
     """Median wall time of each run over ``passes`` interleaved rounds (:func:`interleaved_times`)."""
     return {name: float(np.median(t)) for name, t in interleaved_times(runs, passes).items()}
-
-
-def round_ratio(times: list[float], floor: list[float]) -> float:
-    """Median over rounds of a run's time over the floor's time in the same round: on a VM whose
-    speed drifts by tens of percent within minutes, steadier than the ratio of the medians."""
-    return float(np.median(np.asarray(times) / np.asarray(floor)))
 
 
 def decode_pass(encoded: list[list[tuple[np.ndarray, int]]]) -> Callable[[], None]:

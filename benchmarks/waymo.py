@@ -62,7 +62,7 @@ import cv2
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-from _report import Report
+from _report import Report, round_ratio
 
 from phigenesis import geometry
 from phigenesis.data.pipeline import PipelineSpec, load_pipeline
@@ -768,9 +768,9 @@ def report_frame(report: Report, frame: BenchFrame, inputs: Inputs, cache_bytes:
 
 
 def report_throughput(report: Report, t: dict[str, Timings], frames: int, rounds: int) -> None:
-    def row(fmt: str, name: str, what: str, floor: float, goal: bool) -> list[str]:
+    def row(fmt: str, name: str, what: str, floor: str, goal: bool) -> list[str]:
         median = t[name].median()
-        ratio = median / floor
+        ratio = round_ratio(t[name].total, t[floor].total)
         verdict = f"≤ {FLOOR_RATIO_GOAL}: " + ("met" if ratio <= FLOOR_RATIO_GOAL else "missed")
         return [
             fmt,
@@ -784,7 +784,7 @@ def report_throughput(report: Report, t: dict[str, Timings], frames: int, rounds
 
     full_what = "full: WaymoSource -> convert -> Arrow batch -> shard write"
     tmpfs_what = "full, the cache on tmpfs (no disk)"
-    v1_floor, v2_floor = t["v1 floor"].median(), t["v2 streamed floor"].median()
+    v1_floor, v2_floor = "v1 floor", "v2 streamed floor"
     v1_what = "floor: file read + protobuf parse + zlib + MatrixFloat parse"
     v2_what = "floor: Parquet iter_batches, one frame's rows per batch"
     groups_what = "for comparison: Parquet read_row_group (10 frames at a time)"
@@ -803,8 +803,9 @@ def report_throughput(report: Report, t: dict[str, Timings], frames: int, rounds
         rows,
         f"Per-frame time of a pass over all {frames} frames of the segment, median (and range) of "
         f"{rounds} rounds after one warm-up round; the variants (these seven and the two instrumented "
-        "runs below) take turns within each round, in an order rotated from round to round, so each "
-        "ratio compares times measured side by side in the same run. Input files are in the page "
+        "runs below) take turns within each round, in an order rotated from round to round; time / floor "
+        "is the median over rounds of each round's time over the floor's in the same round (this VM's "
+        "speed drifts by tens of percent within minutes, and this cancels it). Input files are in the page "
         "cache. **v1 floor**: for each record (offsets from the headers, indexed beforehand), a plain "
         "`seek` + `read` of its payload (no CRC), `Frame.ParseFromString`, and for each laser "
         "`zlib.decompress` of its compressed return 1, return 2 and pixel-pose range images, each "
