@@ -187,3 +187,17 @@ def test_the_cache_schemas_buffer_counts_are_the_ipc_buffers_of_their_columns() 
         columns = [pa.nulls(1, f.type) for f in schema]  # every nested buffer, in pre-order
         assert column_buffer_counts(schema) == [len(c.buffers()) for c in columns]
     assert column_buffer_counts(pa.schema([("x", pa.null())])) is None
+
+
+def test_a_system_without_writev_or_fdatasync_writes_the_same_shards(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    batches = rows(5, image_bytes=10_000).to_batches(max_chunksize=1)
+    (expected,) = write(tmp_path / "a", batches, max_bytes=1 << 30)
+    monkeypatch.delattr(shards.os, "writev")
+    monkeypatch.delattr(shards.os, "fdatasync")
+    monkeypatch.setattr(shards, "FLUSH_BYTES", 15_000)
+    (info,) = write(tmp_path / "b", batches, max_bytes=1 << 30)
+    monkeypatch.undo()
+    assert dataclasses.asdict(info) == dataclasses.asdict(expected)
+    assert (tmp_path / "a" / info.path).read_bytes() == (tmp_path / "b" / info.path).read_bytes()

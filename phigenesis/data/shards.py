@@ -303,7 +303,7 @@ class _BackgroundFlush:
 
     def _run(self) -> None:
         try:
-            os.fdatasync(self._fd)
+            getattr(os, "fdatasync", os.fsync)(self._fd)  # macOS has no fdatasync
         except OSError as e:
             self._error = e
 
@@ -363,7 +363,9 @@ def _write_all(fd: int, pieces: list[pa.Buffer]) -> None:
     """Writes ``pieces`` to ``fd`` in order, with as few ``writev`` calls as they allow."""
     pending = [p for p in pieces if p.size]
     while pending:
-        written = os.writev(fd, pending[:_IOV_MAX])
+        # No writev on Windows: one piece at a time there.
+        writev = getattr(os, "writev", None)
+        written = writev(fd, pending[:_IOV_MAX]) if writev else os.write(fd, pending[0])
         if written <= 0:
             raise OSError(errno.EIO, "the system wrote nothing")
         done = 0
