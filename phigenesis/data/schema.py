@@ -470,10 +470,12 @@ def _array(t: pa.DataType, values: Any) -> pa.Array:
     if pa.types.is_list(t) and not pa.types.is_struct(t.value_type):
         parts = [np.asarray(v, dtype=t.value_type.to_pandas_dtype()).reshape(-1) for v in values]
         offsets = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int32)
-        if len(parts) == 1:
-            flat = np.ascontiguousarray(parts[0])  # a frame's sweep: no copy (7.5 MB a Waymo frame)
+        if not parts:
+            flat = np.zeros(0, t.value_type.to_pandas_dtype())
+        elif len(parts) == 1:
+            flat = parts[0]  # a frame's sweep, as it is: no copy (7.5 MB a Waymo frame)
         else:
-            flat = np.concatenate(parts) if parts else np.zeros(0, t.value_type.to_pandas_dtype())
+            flat = np.concatenate(parts)
         return pa.ListArray.from_arrays(pa.array(offsets, pa.int32()), pa.array(flat, t.value_type))
     return pa.array(values, t)
 
