@@ -217,12 +217,12 @@ class CompletionParams:
     max_tilt_deg: float = 8.0
     ground_planes: bool = True
     sparse_planes: bool = True
-    sparse_min_share: float = 0.5
+    sparse_min_share: float = 0.25
     sparse_plane_confidence: float = 0.7
     ransac_iterations: int = 32
     ransac_points: int = 64
     fit_points: int = 256
-    min_incidence_deg: float = 4.0
+    min_incidence_deg: float = 2.0
     min_depth_m: float = 0.5
     max_depth_m: float = 150.0
     max_extrapolation_ref_px: float = 600.0
@@ -233,7 +233,7 @@ class CompletionParams:
     propagate_color_tol: float = 24.0
     propagate_confidence: float = 0.5
     propagate_up: bool = True
-    upward_steps: int = 3
+    upward_steps: int = 6
     upward_boundary_share: float = 0.5
     upward_confidence: float = 0.6
     upward_max_green: float = 20.0
