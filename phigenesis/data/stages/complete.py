@@ -217,7 +217,7 @@ class CompletionParams:
     max_tilt_deg: float = 8.0
     ground_planes: bool = True
     sparse_planes: bool = True
-    sparse_min_share: float = 0.25
+    sparse_min_share: float = 0.5
     sparse_plane_confidence: float = 0.7
     ransac_iterations: int = 32
     ransac_points: int = 64
