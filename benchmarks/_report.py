@@ -168,9 +168,10 @@ def update_section(name: str, body: str, path: Path = BENCHMARKS_MD) -> Path:
 class Report:
     """One benchmark script's section: a header, then tables printed as they are added."""
 
-    def __init__(self, name: str, title: str, intro: str = ""):
+    def __init__(self, name: str, title: str, intro: str = "", header: str | None = None):
+        """``header`` replaces :func:`run_header`'s lines (figures measured on another machine)."""
         self.name = name
-        self.parts = [f"## {title}", run_header()]
+        self.parts = [f"## {title}", run_header() if header is None else header]
         if intro:
             self.parts.append(intro.strip())
         print("\n\n".join(self.parts), end="\n\n", flush=True)

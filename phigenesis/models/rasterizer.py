@@ -386,7 +386,7 @@ def rasterize(
         (torch.Size([1, 24, 32, 3]), 2.0)
     """
     _check_inputs(means, quats, scales, opacities, features, world_from_camera, intrinsics)
-    chosen = resolve_backend(backend, means.device)
+    chosen = resolve_backend(backend, means.device, means.dtype)
     if chosen == "gsplat":
         return _rasterize_gsplat(
             means, quats, scales, opacities, features, world_from_camera, intrinsics, width, height, near
@@ -647,9 +647,10 @@ def gsplat_available() -> bool:
 _announced: set[tuple[str, str]] = set()
 
 
-def resolve_backend(backend: str, device: torch.device) -> str:
-    """The backend that renders tensors on ``device`` when ``backend`` is asked for; ``"auto"`` logs its
-    choice and why, once per process and choice."""
+def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype | None = None) -> str:
+    """The backend that renders tensors on ``device`` (of ``dtype``, where given) when ``backend`` is asked
+    for; ``"auto"`` logs its choice and why, once per process and choice. gsplat renders float32 only, so
+    ``"auto"`` gives CUDA tensors of another dtype to the PyTorch path, and ``"gsplat"`` refuses them."""
     if backend not in BACKENDS:
         raise ValueError(f"rasterize: backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "auto":
@@ -658,6 +659,8 @@ def resolve_backend(backend: str, device: torch.device) -> str:
             raise ValueError(f"PHIGENESIS_RASTERIZER must be one of {BACKENDS}, got {override!r}")
         if override != "auto":
             chosen, why = override, "set by PHIGENESIS_RASTERIZER"
+        elif device.type == "cuda" and gsplat_available() and dtype not in (None, torch.float32):
+            chosen, why = "torch", f"{dtype} CUDA tensors (gsplat renders float32 only)"
         elif device.type == "cuda" and gsplat_available():
             chosen, why = "gsplat", "CUDA tensors and gsplat installed"
         elif device.type == "cpu" and native_available():
@@ -670,6 +673,8 @@ def resolve_backend(backend: str, device: torch.device) -> str:
             _announced.add((chosen, why))
             logger.info("rasterize: backend %r (%s)", chosen, why)
         backend = chosen
+    if backend == "gsplat" and dtype not in (None, torch.float32):
+        raise ValueError(f"rasterize: backend 'gsplat' renders float32 only, got {dtype}")
     if backend == "cpu":
         if device.type != "cpu":
             raise ValueError(f"rasterize: backend 'cpu' needs CPU tensors, got {device.type}")
@@ -683,39 +688,39 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 def _rasterize_gsplat(
     means, quats, scales, opacities, features, world_from_camera, intrinsics, width, height, near
 ) -> RenderOutput:
+    """gsplat 1.5.3's CUDA kernels with this module's conventions (float32 CUDA tensors).
+
+    Where gsplat's own inputs mean something else, they are mapped first: pixel centres at ``j + 0.5``
+    (``cx, cy`` shifted), ``camera_from_world`` view matrices, a zero quaternion as the identity (gsplat
+    would normalise it to NaN) and scales clamped to :data:`MAX_SCALE`. Centres per camera (C, N, 3) go
+    in as gsplat's batch dimension: one call, camera c of batch c."""
     if not gsplat_available() or not means.is_cuda:
         raise RuntimeError("backend='gsplat' needs gsplat installed, CUDA and CUDA tensors")
-    if means.ndim == 3:  # gsplat takes one set of centres: one call per camera
-        outs = [
-            _rasterize_gsplat(
-                means[c],
-                quats,
-                scales,
-                opacities,
-                features,
-                world_from_camera[c : c + 1],
-                intrinsics[c : c + 1],
-                width,
-                height,
-                near,
-            )
-            for c in range(means.shape[0])
-        ]
-        return RenderOutput(
-            *(torch.cat([getattr(o, k) for o in outs]) for k in ("features", "depth", "alpha", "radii"))
-        )
     import gsplat
 
+    num_cams = world_from_camera.shape[0]
+    sqnorm = (quats * quats).sum(-1, keepdim=True)
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
+    quats = torch.where(sqnorm > QUATERNION_ZERO_SQNORM, quats, identity)
+    scales = scales.clamp(min=-MAX_SCALE, max=MAX_SCALE)
     shift = torch.zeros_like(intrinsics)
     shift[:, 0, 2] = shift[:, 1, 2] = 0.5  # gsplat puts pixel centres at j + 0.5
+    viewmats, ks = torch.linalg.inv(world_from_camera), intrinsics + shift
+    per_camera = means.ndim == 3
+    if per_camera:  # batch c: camera c alone, with its own centres
+        n = means.shape[1]
+        quats, scales = (t[None].expand(num_cams, n, t.shape[-1]) for t in (quats, scales))
+        opacities = opacities[None].expand(num_cams, n)
+        features = features[None].expand(num_cams, *features.shape)
+        viewmats, ks = viewmats[:, None], ks[:, None]
     colors, alphas, meta = gsplat.rasterization(
         means,
         quats,
         scales,
         opacities,
         features,
-        torch.linalg.inv(world_from_camera),
-        intrinsics + shift,
+        viewmats,
+        ks,
         width,
         height,
         near_plane=near,
@@ -724,8 +729,11 @@ def _rasterize_gsplat(
         tile_size=16,
         render_mode="RGB+ED",
     )
-    radii = meta["radii"]
-    radii = radii.max(-1).values if radii.ndim == 3 else radii
+    radii = meta["radii"]  # (..., C, N, 2) per axis (gsplat 1.5); (..., C, N) in older releases
+    if radii.ndim == means.ndim + 1:
+        radii = radii.amax(-1)
+    if per_camera:  # (C, 1, ...) -> (C, ...)
+        colors, alphas, radii = colors[:, 0], alphas[:, 0], radii[:, 0]
     return RenderOutput(
         features=colors[..., :-1], depth=colors[..., -1], alpha=alphas[..., 0], radii=radii.long()
     )
