@@ -24,6 +24,7 @@ from phigenesis.data.taxonomy import SKY
 from phigenesis.export.ply import scene_from_ply
 from phigenesis.export.stage1 import export_ply, predict_frame
 from phigenesis.models import create_model, list_models
+from phigenesis.models.adapter import GROUND_MIN_DOWN, column_base, ground_log_depth
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.losses import edge_aware_smoothness
 from phigenesis.models.stage1 import (
@@ -517,3 +518,123 @@ def test_time_limit_ends_the_run_with_its_weights(tiny_cache, tmp_path):
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["steps"] == 1 and summary["planned_steps"] == 50 and summary["stopped_by_time"]
     assert load_stage1(run.checkpoint).config.image_size == SIZE
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    st.floats(-0.3, 0.3),  # pitch, radians (down positive)
+    st.floats(-0.2, 0.2),  # roll
+    st.floats(-3.1, 3.1),  # yaw
+    st.floats(0.5, 3.0),  # camera height above the ground, metres
+)
+def test_ground_prior_plus_log_height_is_the_grounds_log_depth(pitch, roll, yaw, height):
+    """A camera ``height`` above a level ground (world z = 0), pitched, rolled and yawed: where a ray
+    meets the ground (found by intersecting it in the world frame), its camera z-depth's log equals
+    the prior + log(height); rays that never meet it get the cap."""
+    h, w = 12, 18
+    k = torch.tensor([[14.0, 0.0, 8.5], [0.0, 14.0, 5.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    ego_from_opencv = torch.tensor([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=torch.float64)
+    rot = (
+        torch.from_numpy(geometry.rotation_z(yaw)) @ _rotation_y(pitch) @ _rotation_x(roll) @ ego_from_opencv
+    )
+    rays = pixel_rays(k, h, w)  # (3, H, W), camera z = 1
+    prior = ground_log_depth(rays, rot[2])[0]  # world up in the camera frame: row 2
+    dirs = torch.einsum("ij,jhw->ihw", rot, rays)  # world-frame directions, camera z = 1
+    hits = dirs[2] < -GROUND_MIN_DOWN
+    z_at_ground = height / -dirs[2][hits]  # the ray parameter at the ground = camera z (z = 1 rays)
+    np.testing.assert_allclose(
+        prior[hits].numpy(), (torch.log(z_at_ground) - math.log(height)).numpy(), atol=1e-9
+    )
+    np.testing.assert_allclose(prior[~hits].numpy(), -math.log(GROUND_MIN_DOWN), rtol=1e-12)
+
+
+def test_ground_feature_model_runs_and_old_configs_lack_it(tmp_path):
+    torch.manual_seed(0)
+    plain = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16})
+    assert not plain.config.adapter_config.ground_feature
+    model = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16, "ground_feature": True})
+    images, k, poses, times = _inputs(model)
+    with torch.no_grad():
+        torch.nn.init.normal_(model.adapter.head[-1].weight, std=0.05)
+        pred = model(images, k, poses, times)
+        latents = model.encode(images)
+        assert torch.equal(model.forward_latents(latents, k, poses, times, images).means, pred.means)
+    assert torch.isfinite(pred.means).all()
+    # The prior reaches the head: tilting the rig (same images and rays) changes the depth.
+    tilted = poses.clone()
+    tilted[..., :3, :3] = _rotation_y(0.2) @ poses[..., :3, :3]
+    with torch.no_grad():
+        assert not torch.allclose(model(images, k, tilted, times).pixels.depth, pred.pixels.depth)
+        assert torch.allclose(
+            plain(images, k, tilted, times).pixels.depth, plain(images, k, poses, times).pixels.depth
+        )
+    feats = [f[:, 0] for f in model.features(images)]  # [B, V, C, h, w] per level
+    with pytest.raises(ValueError, match="up_camera"):
+        model.adapter(feats, images[:, 0], pixel_rays(k[0], *SIZE), k[0, :, 0, 0])
+
+
+def _rotation_x(angle: float) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    return torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)
+
+
+def _rotation_y(angle: float) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=torch.float64)
+
+
+def test_column_base_carries_the_ground_prior_up_to_what_stands_on_it():
+    """A column (bottom to top): ground, ground, facade x 3, sky; a hard gate gives the facade its
+    base's prior (the top ground pixel), the ground its own; a column with no ground gets the far
+    cap; a soft gate mixes linearly."""
+    prior = torch.tensor([[4.6], [1.0], [1.2], [1.4], [0.5], [0.2]])  # (H=6, W=1), top row first
+    gate = torch.tensor([[0.0], [0.0], [0.0], [0.0], [1.0], [1.0]])  # the two bottom rows are ground
+    base = column_base(prior, gate)
+    assert base[:, 0].tolist() == pytest.approx([0.5, 0.5, 0.5, 0.5, 0.5, 0.2])
+    no_ground = column_base(prior, torch.zeros_like(gate))
+    np.testing.assert_allclose(no_ground.numpy(), -math.log(GROUND_MIN_DOWN))
+    half = column_base(prior, torch.full_like(gate, 0.5))
+    far = -math.log(GROUND_MIN_DOWN)
+    want = far
+    expected = []
+    for g_prior in prior[:, 0].flip(0).tolist():  # bottom-up recurrence by hand
+        want = 0.5 * g_prior + 0.5 * want
+        expected.append(want)
+    np.testing.assert_allclose(half[:, 0].numpy(), expected[::-1], rtol=1e-6)
+
+
+def test_column_base_model_outputs_the_gate_and_trains_it(tiny_cache):
+    adapter = {"width": 16, "depth_bins": 16, "ground_feature": True, "column_base": True}
+    cfg = tiny_train_config(
+        model_overrides={"image_size": list(SIZE), "adapter": adapter}, weights={"ground": 1.0}
+    )
+    model = create_model(cfg.model, **cfg.model_overrides)
+    data = Stage1Clips(tiny_cache, SIZE, 1)
+    clips = _draw_clips(data, cfg, 0, ProcessGroup(0, 1))
+    terms, _ = stage1_losses(model, clips)
+    # An untrained gate says 0.5 everywhere: the cross-entropy is log 2.
+    assert 0.3 < float(terms["ground"]) < 1.2
+    terms["ground"].backward()
+    assert model.adapter.ground_gate[-1].weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="column_base needs ground_feature"):
+        create_model("stage1_tiny", adapter={"column_base": True})
+
+
+def test_prior_gain_pulls_the_bins_to_the_ground_priors_depth():
+    """With the bin logits flat and a gain of 1, the bins are a Gaussian one bin wide around the depth
+    the prior gives (base + log height): the expected log depth lands on it; over flat logits even the
+    untrained gain puts it there."""
+    from phigenesis.models.adapter import PRIOR_GAIN_OFFSET, AdapterConfig, RangeViewAdapter
+
+    cfg = AdapterConfig(width=16, depth_bins=64, ground_feature=True, column_base=True)
+    adapter = RangeViewAdapter(cfg)
+    base = torch.tensor([[[[0.4, 1.7, 3.1]]]])  # (N=1, V=1, H=1, W=3): ground at 3-44 m for h = 2 m
+    raw = torch.zeros(1, 1, 1, 3, cfg.out_channels)
+    rgb = torch.full((1, 1, 1, 3, 3), 0.5)
+    flat = adapter._activate(raw, rgb, torch.tensor([50.0]), base)
+    # Untrained (gain 0.31 over flat logits): the bins already sit at the prior's depth.
+    want = torch.exp(base + math.log(2.0))
+    np.testing.assert_allclose(flat.depth.detach().numpy(), want.numpy(), rtol=1e-2)
+    raw[..., -1] = PRIOR_GAIN_OFFSET + math.log(math.e - 1)  # softplus -> gain 1
+    pulled = adapter._activate(raw, rgb, torch.tensor([50.0]), base)
+    np.testing.assert_allclose(pulled.depth.detach().numpy(), want.numpy(), rtol=1e-3)

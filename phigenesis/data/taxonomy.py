@@ -59,6 +59,8 @@ BICYCLE = CLASS_IDS["bicycle"]
 THING_IDS: frozenset[int] = frozenset({PERSON, RIDER, CAR, TRUCK, BUS, TRAIN, MOTORCYCLE, BICYCLE})
 #: Things that deform (their points cannot be accumulated rigidly over time).
 NON_RIGID_IDS: frozenset[int] = frozenset({PERSON, RIDER})
+#: The ground a level camera's rays meet: what Stage 1's ground gate learns to find.
+GROUND_IDS: frozenset[int] = frozenset({ROAD, SIDEWALK, TERRAIN})
 
 #: The Cityscapes colour palette (RGB), indexed by class id; ignore is black.
 PALETTE_RGB = np.zeros((256, 3), dtype=np.uint8)

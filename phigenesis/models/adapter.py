@@ -25,7 +25,20 @@ dynamic                 1      logit of "this pixel moves"
 ======================  =====  =====================================================================
 
 The finest fused map also sees the input pixel colours and the pixel rays (camera frame), which is
-what lets a small adapter place depth: a ray's elevation says most of where the ground is.
+what lets a small adapter place depth: a ray's elevation says most of where the ground is. With
+``ground_feature`` it also sees that elevation's consequence, the ground prior of :func:`ground_log_depth`:
+``-log(-up . ray)``, which differs from the log z-depth where the ray meets a level ground by the
+camera's log height alone. The head's last layer is linear, and bin logits linear in a scalar ``x``
+(``2 c_k x - c_k^2``) peak at the bin of ``x``, so the ground's depth is one the head can express
+exactly rather than approximate through the ray's nonlinear ``1 / elevation``.
+
+With ``column_base`` (which needs ``ground_feature``) a gate predicts per pixel whether it is ground,
+and :func:`column_base` carries the ground prior up each image column from the nearest ground pixel
+below: for a level camera, every point of a vertical surface (a facade, a car's side, a trunk) has the
+camera z of the ground where the surface stands, which is the ground pixel at the bottom of its
+column. The head sees that carried prior too, so the depth of what stands on visible ground is also
+one it can express exactly. The gate's logit is an output (``ground_logit``) so training can supervise
+it with the ground classes.
 """
 
 from __future__ import annotations
@@ -46,6 +59,45 @@ HEAD_CHANNELS = {"depth": 1, "opacity": 1, "scale": 3, "rotation": 4, "colour": 
 #: Added to the dynamic logit: pixels start out static (p = 0.05), as most of a scene is.
 DYNAMIC_BIAS = -3.0
 
+#: The prior's bump on the bin logits (``prior_gain``): flat beyond this many bins from the prior.
+PRIOR_BUMP_BINS = 8.0
+#: The gain is ``softplus(raw - offset)``: 0.31 for the zero-initialised head, a gentle pull.
+PRIOR_GAIN_OFFSET = 1.0
+
+#: Smallest downward ray component of :func:`ground_log_depth`: rays at or above the horizon (and
+#: within 0.6 degrees below it) get the prior of a ground 100 camera heights away.
+GROUND_MIN_DOWN = 0.01
+
+
+def column_base(prior: Tensor, gate: Tensor) -> Tensor:
+    """(..., H, W) each pixel's ground prior carried up its column from the nearest ground below.
+
+    ``prior`` (..., H, W) is :func:`ground_log_depth`'s map and ``gate`` (..., H, W) in [0, 1] the
+    probability that a pixel is ground. Scanning up from the bottom row, ``b_i = g_i G_i + (1 - g_i)
+    b_{i+1}``, starting from the prior of the farthest ground (no ground below: far away). With a hard
+    gate, a ground pixel keeps its own prior and every other pixel takes that of the first ground
+    pixel below it in its column."""
+    far = torch.full_like(prior[..., -1, :], -math.log(GROUND_MIN_DOWN))
+    rows = []
+    below = far
+    for i in range(prior.shape[-2] - 1, -1, -1):
+        g = gate[..., i, :]
+        below = g * prior[..., i, :] + (1.0 - g) * below
+        rows.append(below)
+    return torch.stack(rows[::-1], dim=-2)
+
+
+def ground_log_depth(rays_camera: Tensor, up_camera: Tensor) -> Tensor:
+    """Ground prior of each pixel: ``-log(max(-up . ray, GROUND_MIN_DOWN))``.
+
+    ``rays_camera`` (..., 3, H, W) are pixel rays with camera z = 1 (``K^-1 (u, v, 1)``) and
+    ``up_camera`` (..., 3) the world's up direction in each camera's frame (unit). A ray with
+    ``up . ray < 0`` meets a level ground a height ``h`` below the camera at camera z
+    ``h / (-up . ray)``, so there this prior plus ``log h`` is the ground's log z-depth exactly.
+    Returns (..., 1, H, W)."""
+    down = -(rays_camera * up_camera[..., :, None, None]).sum(-3, keepdim=True)
+    return -torch.log(down.clamp(min=GROUND_MIN_DOWN))
+
 
 @dataclass(frozen=True)
 class AdapterConfig:
@@ -63,6 +115,10 @@ class AdapterConfig:
         depth_bins: 0 for the regression depth head (one channel; what checkpoints made before the
             bins head hold, so their configs, which lack this field, still load), or the number
             of log-spaced depth bins of the classification head.
+        ground_feature: the head also sees each pixel's ground prior (:func:`ground_log_depth`);
+            False in checkpoints made before it.
+        column_base: the head also sees the ground prior carried up each column from the ground
+            a gate finds (:func:`column_base`); needs ``ground_feature``.
     """
 
     feature_channels: tuple[int, ...] = (64, 32, 16)
@@ -75,8 +131,12 @@ class AdapterConfig:
     max_speed_mps: float = 30.0
     norm_groups: int = 8
     depth_bins: int = 0
+    ground_feature: bool = False
+    column_base: bool = False
 
     def __post_init__(self) -> None:
+        if self.column_base and not self.ground_feature:
+            raise ValueError("AdapterConfig: column_base needs ground_feature")
         object.__setattr__(self, "feature_channels", tuple(int(c) for c in self.feature_channels))
         if not 0 < self.near_m < self.far_m:
             raise ValueError(f"AdapterConfig: need 0 < near_m < far_m, got {self.near_m}, {self.far_m}")
@@ -90,8 +150,13 @@ class AdapterConfig:
             )
 
     @property
+    def prior_gain(self) -> bool:
+        """Whether the bins head has a ground prior to pull towards (:meth:`RangeViewAdapter._activate`)."""
+        return self.ground_feature and self.depth_bins > 0
+
+    @property
     def out_channels(self) -> int:
-        return sum(HEAD_CHANNELS.values()) + self.num_classes + self.depth_bins
+        return sum(HEAD_CHANNELS.values()) + self.num_classes + self.depth_bins + int(self.prior_gain)
 
     @property
     def bins(self) -> DepthBins | None:
@@ -121,6 +186,7 @@ class PixelGaussians:
     dynamic_logit: Tensor  # (..., V, H, W)
     depth_logits: Tensor | None = None  # (..., V, H, W, K) bin logits (bins head only)
     depth_entropy: Tensor | None = None  # (..., V, H, W) nats, entropy of the bins (bins head only)
+    ground_logit: Tensor | None = None  # (..., V, H, W) logit of "this pixel is ground" (column_base)
 
 
 class RangeViewAdapter(nn.Module):
@@ -132,10 +198,22 @@ class RangeViewAdapter(nn.Module):
         self.config = c
         self.lateral = nn.ModuleList(nn.Conv2d(ch, c.width, 1) for ch in c.feature_channels)
         self.smooth = nn.ModuleList(_block(c.width, c.width, c.norm_groups) for _ in c.feature_channels)
-        # Finest level: fused features + input RGB (3) + camera-frame ray (3).
+        # Finest level: fused features + input RGB (3) + camera-frame ray (3) [+ ground prior (1)]
+        # [+ the prior carried up from the ground below (1), after a gate that finds the ground].
+        inputs = c.width + 6 + int(c.ground_feature)
+        if c.column_base:
+            self.ground_gate = nn.Sequential(
+                _block(inputs, c.width, c.norm_groups), nn.Conv2d(c.width, 1, 3, padding=1)
+            )
+        # The priors also skip the block (whose GroupNorm rescales them by each sample's statistics)
+        # straight into the last layer, where bin logits linear in them can peak at their bins.
+        self.priors = int(c.ground_feature) + int(c.column_base)
         self.head = nn.Sequential(
-            _block(c.width + 6, c.width, c.norm_groups), nn.Conv2d(c.width, c.out_channels, 3, padding=1)
+            _block(inputs + int(c.column_base), c.width, c.norm_groups),
+            nn.Conv2d(c.width + self.priors, c.out_channels, 3, padding=1),
         )
+        if c.prior_gain:  # log of the camera height that turns the ground prior into a depth
+            self.log_height_m = nn.Parameter(torch.tensor(math.log(2.0)))
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
 
@@ -154,7 +232,12 @@ class RangeViewAdapter(nn.Module):
         return fused
 
     def forward(
-        self, features: list[Tensor], rgb: Tensor, rays_camera: Tensor, focal_px: Tensor
+        self,
+        features: list[Tensor],
+        rgb: Tensor,
+        rays_camera: Tensor,
+        focal_px: Tensor,
+        up_camera: Tensor | None = None,
     ) -> PixelGaussians:
         """Per-pixel Gaussians of N range views.
 
@@ -164,7 +247,11 @@ class RangeViewAdapter(nn.Module):
             rgb: ``[N, V, 3, H, W]`` input colours in [0, 1].
             rays_camera: ``[V, 3, H, W]`` pixel rays ``K^-1 (u, v, 1)`` (camera frame, z = 1).
             focal_px: ``[V]`` mean focal length in pixels (for the pixel footprint).
+            up_camera: ``[N, V, 3]`` the world's up direction in each view's camera frame; needed
+                (only) with ``ground_feature``.
         """
+        if self.config.ground_feature and up_camera is None:
+            raise ValueError("this adapter has ground_feature: it needs up_camera")
         n, v = rgb.shape[:2]
         h, w = rgb.shape[-2:]
 
@@ -173,15 +260,31 @@ class RangeViewAdapter(nn.Module):
 
         fused = self.fuse([range_view(f) for f in features])  # [N, width, H, V * W]
         rays = rays_camera.unsqueeze(0).expand(n, -1, -1, -1, -1)
-        x = torch.cat([fused, range_view(rgb * 2 - 1), range_view(rays)], dim=1)
-        out = self.head(x)  # [N, out, H, V * W]
+        parts = [fused, range_view(rgb * 2 - 1), range_view(rays)]
+        ground_logit = base = None
+        priors: list[Tensor] = []
+        if up_camera is not None and self.config.ground_feature:
+            prior = range_view(ground_log_depth(rays.to(up_camera.dtype), up_camera)).to(fused.dtype)
+            priors.append(prior - 2.0)  # [N, 1, H, V * W], about [-1, 2.6]
+            if self.config.column_base:
+                gate = self.ground_gate(torch.cat(parts + priors, dim=1))  # [N, 1, H, V * W]
+                priors.append(column_base(prior, torch.sigmoid(gate)) - 2.0)
+                ground_logit = gate.reshape(n, h, v, w).permute(0, 2, 1, 3)  # [N, V, H, W]
+            base = (priors[-1] + 2.0).reshape(n, h, v, w).permute(0, 2, 1, 3)  # [N, V, H, W]
+        hidden = self.head[0](torch.cat(parts + priors, dim=1))
+        out = self.head[1](torch.cat([hidden, *priors], dim=1))  # [N, out, H, V * W]
         out = out.reshape(n, -1, h, v, w).permute(0, 3, 2, 4, 1)  # [N, V, H, W, out]
-        return self._activate(out, rgb.permute(0, 1, 3, 4, 2), focal_px)
+        px = self._activate(out, rgb.permute(0, 1, 3, 4, 2), focal_px, base)
+        return px if ground_logit is None else dataclasses.replace(px, ground_logit=ground_logit)
 
-    def _activate(self, raw: Tensor, rgb: Tensor, focal_px: Tensor) -> PixelGaussians:
+    def _activate(
+        self, raw: Tensor, rgb: Tensor, focal_px: Tensor, base: Tensor | None = None
+    ) -> PixelGaussians:
+        """Bounded Gaussians from the head's raw outputs (see the module docstring). ``base``
+        [N, V, H, W] is the ground prior the bins may be pulled towards (``prior_gain``)."""
         c = self.config
-        names = [*HEAD_CHANNELS, "semantic", "depth_bins"]
-        sizes = [*HEAD_CHANNELS.values(), c.num_classes, c.depth_bins]
+        names = [*HEAD_CHANNELS, "semantic", "depth_bins", "prior_gain"]
+        sizes = [*HEAD_CHANNELS.values(), c.num_classes, c.depth_bins, int(c.prior_gain)]
         parts = dict(zip(names, raw.split(sizes, dim=-1), strict=True))
         bins = c.bins
         logits = entropy = None
@@ -191,6 +294,9 @@ class RangeViewAdapter(nn.Module):
             depth = torch.exp(log_near + torch.sigmoid(parts["depth"][..., 0]) * (log_far - log_near))
         else:
             logits = parts["depth_bins"]
+            if c.prior_gain and base is not None:
+                gain = F.softplus(parts["prior_gain"] - PRIOR_GAIN_OFFSET)  # >= 0, 0.31 untrained
+                logits = logits + gain * self._prior_bump(bins, base)
             depth, entropy = bins.decode_logits(logits, parts["depth"][..., 0])
         footprint = depth / focal_px[:, None, None]  # metres per pixel at that depth
         scale = (0.6 * footprint[..., None] * torch.exp(parts["scale"].clamp(-4.0, 4.0))).clamp(
@@ -211,3 +317,13 @@ class RangeViewAdapter(nn.Module):
             depth_logits=logits,
             depth_entropy=entropy,
         )
+
+    def _prior_bump(self, bins: DepthBins, base: Tensor) -> Tensor:
+        """(..., K) ``-min(d, PRIOR_BUMP_BINS)^2 / 2`` of each bin's distance ``d`` (in bins) from the
+        depth the ground prior ``base`` (...) gives, ``base + log_height_m`` in log metres. A pixel's
+        gain (``softplus(prior_gain - PRIOR_GAIN_OFFSET)``, never negative) times this adds a bump about
+        one bin wide at that depth to its logits, flat beyond ``PRIOR_BUMP_BINS``: one number per pixel
+        says "the depth of the ground below me", which the bin logits alone would have to spell out."""
+        target = base + self.log_height_m  # (...) log metres
+        distance = (bins.log_centres(base.dtype, base.device) - target[..., None]) / bins.step
+        return -0.5 * distance.clamp(-PRIOR_BUMP_BINS, PRIOR_BUMP_BINS) ** 2

@@ -292,7 +292,9 @@ class Stage1Model(nn.Module):
         k = intrinsics[:, order]  # [B, V, 3, 3]
         rays = pixel_rays(k[0], h, w)  # [V, 3, H, W]; the rig is the same over the batch
         focal = 0.5 * (k[0, :, 0, 0] + k[0, :, 1, 1])
-        px = self.adapter(feats, images[:, :, order].flatten(0, 1), rays, focal)
+        # The world's up (+z) in every camera's frame: the third row of camera-to-world rotation.
+        up = world_from_camera[:, :, order, 2, :3].flatten(0, 1).to(rays.dtype)  # [B*T, V, 3]
+        px = self.adapter(feats, images[:, :, order].flatten(0, 1), rays, focal, up)
 
         def restore(x: Tensor) -> Tensor:  # [B*T, V', ...] in range order -> [B, T, V, ...] input order
             return x.reshape(b, t, *x.shape[1:])[:, :, inverse]
@@ -350,15 +352,25 @@ class Stage1Model(nn.Module):
 
 
 CONFIGS = {
-    # CPU: vae_tiny (4x spatial, 4x temporal), 32-wide pyramid, 64 depth bins, single frames at 48 x 72.
+    # CPU: vae_tiny (4x spatial, 4x temporal), 32-wide pyramid, 64 depth bins, the ground prior carried
+    # up the columns, single frames at 48 x 72.
     "stage1_tiny": Stage1Config(
-        vae_name="vae_tiny", adapter={"width": 32, "depth_bins": 64}, image_size=(48, 72), frames=1
+        vae_name="vae_tiny",
+        adapter={"width": 32, "depth_bins": 64, "ground_feature": True, "column_base": True},
+        image_size=(48, 72),
+        frames=1,
     ),
-    # GPUs: vae_base (8x spatial, 4x temporal), 128-wide pyramid, 200 depth bins (DrivingRecon's),
-    # 5-frame clips at 160 x 240 (STORM's size).
+    # GPUs: vae_base (8x spatial, 4x temporal), 128-wide pyramid, 200 depth bins (DrivingRecon's), the
+    # ground prior, 5-frame clips at 160 x 240 (STORM's size).
     "stage1_base": Stage1Config(
         vae_name="vae_base",
-        adapter={"width": 128, "norm_groups": 32, "depth_bins": 200},
+        adapter={
+            "width": 128,
+            "norm_groups": 32,
+            "depth_bins": 200,
+            "ground_feature": True,
+            "column_base": True,
+        },
         image_size=(160, 240),
         frames=5,
     ),

@@ -45,7 +45,7 @@ import yaml
 from torch import Tensor
 from tqdm import tqdm
 
-from phigenesis.data.taxonomy import IGNORE_ID, SKY
+from phigenesis.data.taxonomy import GROUND_IDS, IGNORE_ID, SKY
 from phigenesis.models import create_model
 from phigenesis.models.depth_bins import DepthBins
 from phigenesis.models.gaussians import GaussianScene
@@ -82,6 +82,7 @@ LOSS_NAMES = (
     "velocity",
     "motion",
     "opacity",
+    "ground",
 )
 LOG_COLUMNS = ("loss", *LOSS_NAMES, "lr", "grad_norm", "gaussians", "seconds")
 
@@ -298,6 +299,19 @@ def depth_bin_loss(
     return (weight * ce).sum() / weight.sum().clamp(min=1e-6)
 
 
+def ground_gate_loss(logits: Tensor | None, b: int, labels: Tensor) -> Tensor:
+    """Mean binary cross-entropy of clip ``b``'s ground-gate logits ([B, T, V, H, W], the adapter's
+    ``column_base``) against "the label is a ground class" (``taxonomy.GROUND_IDS``) over labelled
+    pixels; 0 without the gate."""
+    if logits is None:
+        return labels.new_zeros((), dtype=torch.float32)
+    known = labels != IGNORE_ID
+    if not known.any():
+        return logits.sum() * 0.0
+    target = torch.isin(labels, torch.tensor(sorted(GROUND_IDS), device=labels.device)).to(logits.dtype)
+    return F.binary_cross_entropy_with_logits(logits[b][known], target[known])
+
+
 def stage1_losses(model: Stage1Model, clips: list[Clip]) -> tuple[dict[str, Tensor], int]:
     """Every loss term (unweighted, means over the batch) of a batch of clips, and the number of
     Gaussians rendered."""
@@ -333,6 +347,7 @@ def stage1_losses(model: Stage1Model, clips: list[Clip]) -> tuple[dict[str, Tens
         terms["velocity"].append(err.sum() / moving.sum().clamp(min=1))
         soft = pred.velocity[b] * pred.dynamic_prob[b][..., None]
         terms["motion"].append(soft.abs().mean())
+        terms["ground"].append(ground_gate_loss(px.ground_logit, b, ctx.semantic))
     return {k: torch.stack(v).mean() for k, v in terms.items()}, gaussians
 
 
