@@ -162,6 +162,7 @@ def main() -> None:
     ap.add_argument("--clips-per-scene", type=int, default=3)
     ap.add_argument("--baseline", type=Path, help="an earlier Stage 1 checkpoint to score beside the new one")
     ap.add_argument("--baseline-name", default="old", help="its name in the held-out table (default old)")
+    ap.add_argument("--baseline-note", default="", help="what the baseline is, said under the held-out table")
     ap.add_argument("--picture", type=Path, default=REPO_ROOT / "docs/images/stage1_eval.png")
     ap.add_argument(
         "--reuse", action="store_true", help="keep trained runs in --work (and their timings, timings.json)"
@@ -283,7 +284,7 @@ def main() -> None:
             f"{summary['planned_steps']} planned (its learning rate had not decayed all the way)."
         )
     metrics = json.loads(result.read_text())
-    report.table(*_eval_table(metrics, baseline, args.baseline_name, args.baseline))
+    report.table(*_eval_table(metrics, baseline, args.baseline_name, args.baseline, args.baseline_note))
     report.table(*_goals_table(metrics))
     report.text("![input, render, depth and semantics of a held-out clip](docs/images/stage1_eval.png)")
     report.write()
@@ -360,7 +361,11 @@ def _cell(key: str, value: float | None) -> str:
 
 
 def _eval_table(
-    metrics: dict, baseline: dict | None = None, baseline_name: str = "old", baseline_path: Path | None = None
+    metrics: dict,
+    baseline: dict | None = None,
+    baseline_name: str = "old",
+    baseline_path: Path | None = None,
+    baseline_note: str = "",
 ) -> tuple[str, list[str], list[list[object]], str]:
     """The held-out table from the evaluation JSON (keys of :mod:`phigenesis.train.evaluate_stage1`):
     per section a row for the new model, the baseline (when given) and the oracle."""
@@ -388,7 +393,7 @@ def _eval_table(
         note += (
             f" `{baseline_name}`: the checkpoint `{baseline_path}` ({baseline.get('model')}), scored on the "
             "same held-out cache and clips."
-        )
+        ) + (f" {baseline_note.strip()}" if baseline_note.strip() else "")
     return ("Held-out scenes: model against the oracle", headers, rows, note)
 
 

@@ -638,3 +638,32 @@ def test_prior_gain_pulls_the_bins_to_the_ground_priors_depth():
     raw[..., -1] = PRIOR_GAIN_OFFSET + math.log(math.e - 1)  # softplus -> gain 1
     pulled = adapter._activate(raw, rgb, torch.tensor([50.0]), base)
     np.testing.assert_allclose(pulled.depth.detach().numpy(), want.numpy(), rtol=1e-3)
+
+
+def test_checkpoint_made_before_the_ground_prior_loads_as_it_was(tmp_path):
+    """A stage1_tiny checkpoint written before the ground prior has no ``ground_feature`` /
+    ``column_base`` in its adapter config: it rebuilds without them; one whose config claims them
+    over weights without them fails naming the tensors that do not fit."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    torch.manual_seed(0)
+    old = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16, "depth_bins": 16})
+    path = save_checkpoint(tmp_path / "new.safetensors", old)
+    with safe_open(str(path), "pt") as f:
+        header, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118
+    config = json.loads(header["config"])
+    for key in ("ground_feature", "column_base"):
+        del config["adapter"][key]
+    header["config"] = json.dumps(config)
+    save_file(tensors, str(tmp_path / "old.safetensors"), metadata=header)
+    loaded = load_stage1(tmp_path / "old.safetensors")
+    assert not loaded.config.adapter_config.ground_feature
+    images, k, poses, times = _inputs(loaded)
+    with torch.no_grad():
+        assert torch.equal(loaded(images, k, poses, times).means, old.eval()(images, k, poses, times).means)
+    config["adapter"] |= {"ground_feature": True, "column_base": True}
+    header["config"] = json.dumps(config)
+    save_file(tensors, str(tmp_path / "claims.safetensors"), metadata=header)
+    with pytest.raises(CheckpointError, match=r"claims\.safetensors: weights do not fit .*adapter\."):
+        load_stage1(tmp_path / "claims.safetensors")
