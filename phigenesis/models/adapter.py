@@ -61,7 +61,8 @@ DYNAMIC_BIAS = -3.0
 
 #: The prior's bump on the bin logits (``prior_gain``): flat beyond this many bins from the prior.
 PRIOR_BUMP_BINS = 8.0
-#: The gain is ``softplus(raw - offset)``: 0.31 for the zero-initialised head, a gentle pull.
+#: The gain is ``softplus(raw - offset)``: 0.31 for the zero-initialised head, whose flat bin logits it
+#: then dominates (an untrained head starts every pixel at its prior's depth).
 PRIOR_GAIN_OFFSET = 1.0
 
 #: Smallest downward ray component of :func:`ground_log_depth`: rays at or above the horizon (and
@@ -207,10 +208,10 @@ class RangeViewAdapter(nn.Module):
             )
         # The priors also skip the block (whose GroupNorm rescales them by each sample's statistics)
         # straight into the last layer, where bin logits linear in them can peak at their bins.
-        self.priors = int(c.ground_feature) + int(c.column_base)
+        priors = int(c.ground_feature) + int(c.column_base)
         self.head = nn.Sequential(
             _block(inputs + int(c.column_base), c.width, c.norm_groups),
-            nn.Conv2d(c.width + self.priors, c.out_channels, 3, padding=1),
+            nn.Conv2d(c.width + priors, c.out_channels, 3, padding=1),
         )
         if c.prior_gain:  # log of the camera height that turns the ground prior into a depth
             self.log_height_m = nn.Parameter(torch.tensor(math.log(2.0)))
@@ -262,15 +263,18 @@ class RangeViewAdapter(nn.Module):
         rays = rays_camera.unsqueeze(0).expand(n, -1, -1, -1, -1)
         parts = [fused, range_view(rgb * 2 - 1), range_view(rays)]
         ground_logit = base = None
-        priors: list[Tensor] = []
-        if up_camera is not None and self.config.ground_feature:
+        priors: list[Tensor] = []  # the head's prior inputs, shifted to about [-1, 2.6]
+        if self.config.ground_feature:
+            assert up_camera is not None  # checked above
             prior = range_view(ground_log_depth(rays.to(up_camera.dtype), up_camera)).to(fused.dtype)
-            priors.append(prior - 2.0)  # [N, 1, H, V * W], about [-1, 2.6]
+            base_rv = prior  # [N, 1, H, V * W]: what the bins are pulled towards
+            priors.append(prior - 2.0)
             if self.config.column_base:
                 gate = self.ground_gate(torch.cat(parts + priors, dim=1))  # [N, 1, H, V * W]
-                priors.append(column_base(prior, torch.sigmoid(gate)) - 2.0)
+                base_rv = column_base(prior, torch.sigmoid(gate))
+                priors.append(base_rv - 2.0)
                 ground_logit = gate.reshape(n, h, v, w).permute(0, 2, 1, 3)  # [N, V, H, W]
-            base = (priors[-1] + 2.0).reshape(n, h, v, w).permute(0, 2, 1, 3)  # [N, V, H, W]
+            base = base_rv.reshape(n, h, v, w).permute(0, 2, 1, 3)  # [N, V, H, W]
         hidden = self.head[0](torch.cat(parts + priors, dim=1))
         out = self.head[1](torch.cat([hidden, *priors], dim=1))  # [N, out, H, V * W]
         out = out.reshape(n, -1, h, v, w).permute(0, 3, 2, 4, 1)  # [N, V, H, W, out]

@@ -97,12 +97,18 @@ class Projection:
     valid: Tensor  # (C, N) bool
 
 
+def zero_quaternions_to_identity(quats: Tensor) -> Tensor:
+    """(..., 4) wxyz quaternions with those of squared norm at most :data:`QUATERNION_ZERO_SQNORM`
+    replaced by the identity (the project's meaning of a zero quaternion), the others unchanged."""
+    sq = (quats * quats).sum(-1, keepdim=True)  # (..., 1)
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
+    return torch.where(sq > QUATERNION_ZERO_SQNORM, quats, identity)
+
+
 def quaternion_to_rotation(quats: Tensor) -> Tensor:
     """(..., 3, 3) rotation matrices from (..., 4) wxyz quaternions; zero ones give the identity."""
-    sq = (quats * quats).sum(-1, keepdim=True)  # (..., 1)
-    ok = sq > QUATERNION_ZERO_SQNORM
-    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
-    q = torch.where(ok, quats, identity) * torch.rsqrt(torch.where(ok, sq, torch.ones_like(sq)))
+    q = zero_quaternions_to_identity(quats)
+    q = q * torch.rsqrt((q * q).sum(-1, keepdim=True))
     rot = torch.stack(geometry.rotation_entries(*q.unbind(-1)), dim=-1)
     return rot.reshape(*rot.shape[:-1], 3, 3)
 
@@ -699,9 +705,7 @@ def _rasterize_gsplat(
     import gsplat
 
     num_cams = world_from_camera.shape[0]
-    sqnorm = (quats * quats).sum(-1, keepdim=True)
-    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
-    quats = torch.where(sqnorm > QUATERNION_ZERO_SQNORM, quats, identity)
+    quats = zero_quaternions_to_identity(quats)
     scales = scales.clamp(min=-MAX_SCALE, max=MAX_SCALE)
     shift = torch.zeros_like(intrinsics)
     shift[:, 0, 2] = shift[:, 1, 2] = 0.5  # gsplat puts pixel centres at j + 0.5
