@@ -352,27 +352,67 @@ def test_a_panoptic_png_declaring_a_huge_image_is_refused_before_decoding(raws: 
         convert.camera_labels(image, CONFIG.height, CONFIG.width, "w")
 
 
-def test_a_zlib_bomb_range_image_is_refused_having_inflated_only_the_cap() -> None:
+@pytest.mark.parametrize("adler32", [True, False])
+def test_a_zlib_bomb_range_image_is_refused_having_inflated_only_the_cap(adler32: bool) -> None:
     bomb = zlib_bomb(256)  # 256 MiB from 264 KB
     with pytest.raises(
         WaymoFormatError, match=r"^m: range image inflates beyond 16777216 bytes from \d+ compressed"
     ):
-        v1.inflate_matrix(bomb, "m")
+        v1.inflate_matrix(bomb, "m", adler32)
 
     def inflate() -> None:
         with pytest.raises(WaymoFormatError):
-            v1.inflate_matrix(bomb, "m")
+            v1.inflate_matrix(bomb, "m", adler32)
 
     peak = _peak_bytes(inflate)
     assert peak < 40 << 20, peak
 
 
-def test_a_matrix_declaring_more_data_than_the_cap_is_refused_before_inflating() -> None:
+@pytest.mark.parametrize("adler32", [True, False])
+def test_a_matrix_declaring_more_data_than_the_cap_is_refused_before_inflating(adler32: bool) -> None:
     import zlib
 
     declared = b"\x0a\x80\x80\x80\x80\x08"  # field 1, 2 GiB of packed floats follow (they do not)
     with pytest.raises(WaymoFormatError, match="declares 2147483648 bytes of data"):
-        v1.inflate_matrix(zlib.compress(declared + bytes(100)), "m")
+        v1.inflate_matrix(zlib.compress(declared + bytes(100)), "m", adler32)
+
+
+def test_inflating_without_the_adler32_gives_the_same_bytes_and_still_checks_the_framing() -> None:
+    import zlib
+
+    payload = np.random.default_rng(0).standard_normal(50_000).astype(np.float32).tobytes()
+    stream = zlib.compress(payload, 6)
+    assert v1.inflate_matrix(stream, "m", adler32=False) == payload == v1.inflate_matrix(stream, "m")
+    wrong_sum = stream[:-4] + bytes(4)
+    # The checksum is the one thing skipped: the record's CRC-32C covers these bytes.
+    assert v1.inflate_matrix(wrong_sum, "m", adler32=False) == payload
+    with pytest.raises(WaymoFormatError, match=r"^m: range image does not decompress .*incorrect data check"):
+        v1.inflate_matrix(wrong_sum, "m")
+    for bad, why in [
+        (stream[:-2], "the zlib stream is truncated"),
+        (stream[: len(stream) // 2], "the zlib stream is truncated"),
+        (b"\x79" + stream[1:], "names no deflate stream"),
+        (stream[:1] + bytes([stream[1] ^ 1]) + stream[2:], "check bits are wrong"),
+        (b"\x78\xbb" + stream[2:], "needs a preset dictionary"),
+        (stream[:5], "5 bytes are too few"),
+    ]:
+        with pytest.raises(WaymoFormatError, match=f"^m: range image does not decompress .*{why}"):
+            v1.inflate_matrix(bad, "m", adler32=False)
+
+
+def test_a_v1_record_with_a_bad_adler32_is_refused_only_when_its_crc_is_not_checked(
+    tmp_path: Path, raws: list[RawFrame]
+) -> None:
+    def edit(messages: list[Any]) -> None:
+        blob = messages[0].lasers[0].ri_return1.range_image_compressed
+        messages[0].lasers[0].ri_return1.range_image_compressed = blob[:-4] + bytes(4)
+
+    path = _v1_messages(tmp_path, raws, edit)
+    # The record's CRC-32C is of the edited bytes, so the checked path takes the stream as written.
+    checked = v1.V1File(path).frame(0)
+    assert not checked.invalid_sensors and checked.lasers[0].return1 is not None
+    unchecked = v1.V1File(path, check_crc=False).frame(0)
+    assert "incorrect data check" in str(unchecked.invalid_sensors)
 
 
 def test_a_zlib_bomb_in_a_record_names_the_file_record_and_lidar(

@@ -13,6 +13,7 @@ from phigenesis.cli.common import Command, Parser, positive, run
 from phigenesis.data.executors import EXECUTORS
 from phigenesis.data.shards import CacheReader, Manifest
 from phigenesis.data.sources.synthetic.rigs import RIG_NAMES
+from phigenesis.malloc_tuning import keep_freed_memory
 
 
 def _run_options(p: argparse.ArgumentParser) -> None:
@@ -195,6 +196,7 @@ def interrupted(args: argparse.Namespace) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    keep_freed_memory()  # frame after frame of the same sizes: reuse the pages (see the module)
     return run("phigenesis-prep", build_parser, argv, COMMANDS, interrupted)
 
 

@@ -1,0 +1,65 @@
+"""keep_freed_memory: a process that frees and re-allocates a frame's worth of memory stops
+taking its pages from the kernel again."""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+import sys
+
+import pytest
+
+PROBE = """
+import resource, sys
+from phigenesis.malloc_tuning import keep_freed_memory
+if sys.argv[1] == "1":
+    assert keep_freed_memory()
+def frame():
+    # a frame's allocations: several blocks alive together, then all freed
+    blocks = [bytearray(3 << 20) for _ in range(8)]
+    for b in blocks:
+        b[::4096] = b"x" * len(b[::4096])
+frame()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(10):
+    frame()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+def _page_faults(keep: bool) -> int:
+    # Not inherited from this process, which may have run phigenesis-prep's main already.
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE, "1" if keep else "0"],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=env,
+    )
+    return int(out.stdout.strip())
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="the thresholds are glibc's")
+def test_kept_memory_turns_ten_frames_of_page_faults_into_almost_none() -> None:
+    pages_per_frame = 8 * (3 << 20) // 4096
+    default = _page_faults(keep=False)
+    kept = _page_faults(keep=True)
+    assert default > 5 * pages_per_frame, default  # glibc hands the blocks back and takes them again
+    assert kept < pages_per_frame // 10, kept
+
+
+def test_the_settings_reach_processes_started_later(monkeypatch: pytest.MonkeyPatch) -> None:
+    from phigenesis import malloc_tuning
+
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
+    monkeypatch.setenv("PHIGENESIS_MALLOC", "0")
+    assert not malloc_tuning.keep_freed_memory()
+    assert "MALLOC_TRIM_THRESHOLD_" not in os.environ
+    monkeypatch.delenv("PHIGENESIS_MALLOC")
+    if platform.libc_ver()[0] == "glibc":
+        assert malloc_tuning.keep_freed_memory()
+        assert os.environ["MALLOC_TRIM_THRESHOLD_"] == str(malloc_tuning.TRIM_THRESHOLD_BYTES)
+        assert os.environ["MALLOC_MMAP_THRESHOLD_"] == str(malloc_tuning.MMAP_THRESHOLD_BYTES)
