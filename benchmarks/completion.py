@@ -55,6 +55,7 @@ ABLATIONS = {
     "no thin vertical structures": {"max_thin_width_ref_px": 1e-3},
     "no facades climbing (propagate_up)": {"propagate_up": False},
     "no planes from sparse depth": {"sparse_planes": False},
+    "no planes through a line of points (line_planes)": {"line_planes": False},
     "min_height_m only (min_height_rel 1)": {"min_height_rel": 1.0},
     "min_incidence_deg 8": {"min_incidence_deg": 8.0},
 }

@@ -472,6 +472,77 @@ def test_fit_planes_agrees_with_a_plain_per_group_fit():
     assert fits.kind[0] == 0
 
 
+def test_a_line_of_points_fixes_a_plane_only_with_a_label_that_says_which():
+    up = np.array([0.0, -1.0, 0.0])
+    p, rng = CompletionParams(), np.random.default_rng(3)
+    ones, group = np.ones(50), np.zeros(50, np.intp)
+    # One scan line across a level lawn 1.6 m below the camera, seen obliquely (x and z vary).
+    line = np.stack([np.linspace(-5, 5, 50), np.full(50, 1.6), np.linspace(8, 12, 50)], axis=1)
+    fits, inlier = fit_planes(group, line, ones, 1, up, p, rng, lies=np.ones(1, bool))
+    assert fits.kind[0] == KIND_GROUND and fits.from_line[0] and inlier.all()
+    # The plane through the line closest to level: the lawn itself.
+    assert abs(fits.normal[0] @ up) > 1 - 1e-9 and abs(abs(fits.offset[0]) - 1.6) < 1e-9
+    assert fit_planes(group, line, ones, 1, up, p, rng, lies=np.zeros(1, bool))[0].kind[0] == 0
+    assert (
+        fit_planes(group, line, ones, 1, up, CompletionParams(line_planes=False), rng, lies=np.ones(1, bool))[
+            0
+        ].kind[0]
+        == 0
+    )
+    # A line rising 20 degrees is no ground, whatever the label (it rises enough for a wall).
+    steep = line.copy()
+    steep[:, 1] = 1.6 - np.tan(np.radians(20)) * np.hypot(steep[:, 0] + 5, steep[:, 2] - 8)
+    fits, _ = fit_planes(group, steep, ones, 1, up, p, rng, lies=np.ones(1, bool))
+    assert fits.kind[0] != KIND_GROUND and not fits.from_line[0]
+    # The same line labelled a standing structure: the vertical plane through it (a scan line at a
+    # wall's foot), which the height test alone refuses.
+    fits, _ = fit_planes(group, line, ones, 1, up, p, rng, stands=np.ones(1, bool))
+    assert fits.kind[0] == KIND_VERTICAL and fits.from_line[0]
+    direction = (line[-1] - line[0]) / np.linalg.norm(line[-1] - line[0])
+    assert abs(fits.normal[0] @ direction) < 1e-9 and abs(fits.normal[0] @ up) < 1e-9
+    assert fit_planes(group, line, ones, 1, up, p, rng)[0].kind[0] == 0
+
+
+def _one_scan_line(truth: np.ndarray, row: int) -> tuple[np.ndarray, np.ndarray]:
+    depth = np.zeros((H, W), np.float32)
+    depth[row] = truth[row]
+    return depth, (depth > 0).astype(np.float32) * 0.9
+
+
+def test_a_lawn_seen_by_one_scan_line_is_completed_only_if_labelled_ground():
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[:] = SKY_RGB
+    horizon = (H - 1) // 2
+    rgb[horizon + 1 :] = textured((H - horizon - 1, W), (100, 140, 80), 9)
+    r = rays().reshape(H, W, 3)
+    truth = np.where(r[..., 1] > 0.01, 1.6 / np.maximum(r[..., 1], 1e-9), 0).astype(np.float32)
+    depth, conf = _one_scan_line(truth, horizon + 30)
+    sky = np.zeros((H, W), bool)
+    sky[: horizon + 1] = True
+    classes = np.where(sky, tx.SKY, tx.TERRAIN).astype(np.uint8)
+    out = complete(depth, conf, rgb, sky=sky, classes=classes)
+    lawn = out.origin == PLANE
+    assert lawn[horizon + 8 :].mean() > 0.95
+    np.testing.assert_allclose(out.depth_m[lawn], truth[lawn], rtol=1e-4)
+    p = CompletionParams()
+    assert out.confidence[lawn].max() <= p.max_confidence * p.line_confidence + 1e-6
+    assert not np.any(complete(depth, conf, rgb, sky=sky).origin == PLANE), "no label, no plane"
+    unlabelled = np.where(sky, tx.SKY, tx.IGNORE_ID).astype(np.uint8)
+    assert not np.any(complete(depth, conf, rgb, sky=sky, classes=unlabelled).origin == PLANE)
+
+
+def test_a_facade_seen_by_one_scan_line_is_completed_if_labelled_a_building():
+    _, _, rgb, truth, sky, roof, known_from, _ = facade_scene()
+    # At the camera's height: a level line in 3D (lower rows of a turned facade rise with depth).
+    depth, conf = _one_scan_line(truth, (H - 1) // 2)
+    classes = np.where(sky, tx.SKY, tx.BUILDING).astype(np.uint8)
+    out = complete(depth, conf, rgb, sky=sky, classes=classes)
+    assert np.all(out.origin[roof:][depth[roof:] == 0] == PLANE)
+    np.testing.assert_allclose(out.depth_m[roof:], truth[roof:], rtol=1e-4)
+    assert not np.any(out.depth_m[:roof])
+    assert not np.any(complete(depth, conf, rgb, sky=sky).origin == PLANE)
+
+
 # ------------------------------------------------------------------------------------------
 # The stage on a small synthetic scene
 

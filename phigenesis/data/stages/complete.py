@@ -31,6 +31,16 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    explain ``min_plane_share``. A segment with fewer than ``min_inliers`` dense pixels is fitted
    to its sparse (LiDAR) depth instead, if that covers ``sparse_min_share`` of it
    (``sparse_planes``: the densifier leaves out the scan lines on a far lawn).
+   **Lines** (``line_planes``): a segment whose known pixels lie along one line (a single scan
+   line across a lawn or up a wall's foot) fixes no plane by itself, only the planes through
+   that line; its pseudo-semantic label says which: a segment labelled ground
+   (:data:`~phigenesis.data.taxonomy.GROUND_IDS`) takes the plane through the line that is closest
+   to level (two-point hypotheses with the line's horizontal normal, least squares along the
+   inliers' main axis; the line within ``max_tilt_deg`` of level and ``min_line_m`` long), one
+   labelled a standing structure (:data:`STANDING_CLASSES`) the vertical plane through it without
+   the ``min_height_m`` test (a scan line on a facade has no height; a row of ground points
+   labelled building would be a vertical plane at the ground, which the label rules out). Their
+   pixels' confidence is multiplied by ``line_confidence``.
 3. **Filling**: an empty pixel of the segment takes the plane of the segment's known pixel
    nearest to it (none if that pixel is an outlier), within ``max_extrapolation_ref_px``; where
    the two planes of a segment do not meet along their seam (one stands in front of the other),
@@ -124,6 +134,11 @@ ORIGIN = {name: i for i, name in enumerate(DENSE_ORIGINS)}
 NEVER_FILLED_CLASSES = frozenset({tx.SKY, tx.PERSON, tx.RIDER, tx.BICYCLE, tx.MOTORCYCLE})
 _SIN_GOOD_INCIDENCE = float(np.sin(np.radians(30.0)))
 KIND_NONE, KIND_VERTICAL, KIND_GROUND = 0, 1, 2
+#: The RANSAC and refinement mode of a ground plane through a line of points (its fits are
+#: ``KIND_GROUND``).
+_MODE_GROUND_LINE = 3
+#: Labels of structures that stand (their planes are vertical); see ``line_planes``.
+STANDING_CLASSES = frozenset({tx.BUILDING, tx.WALL, tx.FENCE})
 
 
 @dataclass(frozen=True)
@@ -159,6 +174,10 @@ class CompletionParams:
         sparse_min_share: ... on at least this share of its pixels (a lawn's scan lines, not the
             few depths that leak across a silhouette).
         sparse_plane_confidence: confidence factor of such a segment's pixels.
+        line_planes: segments labelled ground or standing whose known pixels form a line take
+            the plane through it their label implies (module docstring, step 2).
+        min_line_m: least length of such a line of ground points.
+        line_confidence: confidence factor of those segments' pixels.
         ransac_iterations: hypotheses per fit.
         ransac_points: points of a segment each hypothesis is scored on.
         fit_points: known pixels per segment a fit uses (at random); all are scored at the end.
@@ -219,6 +238,9 @@ class CompletionParams:
     sparse_planes: bool = True
     sparse_min_share: float = 0.5
     sparse_plane_confidence: float = 0.7
+    line_planes: bool = True
+    min_line_m: float = 1.0
+    line_confidence: float = 0.5
     ransac_iterations: int = 32
     ransac_points: int = 64
     fit_points: int = 256
@@ -263,6 +285,7 @@ class CompletionParams:
             "propagate_confidence",
             "upward_boundary_share",
             "sparse_plane_confidence",
+            "line_confidence",
             "sparse_min_share",
             "upward_confidence",
             "max_confidence",
@@ -281,6 +304,7 @@ class CompletionParams:
             "base_band_ref_px",
             "conf_distance_ref_px",
             "conf_relative_residual",
+            "min_line_m",
         )
         for name in (*shares, *positive, "segment_sigma_ref_px", "merge_color_tol", "merge_edge_tol"):
             value = getattr(self, name)
@@ -682,6 +706,8 @@ class PlaneFits:
         share: (G,) share of the group's points the plane (or the group's planes) explain.
         depth_m: (G,) mean z of the inliers.
         confidence: (G,) mean confidence of the inliers.
+        from_line: (G,) bool, the plane was fixed by a line of points and the group's label
+            (``line_planes``).
     """
 
     normal: F64
@@ -691,11 +717,18 @@ class PlaneFits:
     share: F64
     depth_m: F64
     confidence: F64
+    from_line: Mask
 
     @classmethod
     def empty(cls, n: int) -> PlaneFits:
         """G = n groups without a plane."""
-        return cls(np.zeros((n, 3)), *(np.zeros(n), np.zeros(n, np.int8)), *(np.zeros(n) for _ in range(4)))
+        return cls(
+            np.zeros((n, 3)),
+            np.zeros(n),
+            np.zeros(n, np.int8),
+            *(np.zeros(n) for _ in range(4)),
+            np.zeros(n, bool),
+        )
 
     def scattered(self, groups: NDArray[np.intp], n: int) -> PlaneFits:
         """These fits (of groups 0..len(groups)-1) placed at ``groups`` among n."""
@@ -757,6 +790,8 @@ def fit_planes(
     up: F64,
     p: CompletionParams,
     rng: np.random.Generator,
+    lies: Mask | None = None,
+    stands: Mask | None = None,
 ) -> tuple[PlaneFits, Mask]:
     """A robust plane for each group of camera-frame points (the tests of the module docstring),
     all groups at once.
@@ -769,12 +804,15 @@ def fit_planes(
         up: (3,) unit up vector in camera axes.
         p: the tests' parameters (``min_inlier_share`` is the share each plane needs).
         rng: draws the RANSAC samples.
+        lies, stands: (G,) bool or None, groups labelled ground / a standing structure: with
+            ``line_planes``, a line of their points fixes their plane (module docstring, step 2).
 
     Returns:
         The planes (``share``: each plane's own inlier share) and each point's inlier flag.
         Vertical planes first (RANSAC over two-point hypotheses that contain ``up``, least squares
         with the normal kept horizontal); where none passes and ``ground_planes``, near-horizontal
-        ones (three-point hypotheses, free least squares).
+        ones (three-point hypotheses, free least squares); then, for groups that ``lies`` marks,
+        ground planes through a line of points.
     """
     assert points.shape == (len(groups), 3), (points.shape, len(groups))
     assert np.all(np.diff(groups) >= 0), "points must be sorted by group"
@@ -783,13 +821,21 @@ def fit_planes(
     inlier = np.zeros(len(points), bool)
     tol = p.inlier_tol_m + p.inlier_tol_rel * points[:, 2]
     todo = np.flatnonzero(g.count >= p.min_inliers)
-    for kind in (KIND_VERTICAL, KIND_GROUND):
-        if len(todo) == 0 or (kind == KIND_GROUND and not p.ground_planes):
+    lines = p.line_planes and lies is not None
+    stands = stands if p.line_planes and stands is not None else np.zeros(n_groups, bool)
+    for mode in (KIND_VERTICAL, KIND_GROUND, _MODE_GROUND_LINE):
+        if mode == KIND_GROUND and not p.ground_planes:
+            continue
+        if mode == _MODE_GROUND_LINE and lines:
+            todo = todo[lies[todo]]  # type: ignore[index]
+        if len(todo) == 0 or (mode == _MODE_GROUND_LINE and not lines):
             break
-        normal, offset = _ransac(kind, g, points, tol, todo, up, p, rng)
-        on, ok = _refine_and_accept(kind, g, points, tol, todo, normal, offset, up, p)
+        normal, offset = _ransac(mode, g, points, tol, todo, up, p, rng)
+        on, ok, line = _refine_and_accept(mode, g, points, tol, todo, normal, offset, up, p, stands)
         won = todo[ok[todo]]
+        kind = KIND_GROUND if mode == _MODE_GROUND_LINE else mode
         fits.normal[won], fits.offset[won], fits.kind[won] = normal[won], offset[won], kind
+        fits.from_line[won] = line[won]
         take = ok[groups]
         inlier[take] = on[take]
         todo = todo[~ok[todo]]
@@ -815,7 +861,8 @@ def _ransac(
     rng: np.random.Generator,
 ) -> tuple[F64, F64]:
     """The best hypothesis (most inliers among ``ransac_points`` points) of every group in
-    ``todo``: (G, 3) normals and (G,) offsets (zeros elsewhere)."""
+    ``todo``: (G, 3) normals and (G,) offsets (zeros elsewhere). ``kind``: ``KIND_VERTICAL``,
+    ``KIND_GROUND`` or ``_MODE_GROUND_LINE``."""
     a, r, m = len(todo), p.ransac_points, p.ransac_iterations
     pick = g.start[todo, None] + (rng.random((a, r)) * g.count[todo, None]).astype(np.intp)  # [A, R]
     pts, tol_s = points[pick], tol[pick]  # [A, R, 3], [A, R]
@@ -823,8 +870,14 @@ def _ransac(
     rows = np.arange(a)[:, None]
     p0 = pts[rows, h[0]]  # [A, M, 3]
     d1 = pts[rows, h[1]] - p0
-    # A vertical plane holds the up direction; a ground plane a third point.
-    d2 = np.broadcast_to(up, d1.shape) if kind == KIND_VERTICAL else pts[rows, h[2]] - p0
+    # A vertical plane holds the up direction; a ground plane a third point; a ground plane
+    # through a line the horizontal direction across it (the plane through it closest to level).
+    if kind == KIND_VERTICAL:
+        d2 = np.broadcast_to(up, d1.shape)
+    elif kind == _MODE_GROUND_LINE:
+        d2 = np.cross(np.broadcast_to(up, d1.shape), d1)
+    else:
+        d2 = pts[rows, h[2]] - p0
     cand = np.stack(
         [
             d1[..., 1] * d2[..., 2] - d1[..., 2] * d2[..., 1],
@@ -839,7 +892,7 @@ def _ransac(
     dist = np.abs(np.matmul(cand, pts.transpose(0, 2, 1)) + off[..., None])  # [A, M, R]
     score = np.count_nonzero(dist <= tol_s[:, None, :], axis=2)
     bad = length <= 1e-9
-    if kind == KIND_GROUND:
+    if kind != KIND_VERTICAL:
         bad |= np.abs(cand @ up) < np.cos(np.radians(p.max_tilt_deg))
     score[bad] = -1
     best = np.argmax(score, axis=1)
@@ -858,11 +911,14 @@ def _refine_and_accept(
     offset: F64,
     up: F64,
     p: CompletionParams,
+    stands: Mask,
     rounds: int = 2,
-) -> tuple[Mask, Mask]:
+) -> tuple[Mask, Mask, Mask]:
     """Refines the planes of ``todo`` in place by least squares on their inliers (``rounds`` times:
-    inliers, then the fit to them); returns each point's final inlier flag and whether each
-    group's plane passes the tests of the module docstring."""
+    inliers, then the fit to them); returns each point's final inlier flag, whether each
+    group's plane passes the tests of the module docstring, and whether it passes only as a plane
+    through a line (``_MODE_GROUND_LINE``, or a vertical plane of a group ``stands`` marks
+    without the height test)."""
     member = np.zeros(len(g.count), bool)
     member[todo] = True
     basis = _horizontal_basis(up)
@@ -875,6 +931,10 @@ def _refine_and_accept(
             break
         if kind == KIND_VERTICAL:  # the smaller axis of the horizontal coordinates' spread
             new_normal = np.linalg.eigh(basis @ cov @ basis.T)[1][:, :, 0] @ basis
+        elif kind == _MODE_GROUND_LINE:  # up, less its part along the inliers' main axis
+            along = np.linalg.eigh(cov)[1][:, :, 2]
+            new_normal = up - (along @ up)[:, None] * along
+            new_normal /= np.maximum(np.linalg.norm(new_normal, axis=1), 1e-12)[:, None]
         else:
             new_normal = np.linalg.eigh(cov)[1][:, :, 0]
         new_normal *= np.where(new_normal @ up < 0, -1.0, 1.0)[:, None]
@@ -887,14 +947,21 @@ def _refine_and_accept(
     val, vec = np.linalg.eigh(cov)  # ascending
     free = vec[:, :, 0]
     surface = val[:, 1] > 0.01 * np.maximum(val[:, 2], 1e-12)  # spread over an area, not a line
+    line = np.zeros_like(ok)
     if kind == KIND_VERTICAL:
         height_var = np.einsum("i,gij,j->g", up, cov, up)
         least = np.minimum(p.min_height_m, p.min_height_rel * mean[:, 2])
-        ok &= np.sqrt(12.0 * np.maximum(height_var, 0.0)) >= least  # extent, if uniform
+        tall = np.sqrt(12.0 * np.maximum(height_var, 0.0)) >= least  # extent, if uniform
         ok &= ~(surface & (np.abs(free @ up) > np.sin(np.radians(p.max_tilt_deg))))
+        line = ok & ~tall & stands
+        ok &= tall | stands
+    elif kind == _MODE_GROUND_LINE:
+        length = np.sqrt(12.0 * np.maximum(val[:, 2], 0.0))
+        ok &= ~surface & (length >= p.min_line_m) & (normal @ up >= np.cos(np.radians(p.max_tilt_deg)))
+        line = ok
     else:
         ok &= surface & (np.abs(free @ up) >= np.cos(np.radians(p.max_tilt_deg)))
-    return inlier, ok
+    return inlier, ok, line
 
 
 # --------------------------------------------------------------------------------------------
@@ -978,6 +1045,12 @@ class _Completer:
         # into them; a car's side merged with the facade behind it would carry the car's depth up
         # the facade.
         self.thing_touched = np.zeros(n, bool)
+        # What a segment's label says of its plane, for a line of known points (``line_planes``).
+        self.lies = self.stands = None
+        if inputs.classes is not None and p.line_planes:
+            labels = inputs.classes.reshape(-1)
+            self.lies = _majority_in(flat, labels, n, tx.GROUND_IDS)
+            self.stands = _majority_in(flat, labels, n, STANDING_CLASSES)
         if inputs.classes is not None:
             things = np.isin(inputs.classes.reshape(-1), list(tx.THING_IDS))
             share = np.bincount(flat, weights=things, minlength=n) / np.maximum(self.sizes, 1)
@@ -1068,7 +1141,10 @@ class _Completer:
         compact[segs] = np.arange(len(segs))
         points = self.rays[sub] * self.anchor_depth[sub, None]
         conf = self.anchor_conf[sub].astype(np.float64)
-        fits, _ = fit_planes(compact[self.flat[sub]], points, conf, len(segs), self.up, p, self.rng)
+        lies, stands = (None if a is None else a[segs] for a in (self.lies, self.stands))
+        fits, _ = fit_planes(
+            compact[self.flat[sub]], points, conf, len(segs), self.up, p, self.rng, lies, stands
+        )
         return fits.scattered(segs, self.count)
 
     def _on_plane(self, kn: NDArray[np.intp], fits: PlaneFits) -> Mask:
@@ -1102,7 +1178,7 @@ class _Completer:
                 fits,
                 s,
                 dist[tr, tc],
-                self.seg_factor[s],
+                self.seg_factor[s] * (self.p.line_confidence if fits.from_line[s] else 1.0),
                 ORIGIN["plane"],
             )
             # Planes of the sparse depth alone do not climb: it leaks at silhouettes, most of all
@@ -1361,6 +1437,7 @@ class _Completer:
         fits = PlaneFits(
             *(n[None], np.array([-float(n @ point)]), np.ones(1, np.int8), np.array([spread])),
             *(np.ones(1), np.array([z_base]), np.array([float(np.mean(self.thin_conf[base]))])),
+            np.zeros(1, bool),
         )
         # Only the columns that hold the structure: those of its evidence (+-1 pixel).
         allowed = np.zeros(w + 2, bool)
