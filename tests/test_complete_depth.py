@@ -532,7 +532,7 @@ def test_a_lawn_seen_by_one_scan_line_is_completed_only_if_labelled_ground():
 
 
 def test_a_facade_seen_by_one_scan_line_is_completed_if_labelled_a_building():
-    _, _, rgb, truth, sky, roof, known_from, _ = facade_scene()
+    _, _, rgb, truth, sky, roof, _, _ = facade_scene()
     # At the camera's height: a level line in 3D (lower rows of a turned facade rise with depth).
     depth, conf = _one_scan_line(truth, (H - 1) // 2)
     classes = np.where(sky, tx.SKY, tx.BUILDING).astype(np.uint8)
