@@ -56,6 +56,7 @@ ABLATIONS = {
     "no facades climbing (propagate_up)": {"propagate_up": False},
     "no planes from sparse depth": {"sparse_planes": False},
     "no planes through a line of points (line_planes)": {"line_planes": False},
+    "no tree crowns (crowns)": {"crowns": False},
     "min_height_m only (min_height_rel 1)": {"min_height_rel": 1.0},
     "min_incidence_deg 8": {"min_incidence_deg": 8.0},
 }
@@ -243,7 +244,8 @@ def left_empty(images: list[Image], report: Report) -> None:
         [[name, f"{100 * v[0] / n:.1f}"] for name, v in rows.items()],
         "By the image segment they lie in (LiDAR depth: dense or sparse, at least min_inliers "
         "pixels). Only the geometry of the scene anchors a completion: what the LiDAR did not see "
-        "is completed only from a facade below it (step 7), and vegetation is left empty.",
+        "is completed only from a facade below it (step 7), and vegetation only where its known "
+        "depths are those of one crown (step 6b).",
     )
 
 

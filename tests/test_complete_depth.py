@@ -503,6 +503,76 @@ def test_a_line_of_points_fixes_a_plane_only_with_a_label_that_says_which():
     assert fit_planes(group, line, ones, 1, up, p, rng)[0].kind[0] == 0
 
 
+def test_without_labels_a_line_of_points_at_the_grounds_height_lies():
+    # A road in full depth (its plane gives the camera's height, 1.6 m) beside a lawn of another
+    # colour seen by one scan line; no pseudo labels beyond the sky.
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[:] = SKY_RGB
+    horizon = (H - 1) // 2
+    rgb[horizon + 1 :, : W // 2] = textured((H - horizon - 1, W // 2), (90, 90, 90), 8)
+    rgb[horizon + 1 :, W // 2 :] = textured((H - horizon - 1, W - W // 2), (100, 140, 80), 9)
+    r = rays().reshape(H, W, 3)
+    truth = np.where(r[..., 1] > 0.01, 1.6 / np.maximum(r[..., 1], 1e-9), 0).astype(np.float32)
+    depth = np.zeros((H, W), np.float32)
+    depth[horizon + 20 :, : W // 2] = truth[horizon + 20 :, : W // 2]
+    depth[horizon + 30, W // 2 :] = truth[horizon + 30, W // 2 :]
+    conf = (depth > 0).astype(np.float32) * 0.9
+    sky = np.zeros((H, W), bool)
+    sky[: horizon + 1] = True
+    out = complete(depth, conf, rgb, sky=sky, classes=np.where(sky, tx.SKY, tx.IGNORE_ID).astype(np.uint8))
+    lawn = out.origin[:, W // 2 + 2 :] == PLANE
+    assert lawn[horizon + 8 :].mean() > 0.9
+    np.testing.assert_allclose(out.depth_m[:, W // 2 + 2 :][lawn], truth[:, W // 2 + 2 :][lawn], rtol=1e-4)
+    # Without the road nothing tells the lawn's line from a kerb's top: it stays a line.
+    depth[:, : W // 2] = 0
+    conf = (depth > 0).astype(np.float32) * 0.9
+    assert not np.any(complete(depth, conf, rgb, sky=sky).origin[:, W // 2 + 2 :] == PLANE)
+
+
+def crown_scene(colour=(40, 130, 45), radius_m: float = 2.0, z_m: float = 10.0):
+    """A tree crown: a sphere of ``radius_m`` whose centre is ``z_m`` ahead, seen by a level
+    pinhole; the LiDAR saw its lower half. Returns depth, confidence, rgb, truth and its disc."""
+    r = rays().reshape(H, W, 3)
+    centre = np.array([0.0, -1.0, z_m])
+    # Nearest intersection of each ray with the sphere: |t r - c|^2 = R^2.
+    a = np.sum(r * r, axis=-1)
+    b = -2 * r @ centre
+    disc = b * b - 4 * a * (centre @ centre - radius_m**2)
+    inside = disc > 0
+    truth = np.where(inside, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), 0).astype(np.float32)
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[:] = SKY_RGB
+    rgb[inside] = textured((H, W), colour, 4)[inside]
+    rows = np.nonzero(inside.any(axis=1))[0]
+    lower = np.zeros((H, W), bool)
+    lower[(rows[0] + rows[-1]) // 2 :] = True
+    depth = np.where(inside & lower, truth, 0).astype(np.float32)
+    return depth, (depth > 0).astype(np.float32) * 0.9, rgb, truth, inside
+
+
+def test_a_tree_crown_takes_the_camera_facing_plane_through_its_known_depths():
+    depth, conf, rgb, truth, inside = crown_scene()
+    sky = ~inside
+    out = complete(depth, conf, rgb, sky=sky)
+    crown = inside & (depth == 0)
+    filled = crown & (out.origin == VERTICAL)
+    assert filled.sum() > 0.9 * crown.sum()
+    # Off by at most the crown's radius, and far less on most of it.
+    err = np.abs(out.depth_m[filled] - truth[filled])
+    assert err.max() <= 2.0 and np.median(err / truth[filled]) < 0.1
+    assert out.confidence[filled].max() <= CompletionParams().crown_confidence
+    # Not green: no crown (and no plane fits a sphere).
+    grey = complete(depth, conf, crown_scene(colour=(120, 120, 120))[2], sky=sky)
+    assert not np.any(grey.depth_m[crown])
+    assert not np.any(
+        complete(depth, conf, rgb, sky=sky, params=CompletionParams(crowns=False)).depth_m[crown]
+    )
+    # Known depths spread over more than crown_max_spread of their median: not one crown.
+    spread = depth.copy()
+    spread[::2] *= 1.5
+    assert not np.any(complete(spread, conf, rgb, sky=sky).depth_m[crown])
+
+
 def _one_scan_line(truth: np.ndarray, row: int) -> tuple[np.ndarray, np.ndarray]:
     depth = np.zeros((H, W), np.float32)
     depth[row] = truth[row]

@@ -39,7 +39,10 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    inliers' main axis; the line within ``max_tilt_deg`` of level and ``min_line_m`` long), one
    labelled a standing structure (:data:`STANDING_CLASSES`) the vertical plane through it without
    the ``min_height_m`` test (a scan line on a facade has no height; a row of ground points
-   labelled building would be a vertical plane at the ground, which the label rules out). Their
+   labelled building would be a vertical plane at the ground, which the label rules out). Where
+   the labels say neither, a line at the ground's height (within ``inlier_tol_m`` + twice
+   ``inlier_tol_rel`` of its depth of the median distance below the camera of the image's own
+   ground planes) lies; height alone never makes a line stand (a car's flank, a kerb's top). Their
    pixels' confidence is multiplied by ``line_confidence``.
 3. **Filling**: an empty pixel of the segment takes the plane of the segment's known pixel
    nearest to it (none if that pixel is an outlier), within ``max_extrapolation_ref_px``; where
@@ -59,6 +62,12 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    agree and rise ``min_height_m`` vertically, with ``min_thin_trusted`` trusted pixels among
    them, is filled in the columns of that evidence with the vertical plane facing the camera
    through its base (the median depth of its lowest ``base_band_ref_px`` rows of evidence).
+6b. **Tree crowns** (``crowns``; origin ``vertical``): a green segment (excess green above
+   ``upward_max_green``, or a majority label of vegetation) that no plane explains and whose
+   dense depths lie within ``crown_max_spread`` of their median (interquartile range) takes the
+   vertical plane facing the camera through the median of its known points, within
+   ``max_extrapolation_ref_px`` of them, at ``crown_confidence`` at most: off by up to the
+   crown's radius at its rim, a target to weigh low rather than none.
 7. **Facades above the data** (``propagate_up``; origin ``plane``): the upper part of a facade,
    above the LiDAR's top beam, is often a segment of its own (cut off by a ledge, a row of
    windows) without depth. A segment the LiDAR did not see (fewer than ``min_inliers`` pixels of
@@ -74,8 +83,8 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    above a roofline from a wall), and only from planes of dense depth (sparse depth leaks into
    the sky at silhouettes). Ground planes never climb.
 
-Everything else stays empty (0): tree crowns, vehicles' curved parts, what no LiDAR point
-anchors (buildings beyond the LiDAR's range or hidden behind others, unless a facade below them
+Everything else stays empty (0): crowns the LiDAR did not reach, vehicles' curved parts, what no
+LiDAR point anchors (buildings beyond the LiDAR's range or hidden behind others, unless a facade below them
 is known), the sky.
 
 Confidence of a completed pixel, never above that of the data it extends::
@@ -178,6 +187,10 @@ class CompletionParams:
             the plane through it their label implies (module docstring, step 2).
         min_line_m: least length of such a line of ground points.
         line_confidence: confidence factor of those segments' pixels.
+        crowns: fill green segments no plane explains at one depth (module docstring, 6b).
+        crown_max_spread: largest interquartile range of such a segment's known depths, relative
+            to their median.
+        crown_confidence: cap of their pixels' confidence.
         ransac_iterations: hypotheses per fit.
         ransac_points: points of a segment each hypothesis is scored on.
         fit_points: known pixels per segment a fit uses (at random); all are scored at the end.
@@ -240,6 +253,9 @@ class CompletionParams:
     sparse_plane_confidence: float = 0.7
     line_planes: bool = True
     min_line_m: float = 1.0
+    crowns: bool = True
+    crown_max_spread: float = 0.15
+    crown_confidence: float = 0.2
     line_confidence: float = 0.5
     ransac_iterations: int = 32
     ransac_points: int = 64
@@ -286,6 +302,7 @@ class CompletionParams:
             "upward_boundary_share",
             "sparse_plane_confidence",
             "line_confidence",
+            "crown_confidence",
             "sparse_min_share",
             "upward_confidence",
             "max_confidence",
@@ -305,6 +322,7 @@ class CompletionParams:
             "conf_distance_ref_px",
             "conf_relative_residual",
             "min_line_m",
+            "crown_max_spread",
         )
         for name in (*shares, *positive, "segment_sigma_ref_px", "merge_color_tol", "merge_edge_tol"):
             value = getattr(self, name)
@@ -1051,6 +1069,9 @@ class _Completer:
             labels = inputs.classes.reshape(-1)
             self.lies = _majority_in(flat, labels, n, tx.GROUND_IDS)
             self.stands = _majority_in(flat, labels, n, STANDING_CLASSES)
+        self.vegetation = np.zeros(n, bool)
+        if inputs.classes is not None:
+            self.vegetation = _majority_in(flat, inputs.classes.reshape(-1), n, frozenset({tx.VEGETATION}))
         if inputs.classes is not None:
             things = np.isin(inputs.classes.reshape(-1), list(tx.THING_IDS))
             share = np.bincount(flat, weights=things, minlength=n) / np.maximum(self.sizes, 1)
@@ -1082,6 +1103,14 @@ class _Completer:
             filled = self.fill_segment(s, planes, plane_px)
             if filled is not None and room[s]:
                 self.fill_holes(s, planes, *filled)
+        if p.crowns:
+            green = self.segment_colours() @ np.array([-1.0, 2.0, -1.0]) > p.upward_max_green
+            green |= self.vegetation
+            blobs = planar[
+                (planes[0].kind[planar] == KIND_NONE) & green[planar] & ~self.thing_touched[planar]
+            ]
+            for s in blobs.tolist():
+                self.fill_crown(s)
         if p.propagate_ground:
             below = np.bincount(self.flat, weights=(self.rays @ self.up) > 0, minlength=self.count) == 0
             completed = np.bincount(self.flat, (self.depth > 0) & ~self.known, self.count)
@@ -1108,6 +1137,8 @@ class _Completer:
         kn = self.order[self.anchor[self.order] & chosen[self.flat[self.order]]]  # sorted by segment
         groups = self.flat[kn]
         first = self._fit(kn, segs, each)
+        if p.line_planes:
+            self._fit_lines_by_height(kn, segs, first, each)
         on_first = self._on_plane(kn, first)
         n_first = np.bincount(groups, on_first, self.count)
         share = n_first / np.maximum(self.n_known, 1)
@@ -1130,6 +1161,39 @@ class _Completer:
         plane_px[kn[on_first & (first.kind[groups] != KIND_NONE)]] = 1
         plane_px[kn[on_second & (second.kind[groups] != KIND_NONE)]] = 2
         return [first, second], plane_px
+
+    def _fit_lines_by_height(
+        self, kn: NDArray[np.intp], segs: NDArray[np.intp], fits: PlaneFits, p: CompletionParams
+    ) -> None:
+        """Where the labels do not say, a line of points at the ground's height (the image's own
+        ground planes: their median distance below the camera) lies: refits the segments of
+        ``segs`` without a plane and without a ground or standing label, in place."""
+        ground = segs[fits.kind[segs] == KIND_GROUND]
+        failed = segs[fits.kind[segs] == KIND_NONE]
+        labelled = self.lies, self.stands
+        if labelled[0] is not None and labelled[1] is not None:
+            failed = failed[~(labelled[0][failed] | labelled[1][failed])]
+        if len(ground) == 0 or len(failed) == 0:
+            return
+        camera_height_m = float(np.median(fits.offset[ground]))
+        groups = self.flat[kn]
+        points = self.rays[kn] * self.anchor_depth[kn, None]
+        count = np.maximum(np.bincount(groups, minlength=self.count), 1)
+        height = np.bincount(groups, points @ self.up, self.count) / count + camera_height_m
+        depth = np.bincount(groups, points[:, 2], self.count) / count
+        # Only lying lines: a line of points above the ground is as often a car's flank or a
+        # kerb-top row as a wall's foot (measured: standing lines by height alone were wrong).
+        self.lies = np.abs(height) <= p.inlier_tol_m + 2 * p.inlier_tol_rel * depth
+        self.stands = np.zeros(self.count, bool)
+        try:
+            chosen = np.zeros(self.count, bool)
+            chosen[failed] = True
+            refit = self._fit(kn[chosen[groups]], failed, p)
+        finally:
+            self.lies, self.stands = labelled
+        won = failed[refit.kind[failed] != KIND_NONE]
+        for f in dataclasses.fields(PlaneFits):
+            getattr(fits, f.name)[won] = getattr(refit, f.name)[won]
 
     def _fit(self, kn: NDArray[np.intp], segs: NDArray[np.intp], p: CompletionParams) -> PlaneFits:
         """Planes of ``segs`` from about ``fit_points`` random pixels per segment of the known
@@ -1446,6 +1510,42 @@ class _Completer:
         empty = empty[allowed[empty % w + 1]]
         dist = np.maximum(rows[on].min() - empty // w, 0).astype(np.float32)  # rows above the evidence
         self._fill(empty, fits, 0, dist, 1.0, ORIGIN["vertical"], cap=p.vertical_confidence)
+
+    def fill_crown(self, s: int) -> None:
+        """A green segment no plane explains (a tree's crown) with enough dense depth of about one
+        depth (``crown_max_spread``: the spread of its known depths relative to their median)
+        takes the vertical plane facing the camera through its known points' median, at
+        ``crown_confidence`` at most (origin ``vertical``)."""
+        p = self.p
+        px = self.pixels(s)
+        kn = px[self.known[px]]
+        if len(kn) < p.min_inliers:
+            return
+        z = self.depth[kn]
+        z_mid = float(np.median(z))
+        q25, q75 = np.percentile(z, [25, 75])
+        if (q75 - q25) > p.crown_max_spread * z_mid:
+            return
+        point = np.median(self.rays[kn] * z[:, None], axis=0)
+        facing = point - (point @ self.up) * self.up
+        norm = float(np.linalg.norm(facing))
+        if norm < 1e-6:
+            return
+        n = facing / norm
+        spread = float(q75 - q25)
+        fits = PlaneFits(
+            *(n[None], np.array([-float(n @ point)]), np.ones(1, np.int8), np.array([spread])),
+            *(np.ones(1), np.array([z_mid]), np.array([float(np.mean(self.conf[kn]))])),
+            np.zeros(1, bool),
+        )
+        empty = px[self.fillable[px] & (self.depth[px] == 0)]
+        rs, cs = self.crop(s)
+        w = self.shape[1]
+        dist_map, _ = _nearest_pixel(self.known.reshape(self.shape)[rs, cs] & (self.segments[rs, cs] == s))
+        er, ec = np.divmod(empty, w)
+        dist = dist_map[er - rs.start, ec - cs.start]
+        keep = dist <= p.max_extrapolation_ref_px * self.scale
+        self._fill(empty[keep], fits, 0, dist[keep], 1.0, ORIGIN["vertical"], cap=p.crown_confidence)
 
     # -- shared ------------------------------------------------------------------------------
 
