@@ -141,32 +141,20 @@ def test_the_kernel_refuses_geometry_that_does_not_fit_the_image() -> None:
     kernel = native.load_range_points()
     assert kernel is not None
     image = np.ones((4, 6, 4), np.float32)
+    image[1, 2, 0] = 0.0  # no return
     rays = [np.ones(4, np.float32), np.ones(4, np.float32)] + [np.ones((3, 6), np.float32)] * 3
-    out = {
-        "points": np.empty((24, 3), np.float32),
-        "origins": np.empty((24, 3), np.float32),
-        "intensity": np.empty(24, np.float32),
-        "elongation": np.empty(24, np.float32),
-        "beam": np.empty(24, np.uint16),
-        "time_offset": np.empty(24, np.int32),
-    }
-    kernel.gather(image, *rays, np.zeros(6, np.int32), out, 0, 24)
+    out = kernel.gather(image, *rays, np.arange(6, dtype=np.int32))
+    assert set(out) == set(native.OUTPUT_FIELDS)
+    assert all(len(a) == 23 for a in out.values())  # exactly the returns, not the capacity
     assert_allclose(out["points"], 3.0)  # (1 * 1 + 1 * 1) * 1 + 1 on every axis
+    assert_array_equal(out["beam"], np.repeat(np.arange(4), 6)[np.arange(24) != 8])
+    assert_array_equal(out["time_offset"], np.tile(np.arange(6), 4)[np.arange(24) != 8])
     with pytest.raises(ValueError, match="does not fit a 4 x 6 range image"):
-        kernel.gather(image, *rays, np.zeros(5, np.int32), out, 0, 24)
-    with pytest.raises(ValueError, match="holds more returns, not the 23 counted"):
-        kernel.gather(image, *rays, np.zeros(6, np.int32), out, 0, 23)
-    with pytest.raises(ValueError, match="holds 24 returns, not the 25 counted"):
-        kernel.gather(
-            image,
-            *rays,
-            np.zeros(6, np.int32),
-            {k: np.empty((25, *v.shape[1:]), v.dtype) for k, v in out.items()},
-            0,
-            25,
-        )
-    with pytest.raises(ValueError, match="output 'beam'"):
-        kernel.gather(image, *rays, np.zeros(6, np.int32), {**out, "beam": np.empty(24, np.int64)}, 0, 24)
+        kernel.gather(image, *rays, np.zeros(5, np.int32))
+    with pytest.raises(ValueError, match="C-order float32"):
+        kernel.gather(image.astype(np.float64), *rays, np.zeros(6, np.int32))
+    with pytest.raises(ValueError, match="int32"):
+        kernel.gather(image, *rays, np.zeros(6, np.int64))
 
 
 def test_without_a_compiler_the_reader_falls_back_to_numpy_with_one_warning(

@@ -13,15 +13,9 @@
 
 static inline int is_return(float r) { return !(r <= 0.0f) || r == -INFINITY; }
 
-/* How many pixels of the range image are returns. */
-int64_t phigenesis_count_returns(const float *image, int64_t h, int64_t w, int64_t c) {
-    int64_t n = 0;
-    for (int64_t i = 0; i < h * w; ++i) n += is_return(image[i * c]);
-    return n;
-}
-
 /* Writes the returns, row by row (the order of numpy's flatnonzero), into the outputs from
- * index 0. Returns the number written, or -1 when the image holds more than `capacity` returns. points and origins are (N, 3) C order;
+ * index 0. Returns the number written, or -1 when the image holds more than `capacity` returns
+ * (H * W is always enough). points and origins are (N, 3) C order;
  * intensity, elongation (N,); beam (N,) the row; time_offset (N,) time_offsets[column]. */
 int64_t phigenesis_gather_returns(const float *image, int64_t h, int64_t w, int64_t c,
                                   const float *cos_incl, const float *sin_incl, const float *along,

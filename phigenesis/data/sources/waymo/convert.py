@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
-from phigenesis.data.native import OUTPUT_FIELDS, load_range_points
+from phigenesis.data.native import load_range_points
 from phigenesis.data.records import (
     INT64_MAX,
     INVALID_BOXES,
@@ -405,46 +405,6 @@ def _laser_geometry(
     )
 
 
-@dataclass
-class _NativeReturns:
-    """One return of a laser, left for the native kernel (:mod:`phigenesis.data.native`) to write
-    straight into the sweep's arrays: :func:`_concatenate` gathers it at its place."""
-
-    image: NDArray[np.float32]  # (H, W, C) C order: range, intensity, elongation, ...
-    rays: _RayGeometry
-    time_offsets: NDArray[np.int32]  # (W,)
-    return_index: int
-    count: int
-    lidar_id: int = 0
-
-    def __len__(self) -> int:
-        return self.count
-
-    def gather_into(self, out: dict[str, NDArray], start: int) -> None:
-        kernel = load_range_points()
-        assert kernel is not None
-        r = self.rays
-        kernel.gather(
-            self.image,
-            r.cos_incl,
-            r.sin_incl,
-            r.along,
-            r.up,
-            r.origin,
-            self.time_offsets,
-            out,
-            start,
-            self.count,
-        )
-        out["return_index"][start : start + self.count] = self.return_index
-        if "lidar_id" in out:
-            out["lidar_id"][start : start + self.count] = self.lidar_id
-
-
-#: The fields of a laser's points and their dtypes on the native path (see :func:`laser_points`).
-_NATIVE_FIELDS = {**OUTPUT_FIELDS, "return_index": (np.uint8, ())}
-
-
 def laser_points(
     laser: RawLaser, cal: RawLaserCalibration, vehicle_from_global: NDArray[np.float64]
 ) -> dict[str, NDArray]:
@@ -463,34 +423,22 @@ def laser_points(
     return out
 
 
-_Part = dict[str, NDArray] | _NativeReturns
+_Part = dict[str, NDArray]
 
 
 def _concatenate(parts: list[_Part]) -> dict[str, NDArray]:
     """Each field of ``parts`` concatenated into one array, allocated once; (N, 3) fields in C
     order, as the scene model's other sources give them (the numpy parts' points and origins are
-    transposed views of (3, N) arrays). Native parts are written in place by the kernel."""
-    total = sum(len(p) if isinstance(p, _NativeReturns) else len(p["beam"]) for p in parts)
-    arrays = [p for p in parts if not isinstance(p, _NativeReturns)]
-    keys = list(arrays[0]) if arrays else [*_NATIVE_FIELDS, "lidar_id"]
+    transposed views of (3, N) arrays)."""
+    total = sum(len(p["beam"]) for p in parts)
+    keys = list(parts[0])
     layout = {}
     for key in keys:
-        dtypes = [a[key].dtype for a in arrays]
-        native = key == "lidar_id" or key in _NATIVE_FIELDS
-        if len(arrays) < len(parts) and native:
-            dtypes.append(np.dtype(np.uint8 if key == "lidar_id" else _NATIVE_FIELDS[key][0]))
-        layout[key] = ((total, 3) if key in ("points", "origins") else (total,), np.result_type(*dtypes))
+        dtype = np.result_type(*(p[key].dtype for p in parts))
+        layout[key] = ((total, 3) if key in ("points", "origins") else (total,), dtype)
     out = _one_block(layout)
-    if any(isinstance(p, _NativeReturns) for p in parts):
-        typed = all(out[k].dtype == np.dtype(d) for k, (d, _) in _NATIVE_FIELDS.items())
-        if not typed:  # a numpy part in float64 (per-pixel poses): gather natively, then cast
-            parts = [_gathered(p) if isinstance(p, _NativeReturns) else p for p in parts]
     start = 0
     for part in parts:
-        if isinstance(part, _NativeReturns):
-            part.gather_into(out, start)
-            start += part.count
-            continue
         n = len(part["beam"])
         for key in keys:
             out[key][start : start + n] = part[key]
@@ -516,21 +464,13 @@ def _one_block(layout: dict[str, tuple[tuple[int, ...], np.dtype]]) -> dict[str,
     }
 
 
-def _gathered(part: _NativeReturns) -> dict[str, NDArray]:
-    """A native part written into arrays of its own."""
-    out = {k: np.empty((part.count, *shape), dtype) for k, (dtype, shape) in _NATIVE_FIELDS.items()}
-    out["lidar_id"] = np.empty(part.count, np.uint8)
-    part.gather_into(out, 0)
-    return out
-
-
 def _laser_parts(
     laser: RawLaser, cal: RawLaserCalibration, vehicle_from_global: NDArray[np.float64]
 ) -> list[_Part]:
     """:func:`laser_points` before concatenation: one part per return present (return 1 first),
-    so that a sweep concatenates every laser's returns once. A part is a dict of numpy arrays, or,
-    where the native kernel is built and the pixel poses are per column, a :class:`_NativeReturns`
-    that the concatenation gathers in place."""
+    so that a sweep concatenates every laser's returns once. A part is a dict of numpy arrays,
+    written by the native kernel (:mod:`phigenesis.data.native`) where it is built and the pixel
+    poses are per column, else by numpy (the reference the tests hold the kernel against)."""
     e = cal.vehicle_from_laser
     returns = [(i, ri) for i, ri in enumerate((laser.return1, laser.return2)) if ri is not None]
     if not returns:
@@ -546,8 +486,12 @@ def _laser_parts(
     parts: list[_Part] = []
     for ret_index, ri in returns:
         if kernel is not None and shared is not None and ri.dtype == np.float32 and ri.shape[2] >= 3:
-            image = np.ascontiguousarray(ri)
-            parts.append(_NativeReturns(image, shared, time_offsets, ret_index, kernel.count(image)))
+            r = shared
+            part = kernel.gather(
+                np.ascontiguousarray(ri), r.cos_incl, r.sin_incl, r.along, r.up, r.origin, time_offsets
+            )
+            part["return_index"] = np.full(len(part["beam"]), ret_index, np.uint8)
+            parts.append(part)
             continue
         # range > 0 is a return; a non-finite range is kept here so that the sweep drops and
         # counts it (LidarSweep.without_invalid_points), while 0 and negatives mean no return.
@@ -609,10 +553,7 @@ def _laser_arrays(laser: RawLaser, raw: RawFrame, vehicle_from_global: NDArray[n
     except WaymoFormatError as e:
         raise WaymoFormatError(f"{raw.where_of('laser')}: {e}") from None
     for part in parts:
-        if isinstance(part, _NativeReturns):
-            part.lidar_id = laser.name - 1
-        else:
-            part["lidar_id"] = np.full(len(part["beam"]), laser.name - 1, np.uint8)
+        part["lidar_id"] = np.full(len(part["beam"]), laser.name - 1, np.uint8)
     return parts
 
 
