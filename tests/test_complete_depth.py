@@ -215,13 +215,20 @@ def test_a_plane_climbs_only_into_segments_the_lidar_did_not_see():
     assert np.mean(out.depth_m[roof:ledge] > 0) < 0.05
 
 
-def test_a_lawn_known_only_from_sparse_scan_lines_takes_their_ground_plane():
+def lawn_scene() -> tuple[np.ndarray, int, np.ndarray]:
+    """Sky above the horizon, a green lawn below, level 1.6 m under a level camera: the image, the
+    horizon's row and the lawn's z-depth (0 above the horizon)."""
     rgb = np.zeros((H, W, 3), np.uint8)
     rgb[:] = SKY_RGB
     horizon = (H - 1) // 2
     rgb[horizon + 1 :] = textured((H - horizon - 1, W), (100, 140, 80), 9)
     r = rays().reshape(H, W, 3)
-    truth = np.where(r[..., 1] > 0.01, 1.6 / np.maximum(r[..., 1], 1e-9), 0)
+    truth = np.where(r[..., 1] > 0.01, 1.6 / np.maximum(r[..., 1], 1e-9), 0).astype(np.float32)
+    return rgb, horizon, truth
+
+
+def test_a_lawn_known_only_from_sparse_scan_lines_takes_their_ground_plane():
+    rgb, horizon, truth = lawn_scene()
     sparse = np.zeros((H, W), np.float32)
     sparse[horizon + 6 :: 2] = truth[horizon + 6 :: 2]  # scan lines on every other row
     zeros = np.zeros((H, W), np.float32)
@@ -580,12 +587,7 @@ def _one_scan_line(truth: np.ndarray, row: int) -> tuple[np.ndarray, np.ndarray]
 
 
 def test_a_lawn_seen_by_one_scan_line_is_completed_only_if_labelled_ground():
-    rgb = np.zeros((H, W, 3), np.uint8)
-    rgb[:] = SKY_RGB
-    horizon = (H - 1) // 2
-    rgb[horizon + 1 :] = textured((H - horizon - 1, W), (100, 140, 80), 9)
-    r = rays().reshape(H, W, 3)
-    truth = np.where(r[..., 1] > 0.01, 1.6 / np.maximum(r[..., 1], 1e-9), 0).astype(np.float32)
+    rgb, horizon, truth = lawn_scene()
     depth, conf = _one_scan_line(truth, horizon + 30)
     sky = np.zeros((H, W), bool)
     sky[: horizon + 1] = True

@@ -1170,9 +1170,8 @@ class _Completer:
         ``segs`` without a plane and without a ground or standing label, in place."""
         ground = segs[fits.kind[segs] == KIND_GROUND]
         failed = segs[fits.kind[segs] == KIND_NONE]
-        labelled = self.lies, self.stands
-        if labelled[0] is not None and labelled[1] is not None:
-            failed = failed[~(labelled[0][failed] | labelled[1][failed])]
+        if self.lies is not None and self.stands is not None:
+            failed = failed[~(self.lies[failed] | self.stands[failed])]
         if len(ground) == 0 or len(failed) == 0:
             return
         camera_height_m = float(np.median(fits.offset[ground]))
@@ -1183,21 +1182,24 @@ class _Completer:
         depth = np.bincount(groups, points[:, 2], self.count) / count
         # Only lying lines: a line of points above the ground is as often a car's flank or a
         # kerb-top row as a wall's foot (measured: standing lines by height alone were wrong).
-        self.lies = np.abs(height) <= p.inlier_tol_m + 2 * p.inlier_tol_rel * depth
-        self.stands = np.zeros(self.count, bool)
-        try:
-            chosen = np.zeros(self.count, bool)
-            chosen[failed] = True
-            refit = self._fit(kn[chosen[groups]], failed, p)
-        finally:
-            self.lies, self.stands = labelled
+        lies = np.abs(height) <= p.inlier_tol_m + 2 * p.inlier_tol_rel * depth
+        chosen = np.zeros(self.count, bool)
+        chosen[failed] = True
+        refit = self._fit(kn[chosen[groups]], failed, p, labels=(lies, None))
         won = failed[refit.kind[failed] != KIND_NONE]
         for f in dataclasses.fields(PlaneFits):
             getattr(fits, f.name)[won] = getattr(refit, f.name)[won]
 
-    def _fit(self, kn: NDArray[np.intp], segs: NDArray[np.intp], p: CompletionParams) -> PlaneFits:
+    def _fit(
+        self,
+        kn: NDArray[np.intp],
+        segs: NDArray[np.intp],
+        p: CompletionParams,
+        labels: tuple[Mask | None, Mask | None] | None = None,
+    ) -> PlaneFits:
         """Planes of ``segs`` from about ``fit_points`` random pixels per segment of the known
-        pixels ``kn`` (sorted by segment)."""
+        pixels ``kn`` (sorted by segment); ``labels``: the (S,) lies / stands flags of the segments
+        (default: what their labels say)."""
         groups = self.flat[kn]
         count = np.bincount(groups, minlength=self.count)
         sub = kn[self.rng.random(len(kn)) < (p.fit_points / np.maximum(count, 1))[groups]]
@@ -1205,7 +1207,7 @@ class _Completer:
         compact[segs] = np.arange(len(segs))
         points = self.rays[sub] * self.anchor_depth[sub, None]
         conf = self.anchor_conf[sub].astype(np.float64)
-        lies, stands = (None if a is None else a[segs] for a in (self.lies, self.stands))
+        lies, stands = (None if a is None else a[segs] for a in (labels or (self.lies, self.stands)))
         fits, _ = fit_planes(
             compact[self.flat[sub]], points, conf, len(segs), self.up, p, self.rng, lies, stands
         )
