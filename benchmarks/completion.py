@@ -57,6 +57,9 @@ ABLATIONS = {
     "no planes from sparse depth": {"sparse_planes": False},
     "no planes through a line of points (line_planes)": {"line_planes": False},
     "no tree crowns (crowns)": {"crowns": False},
+    "no crowns of many segments (canopies)": {"canopies": False},
+    "no vehicles of one depth (vehicle_max_spread 0)": {"vehicle_max_spread": 0.0},
+    "no climbing columns of two apart facades (climb_columns)": {"climb_columns": False},
     "min_height_m only (min_height_rel 1)": {"min_height_rel": 1.0},
     "min_incidence_deg 8": {"min_incidence_deg": 8.0},
 }

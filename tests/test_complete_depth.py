@@ -510,6 +510,23 @@ def test_a_line_of_points_fixes_a_plane_only_with_a_label_that_says_which():
     assert fit_planes(group, line, ones, 1, up, p, rng)[0].kind[0] == 0
 
 
+def test_a_narrow_strip_of_ground_too_short_across_to_fix_its_tilt_takes_the_level_plane():
+    up = np.array([0.0, -1.0, 0.0])
+    p, rng = CompletionParams(), np.random.default_rng(3)
+    # Two scan lines 0.2 m apart on a level pavement 1.6 m below the camera, the nearer one 4 cm
+    # higher (a kerb's edge): the free fit tilts 11 degrees, beyond max_tilt_deg.
+    x = np.linspace(-5, 5, 40)
+    near = np.stack([x, np.full(40, 1.56), np.full(40, 9.0)], axis=1)
+    far = np.stack([x, np.full(40, 1.6), np.full(40, 9.2)], axis=1)
+    strip = np.concatenate([near, far])
+    ones, group = np.ones(80), np.zeros(80, np.intp)
+    assert fit_planes(group, strip, ones, 1, up, p, rng)[0].kind[0] == 0, "no label: no plane"
+    fits, inlier = fit_planes(group, strip, ones, 1, up, p, rng, lies=np.ones(1, bool))
+    assert fits.kind[0] == KIND_GROUND and fits.from_line[0] and inlier.all()
+    assert fits.normal[0] @ up > np.cos(np.radians(1.0))
+    assert abs(abs(fits.offset[0]) - 1.58) < 0.03
+
+
 def test_without_labels_a_line_of_points_at_the_grounds_height_lies():
     # A road in full depth (its plane gives the camera's height, 1.6 m) beside a lawn of another
     # colour seen by one scan line; no pseudo labels beyond the sky.
@@ -578,6 +595,75 @@ def test_a_tree_crown_takes_the_camera_facing_plane_through_its_known_depths():
     spread = depth.copy()
     spread[::2] *= 1.5
     assert not np.any(complete(spread, conf, rgb, sky=sky).depth_m[crown])
+
+
+def test_a_crown_of_many_segments_is_filled_as_one_from_its_lower_part():
+    depth, conf, rgb, truth, inside = crown_scene()
+    # Bands of two greens across the crown: each band a segment of its own, only the lower ones
+    # with depth.
+    rows = np.arange(H)[:, None] // 6 % 2 == 1
+    rgb = np.where((inside & rows)[..., None], textured((H, W), (15, 80, 20), 5), rgb)
+    sky = ~inside
+    upper = inside & (depth == 0)
+    out = complete(depth, conf, rgb, sky=sky)
+    filled = upper & (out.origin == VERTICAL)
+    assert filled.sum() > 0.9 * upper.sum()
+    err = np.abs(out.depth_m[filled] - truth[filled])
+    assert err.max() <= 2.0 and np.median(err / truth[filled]) < 0.1
+    assert out.confidence[filled].max() <= CompletionParams().crown_confidence
+    alone = complete(depth, conf, rgb, sky=sky, params=CompletionParams(canopies=False))
+    assert (alone.depth_m[upper] > 0).mean() < 0.5, "the bands without depth stay empty without it"
+    labelled = np.where(inside, tx.CAR, tx.SKY).astype(np.uint8)
+    car = complete(depth, conf, rgb, sky=sky, classes=labelled)
+    assert not np.any(car.depth_m[upper] > 0), "not a crown where the labels say it is a thing"
+
+
+def test_a_vehicle_no_plane_explains_takes_the_camera_facing_plane_if_of_one_depth():
+    # A rounded grey body (a sphere of 1 m, 12 m ahead) labelled car; the LiDAR saw its lower half.
+    depth, conf, _, truth, inside = crown_scene(radius_m=1.0, z_m=12.0)
+    rgb = np.where(inside[..., None], textured((H, W), (120, 120, 125), 6), SKY_RGB).astype(np.uint8)
+    sky = ~inside
+    classes = np.where(inside, tx.CAR, tx.SKY).astype(np.uint8)
+    upper = inside & (depth == 0)
+    out = complete(depth, conf, rgb, sky=sky, classes=classes)
+    filled = upper & (out.origin == VERTICAL)
+    assert filled.sum() > 0.9 * upper.sum()
+    assert np.abs(out.depth_m[filled] - truth[filled]).max() <= 1.0
+    assert out.confidence[filled].max() <= CompletionParams().crown_confidence
+    # Not without the label, nor with vehicle_max_spread 0.
+    assert not np.any(complete(depth, conf, rgb, sky=sky).depth_m[upper])
+    off = CompletionParams(vehicle_max_spread=0.0)
+    assert not np.any(complete(depth, conf, rgb, sky=sky, classes=classes, params=off).depth_m[upper])
+
+
+def two_facades(gap_m: float = 18.0):
+    """Two facades of one colour side by side, 12 m ahead (left half) and ``12 + gap_m`` m ahead
+    (right half), both facing the camera; the LiDAR saw rows >= 80, the sky is above row 20."""
+    r = rays()
+    near = plane_depth(r, (0.0, 0.0, -1.0), 12.0)
+    far = plane_depth(r, (0.0, 0.0, -1.0), 12.0 + gap_m)
+    truth = np.where(np.arange(W)[None, :] < W // 2, near, far).astype(np.float32)
+    rgb = textured((H, W), (200, 180, 150), 0)
+    rgb[:20] = SKY_RGB
+    depth = np.zeros((H, W), np.float32)
+    depth[80:] = truth[80:]
+    sky = np.zeros((H, W), bool)
+    sky[:20] = True
+    return depth, (depth > 0).astype(np.float32) * 0.9, rgb, truth, sky
+
+
+def test_two_facades_of_one_segment_climb_their_own_columns():
+    depth, conf, rgb, truth, sky = two_facades()
+    out = complete(depth, conf, rgb, sky=sky)
+    assert np.bincount(out.segments[20:].ravel()).max() > 0.9 * (H - 20) * W, "one segment for both"
+    upper = np.zeros((H, W), bool)
+    upper[20:80] = True
+    filled = upper & (out.depth_m > 0)
+    assert filled.sum() > 0.95 * upper.sum()
+    np.testing.assert_allclose(out.depth_m[filled], truth[filled], rtol=1e-4)
+    # Without the climb the two planes, apart, reach only split_extrapolation_ref_px.
+    alone = complete(depth, conf, rgb, sky=sky, params=CompletionParams(climb_columns=False))
+    assert not np.any(alone.depth_m[20:40] > 0)
 
 
 def _one_scan_line(truth: np.ndarray, row: int) -> tuple[np.ndarray, np.ndarray]:

@@ -36,7 +36,9 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    that line; its pseudo-semantic label says which: a segment labelled ground
    (:data:`~phigenesis.data.taxonomy.GROUND_IDS`) takes the plane through the line that is closest
    to level (two-point hypotheses with the line's horizontal normal, least squares along the
-   inliers' main axis; the line within ``max_tilt_deg`` of level and ``min_line_m`` long), one
+   inliers' main axis; the line within ``max_tilt_deg`` of level and ``min_line_m`` long; the
+   same for a strip of a few scan lines too narrow across to fix its tilt, whose free fit tilts
+   beyond ``max_tilt_deg``: a pavement's edge 4 cm off over 20 cm of depth tilts it 11 deg), one
    labelled a standing structure (:data:`STANDING_CLASSES`) the vertical plane through it without
    the ``min_height_m`` test (a scan line on a facade has no height; a row of ground points
    labelled building would be a vertical plane at the ground, which the label rules out). Where
@@ -47,7 +49,11 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
 3. **Filling**: an empty pixel of the segment takes the plane of the segment's known pixel
    nearest to it (none if that pixel is an outlier), within ``max_extrapolation_ref_px``; where
    the two planes of a segment do not meet along their seam (one stands in front of the other),
-   only within ``split_extrapolation_ref_px``. The depth is where the pixel's ray meets the plane,
+   only within ``split_extrapolation_ref_px``, except, where both planes are vertical
+   (``climb_columns``: two facades of one colour), above each column's topmost inlier, which
+   takes that inlier's plane however far (a facade's upper part stands above its lower part; the
+   climb runs through the segment and the holes it encloses, and stops at anything else). The
+   depth is where the pixel's ray meets the plane,
    kept if in ``(min_depth_m, max_depth_m]`` and if the ray meets the plane at
    ``min_incidence_deg`` or more: at grazing incidence a small tilt moves the depth by metres.
 4. **Holes** of a plane's region (windows in a facade; origin ``plane``): the parts of its
@@ -67,7 +73,14 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    dense depths lie within ``crown_max_spread`` of their median (interquartile range) takes the
    vertical plane facing the camera through the median of its known points, within
    ``max_extrapolation_ref_px`` of them, at ``crown_confidence`` at most: off by up to the
-   crown's radius at its rim, a target to weigh low rather than none.
+   crown's radius at its rim, a target to weigh low rather than none. ``canopies``: a crown is
+   many small green segments, most above the LiDAR's top beam; every connected region of the
+   above-horizon pixels of green segments that no ground plane explains and that hold no things
+   is filled the same way, as one crown, from the depths its lower part holds.
+6c. **Vehicles** (``vehicle_max_spread``; origin ``vertical``): a segment labelled a vehicle
+   (:data:`VEHICLE_CLASSES`) that no plane explains (a rounded body, a windscreen), whose known
+   depths lie within ``vehicle_max_spread`` of their median, takes the camera-facing plane
+   through them as a crown does: the back or the side of a car that faces the camera.
 7. **Facades above the data** (``propagate_up``; origin ``plane``): the upper part of a facade,
    above the LiDAR's top beam, is often a segment of its own (cut off by a ledge, a row of
    windows) without depth. A segment the LiDAR did not see (fewer than ``min_inliers`` pixels of
@@ -83,7 +96,7 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    above a roofline from a wall), and only from planes of dense depth (sparse depth leaks into
    the sky at silhouettes). Ground planes never climb.
 
-Everything else stays empty (0): crowns the LiDAR did not reach, vehicles' curved parts, what no
+Everything else stays empty (0): crowns the LiDAR saw nothing of, vehicles' curved parts, what no
 LiDAR point anchors (buildings beyond the LiDAR's range or hidden behind others, unless a facade below them
 is known), the sky.
 
@@ -148,6 +161,9 @@ KIND_NONE, KIND_VERTICAL, KIND_GROUND = 0, 1, 2
 _MODE_GROUND_LINE = 3
 #: Labels of structures that stand (their planes are vertical); see ``line_planes``.
 STANDING_CLASSES = frozenset({tx.BUILDING, tx.WALL, tx.FENCE})
+#: Vehicles: a segment of one no plane explains, of one depth (``vehicle_max_spread``), is the side
+#: or back that faces the camera.
+VEHICLE_CLASSES = frozenset({tx.CAR, tx.TRUCK, tx.BUS, tx.TRAIN})
 
 
 @dataclass(frozen=True)
@@ -191,6 +207,10 @@ class CompletionParams:
         crown_max_spread: largest interquartile range of such a segment's known depths, relative
             to their median.
         crown_confidence: cap of their pixels' confidence.
+        canopies: fill each connected green region above the horizon as one crown (6b).
+        vehicle_max_spread: largest interquartile range of a vehicle segment's known depths,
+            relative to their median, for the camera-facing plane (6c; 0: never).
+        climb_columns: a segment's two vertical planes that do not meet climb their columns (3).
         ransac_iterations: hypotheses per fit.
         ransac_points: points of a segment each hypothesis is scored on.
         fit_points: known pixels per segment a fit uses (at random); all are scored at the end.
@@ -252,8 +272,11 @@ class CompletionParams:
     sparse_min_share: float = 0.5
     sparse_plane_confidence: float = 0.7
     line_planes: bool = True
+    climb_columns: bool = True
     min_line_m: float = 1.0
     crowns: bool = True
+    canopies: bool = True
+    vehicle_max_spread: float = 0.05
     crown_max_spread: float = 0.15
     crown_confidence: float = 0.2
     line_confidence: float = 0.5
@@ -345,6 +368,7 @@ class CompletionParams:
             "min_boundary_ref_px",
             "propagate_color_tol",
             "min_thin_height_ref_px",
+            "vehicle_max_spread",
         )
         for name in nonnegative:
             value = getattr(self, name)
@@ -975,7 +999,7 @@ def _refine_and_accept(
         ok &= tall | stands
     elif kind == _MODE_GROUND_LINE:
         length = np.sqrt(12.0 * np.maximum(val[:, 2], 0.0))
-        ok &= ~surface & (length >= p.min_line_m) & (normal @ up >= np.cos(np.radians(p.max_tilt_deg)))
+        ok &= (length >= p.min_line_m) & (normal @ up >= np.cos(np.radians(p.max_tilt_deg)))
         line = ok
     else:
         ok &= surface & (np.abs(free @ up) >= np.cos(np.radians(p.max_tilt_deg)))
@@ -1070,6 +1094,9 @@ class _Completer:
             self.lies = _majority_in(flat, labels, n, tx.GROUND_IDS)
             self.stands = _majority_in(flat, labels, n, STANDING_CLASSES)
         self.vegetation = np.zeros(n, bool)
+        self.vehicle = np.zeros(n, bool)
+        if inputs.classes is not None:
+            self.vehicle = _majority_in(flat, inputs.classes.reshape(-1), n, VEHICLE_CLASSES)
         if inputs.classes is not None:
             self.vegetation = _majority_in(flat, inputs.classes.reshape(-1), n, frozenset({tx.VEGETATION}))
         if inputs.classes is not None:
@@ -1111,6 +1138,12 @@ class _Completer:
             ]
             for s in blobs.tolist():
                 self.fill_crown(s)
+            if p.vehicle_max_spread > 0:
+                for s in planar[(planes[0].kind[planar] == KIND_NONE) & self.vehicle[planar]].tolist():
+                    rs, cs = self.crop(s)
+                    self.fill_facing(self.pixels(s), rs, cs, self.segments[rs, cs] == s, p.vehicle_max_spread)
+            if p.canopies:
+                self.fill_canopies(~self.skip & green & ~self.thing_touched)
         if p.propagate_ground:
             below = np.bincount(self.flat, weights=(self.rays @ self.up) > 0, minlength=self.count) == 0
             completed = np.bincount(self.flat, (self.depth > 0) & ~self.known, self.count)
@@ -1236,6 +1269,11 @@ class _Completer:
         apart = planes[1].kind[s] != KIND_NONE and not self.planes_meet(s, planes, which, seg, rs, cs)
         reach = self.p.split_extrapolation_ref_px if apart else self.p.max_extrapolation_ref_px
         which[dist > reach * self.scale] = 0
+        climbed = (
+            apart
+            and self.p.climb_columns
+            and self.climb_columns(s, planes, plane_px, seg, rs, cs, which, dist)
+        )
         empty = self.fillable.reshape(self.shape)[rs, cs] & (self.depth.reshape(self.shape)[rs, cs] == 0)
         for k, fits in enumerate(planes, start=1):
             tr, tc = np.nonzero(seg & empty & (which == k))
@@ -1258,7 +1296,41 @@ class _Completer:
                 done = done[self.depth[done] > 0]
                 self.facade_of[idx[mine]] = self.facade_of[done] = len(self.facades)
                 self.facades.append((fits, s, float(self.seg_factor[s]), len(self.facades)))
-        return None if apart else (which, dist)
+        return None if apart and not climbed else (which, dist)
+
+    def climb_columns(
+        self,
+        s: int,
+        planes: list[PlaneFits],
+        plane_px: NDArray[np.int8],
+        seg: Mask,
+        rs: slice,
+        cs: slice,
+        which: NDArray[np.int8],
+        dist: F32,
+    ) -> bool:
+        """A segment with two vertical planes that do not meet (two facades of one colour) fills
+        its pixels above each column's topmost inlier with that inlier's plane: a facade's upper
+        part lies above its lower part, however far it is from the data. The climb runs through
+        the segment and its holes (windows) and stops at anything else. Updates ``which`` and
+        ``dist`` (rows up from that inlier) of the crop in place; whether it climbed."""
+        if self.thing_touched[s] or not (
+            planes[0].kind[s] == KIND_VERTICAL and planes[1].kind[s] == KIND_VERTICAL
+        ):
+            return False
+        h = seg.shape[0]
+        inlier = seg & (plane_px.reshape(self.shape)[rs, cs] > 0) & self.anchor.reshape(self.shape)[rs, cs]
+        rows = np.arange(h)[:, None]
+        top = np.where(inlier, rows, h).min(axis=0)
+        _, comp = cv2.connectedComponents((~seg).view(np.uint8), connectivity=4)
+        edge = np.unique(np.concatenate([comp[0], comp[-1], comp[:, 0], comp[:, -1]]))
+        passable = seg | ~np.isin(comp, edge[edge > 0])
+        blocked = np.where(~passable & (rows < top), rows, -1).max(axis=0)
+        climb = seg & (rows < top) & (rows > blocked) & (which == 0) & (top < h)
+        cr, cc = np.nonzero(climb)
+        which[cr, cc] = plane_px.reshape(self.shape)[rs, cs][top[cc], cc]
+        dist[cr, cc] = (top[cc] - cr).astype(np.float32)
+        return True
 
     def planes_meet(
         self, s: int, planes: list[PlaneFits], which: NDArray[np.int8], seg: Mask, rs: slice, cs: slice
@@ -1518,15 +1590,47 @@ class _Completer:
         depth (``crown_max_spread``: the spread of its known depths relative to their median)
         takes the vertical plane facing the camera through its known points' median, at
         ``crown_confidence`` at most (origin ``vertical``)."""
+        rs, cs = self.crop(s)
+        self.fill_facing(self.pixels(s), rs, cs, self.segments[rs, cs] == s)
+
+    def fill_canopies(self, segs: Mask) -> None:
+        """A tree's crown is many small green segments, most above the LiDAR's top beam: each
+        connected region of the pixels above the horizon (and not blue) of the segments ``segs``
+        (green, without things) is filled as one crown (:meth:`fill_facing`) from the depths its
+        lower part holds."""
+        # Not the sky a segment took in at the crown's rim: no pixel of excess blue.
+        blue = self.image.reshape(-1, 3).astype(np.float64) @ np.array([-1.0, -1.0, 2.0])
+        mask = segs[self.flat] & ((self.rays @ self.up) > 0) & (blue <= self.p.upward_max_blue)
+        count, comp = cv2.connectedComponents(mask.reshape(self.shape).view(np.uint8), connectivity=4)
+        if count <= 1:
+            return
+        flat = comp.reshape(-1)
+        order = np.argsort(flat, kind="stable")
+        starts = np.searchsorted(flat[order], np.arange(count + 1))
+        w = self.shape[1]
+        for c in range(1, count):
+            px = order[starts[c] : starts[c + 1]]
+            if not np.any(self.fillable[px] & (self.depth[px] == 0)):
+                continue
+            r, q = np.divmod(px, w)
+            rs, cs = slice(int(r.min()), int(r.max()) + 1), slice(int(q.min()), int(q.max()) + 1)
+            self.fill_facing(px, rs, cs, comp[rs, cs] == c)
+
+    def fill_facing(
+        self, px: NDArray[np.intp], rs: slice, cs: slice, member: Mask, max_spread: float | None = None
+    ) -> None:
+        """Fills the empty pixels ``px`` (flat indices; ``member``: the same within the crop
+        ``rs, cs``) with the vertical plane facing the camera through the median of their known
+        points, if they are enough (``min_inliers``) and of about one depth (``max_spread``, by
+        default ``crown_max_spread``), at ``crown_confidence`` at most (origin ``vertical``)."""
         p = self.p
-        px = self.pixels(s)
         kn = px[self.known[px]]
         if len(kn) < p.min_inliers:
             return
         z = self.depth[kn]
         z_mid = float(np.median(z))
         q25, q75 = np.percentile(z, [25, 75])
-        if (q75 - q25) > p.crown_max_spread * z_mid:
+        if (q75 - q25) > (p.crown_max_spread if max_spread is None else max_spread) * z_mid:
             return
         point = np.median(self.rays[kn] * z[:, None], axis=0)
         facing = point - (point @ self.up) * self.up
@@ -1541,9 +1645,8 @@ class _Completer:
             np.zeros(1, bool),
         )
         empty = px[self.fillable[px] & (self.depth[px] == 0)]
-        rs, cs = self.crop(s)
         w = self.shape[1]
-        dist_map, _ = _nearest_pixel(self.known.reshape(self.shape)[rs, cs] & (self.segments[rs, cs] == s))
+        dist_map, _ = _nearest_pixel(self.known.reshape(self.shape)[rs, cs] & member)
         er, ec = np.divmod(empty, w)
         dist = dist_map[er - rs.start, ec - cs.start]
         keep = dist <= p.max_extrapolation_ref_px * self.scale
