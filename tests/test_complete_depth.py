@@ -162,6 +162,21 @@ def test_the_upper_part_of_a_facade_takes_the_plane_below_it():
     assert not np.any(complete(depth, conf, rgb).depth_m[top])
 
 
+def test_a_segment_touching_a_facades_top_over_a_small_share_of_its_lower_edge_is_not_climbed():
+    # Rows 20:50 another building (brown, no depth); below it the facade (with depth from row 80)
+    # over the first 36 columns only, and blue glass without depth over the rest (not a candidate
+    # itself: too blue). Only 20 % of the brown segment's lower edge is the facade's top.
+    depth, conf, rgb, truth, sky, roof, ledge, known_from = two_tone_facade()
+    rgb[ledge:known_from, 36:] = textured((known_from - ledge, W - 36), (80, 110, 170), 7)
+    out = complete(depth, conf, rgb, sky=sky)
+    assert np.all(out.depth_m[ledge:known_from, :30] > 0), "the facade itself is completed"
+    # (but for a blob of its texture that sits on the facade's top)
+    assert (out.depth_m[roof:ledge] > 0).mean() < 0.1, "the building above is not the facade"
+    # Half of its lower edge is enough (the whole of it is the facade's top in the test above).
+    half = complete(depth, conf, rgb, sky=sky, params=CompletionParams(upward_boundary_share=0.15))
+    np.testing.assert_allclose(half.depth_m[roof:ledge], truth[roof:ledge], rtol=1e-4)
+
+
 def test_no_plane_climbs_from_a_segment_partly_labelled_a_vehicle():
     # A car's side in one image segment with the facade behind it (labels cover a part of it)
     # would carry the car's depth up the facade: nothing climbs from such a segment.
@@ -613,6 +628,15 @@ def test_a_crown_of_many_segments_is_filled_as_one_from_its_lower_part():
     assert out.confidence[filled].max() <= CompletionParams().crown_confidence
     alone = complete(depth, conf, rgb, sky=sky, params=CompletionParams(canopies=False))
     assert (alone.depth_m[upper] > 0).mean() < 0.5, "the bands without depth stay empty without it"
+    # A few known pixels in a large green region: not enough to say the crown's depth.
+    few = np.zeros_like(depth)
+    top = np.flatnonzero(depth.any(axis=1))[0]
+    cols = np.flatnonzero(depth[top])[:20]  # 20 pixels of its highest known row
+    few[top, cols] = depth[top, cols]
+    sparse_conf = (few > 0).astype(np.float32) * 0.9
+    assert not np.any(complete(few, sparse_conf, rgb, sky=sky).depth_m[upper])
+    any_share = CompletionParams(canopy_min_known_share=0.0)
+    assert np.all(complete(few, sparse_conf, rgb, sky=sky, params=any_share).depth_m[upper] > 0)
     labelled = np.where(inside, tx.CAR, tx.SKY).astype(np.uint8)
     car = complete(depth, conf, rgb, sky=sky, classes=labelled)
     assert not np.any(car.depth_m[upper] > 0), "not a crown where the labels say it is a thing"

@@ -76,7 +76,9 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    crown's radius at its rim, a target to weigh low rather than none. ``canopies``: a crown is
    many small green segments, most above the LiDAR's top beam; every connected region of the
    above-horizon pixels of green segments that no ground plane explains and that hold no things
-   is filled the same way, as one crown, from the depths its lower part holds.
+   is filled the same way, as one crown, from the depths its lower part holds, if at least
+   ``canopy_min_known_share`` of its pixels hold one (a few known pixels in a large green region
+   are as often a facade's that a segment took in, or depth seen through the leaves).
 6c. **Vehicles** (``vehicle_max_spread``; origin ``vertical``): a segment labelled a vehicle
    (:data:`VEHICLE_CLASSES`) that no plane explains (a rounded body, a windscreen), whose known
    depths lie within ``vehicle_max_spread`` of their median, takes the camera-facing plane
@@ -89,8 +91,9 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    green ``2 g - r - b`` at most ``upward_max_green``: a crown above a roof) and not blue (excess
    blue ``2 b - r - g`` at most ``upward_max_blue``: sky the sky labels missed), takes the
    vertical plane whose region (its segment's inliers and completed pixels) runs along its lower
-   boundary for ``min_boundary_ref_px`` and ``upward_boundary_share`` of the part of that
-   boundary that has depth; or the one whose region holds nine tenths of its whole boundary
+   boundary for ``upward_min_boundary_ref_px`` and ``upward_boundary_share`` of that whole
+   boundary (a segment touching a facade's top at a corner is more often another building behind
+   it than the facade's upper part); or the one whose region holds nine tenths of its whole boundary
    (windows between two such segments). Then it is part of that region, so a facade climbs
    through ``upward_steps`` segments at most. Only with sky labels (nothing else tells the sky
    above a roofline from a wall), and only from planes of dense depth (sparse depth leaks into
@@ -207,7 +210,8 @@ class CompletionParams:
         crown_max_spread: largest interquartile range of such a segment's known depths, relative
             to their median.
         crown_confidence: cap of their pixels' confidence.
-        canopies: fill each connected green region above the horizon as one crown (6b).
+        canopies: fill each connected green region above the horizon as one crown (6b) ...
+        canopy_min_known_share: ... if this share of its pixels has depth.
         vehicle_max_spread: largest interquartile range of a vehicle segment's known depths,
             relative to their median, for the camera-facing plane (6c; 0: never).
         climb_columns: a segment's two vertical planes that do not meet climb their columns (3).
@@ -226,7 +230,8 @@ class CompletionParams:
         propagate_up: fill segments without depth above a vertical plane's region from that plane.
         upward_steps: how many segments such a plane may climb, one above the other.
         upward_boundary_share: least share of such a segment's lower boundary (with segments
-            other than the sky) along the top of that plane's region.
+            other than the sky) along the top of that plane's region ...
+        upward_min_boundary_ref_px: ... and least length of it.
         upward_max_green: a segment whose mean colour has a larger excess green (``2 g - r - b``,
             a vegetation index) is not climbed into (a tree's crown above a roof) ...
         upward_max_blue: ... nor one with a larger excess blue (``2 b - r - g``): the sky above a
@@ -276,6 +281,7 @@ class CompletionParams:
     min_line_m: float = 1.0
     crowns: bool = True
     canopies: bool = True
+    canopy_min_known_share: float = 0.02
     vehicle_max_spread: float = 0.05
     crown_max_spread: float = 0.15
     crown_confidence: float = 0.2
@@ -295,7 +301,8 @@ class CompletionParams:
     propagate_confidence: float = 0.5
     propagate_up: bool = True
     upward_steps: int = 6
-    upward_boundary_share: float = 0.5
+    upward_boundary_share: float = 0.3
+    upward_min_boundary_ref_px: float = 3.0
     upward_confidence: float = 0.6
     upward_max_green: float = 20.0
     upward_max_blue: float = 40.0
@@ -326,6 +333,7 @@ class CompletionParams:
             "sparse_plane_confidence",
             "line_confidence",
             "crown_confidence",
+            "canopy_min_known_share",
             "sparse_min_share",
             "upward_confidence",
             "max_confidence",
@@ -366,6 +374,7 @@ class CompletionParams:
             "min_height_rel",
             "min_depth_m",
             "min_boundary_ref_px",
+            "upward_min_boundary_ref_px",
             "propagate_color_tol",
             "min_thin_height_ref_px",
             "vehicle_max_spread",
@@ -1464,8 +1473,8 @@ class _Completer:
         with fewer than ``min_inliers`` pixels of depth (dense or sparse: the LiDAR did not see it)
         and none completed. It takes the vertical plane whose region (:attr:`facade_of`: one plane
         and the segments it climbed into) runs along its lower boundary for at least
-        ``min_boundary_ref_px`` and ``upward_boundary_share`` of the part of that boundary that has
-        depth; or the plane whose region holds all but a tenth of its whole boundary (the windows
+        ``upward_min_boundary_ref_px`` and ``upward_boundary_share`` of that whole boundary; or the
+        plane whose region holds all but a tenth of its whole boundary (the windows
         between two of those segments). Then it is that plane's region too, for the segments above
         it: ``upward_steps`` rounds. Its pixels' distance to the data: the rows up from that
         boundary, plus the boundary's own. Sky pixels are left out of every boundary.
@@ -1491,7 +1500,7 @@ class _Completer:
             keep = ~self.sky[b]
             a, b, below = a[keep], b[keep], below[keep]
         seg_a = self.flat[a].astype(np.int64)
-        least = max(p.min_boundary_ref_px * self.scale, 1.0)
+        least = max(p.upward_min_boundary_ref_px * self.scale, 1.0)
         done = np.zeros(self.count, bool)
         for _ in range(p.upward_steps):
             completed = np.bincount(self.flat, (self.depth > 0) & ~self.known, self.count)
@@ -1503,13 +1512,13 @@ class _Completer:
             fid = self.facade_of[bb]
             family = np.array([f[3] for f in self.facades] + [-1], np.int64)[fid]  # -1: none
             n_f = len(self.facades) + 1
-            # Below: support of each (segment, family), and what has depth there at all.
-            with_depth = np.bincount(sa[down], self.depth[bb[down]] > 0, self.count)
+            # Below: support of each (segment, family), and the whole boundary below.
+            lower = np.bincount(sa[down], minlength=self.count)
             keys, support = np.unique(
                 sa[down & (fid >= 0)] * n_f + family[down & (fid >= 0)], return_counts=True
             )
             seg, fam = np.divmod(keys, n_f)
-            ok = (support >= least) & (support >= p.upward_boundary_share * with_depth[seg])
+            ok = (support >= least) & (support >= p.upward_boundary_share * lower[seg])
             # All around: enclosed by one plane's region.
             total = np.bincount(sa, minlength=self.count)
             keys2, around = np.unique(sa[fid >= 0] * n_f + family[fid >= 0], return_counts=True)
@@ -1614,7 +1623,10 @@ class _Completer:
                 continue
             r, q = np.divmod(px, w)
             rs, cs = slice(int(r.min()), int(r.max()) + 1), slice(int(q.min()), int(q.max()) + 1)
-            self.fill_facing(px, rs, cs, comp[rs, cs] == c)
+            # A few known pixels in a large region are as often a facade's a segment took in, or
+            # depth seen through the leaves, as the crown's.
+            if np.count_nonzero(self.known[px]) >= self.p.canopy_min_known_share * len(px):
+                self.fill_facing(px, rs, cs, comp[rs, cs] == c)
 
     def fill_facing(
         self, px: NDArray[np.intp], rs: slice, cs: slice, member: Mask, max_spread: float | None = None
