@@ -73,7 +73,9 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    dense depths lie within ``crown_max_spread`` of their median (interquartile range) takes the
    vertical plane facing the camera through the median of its known points, within
    ``max_extrapolation_ref_px`` of them, at ``crown_confidence`` at most: off by up to the
-   crown's radius at its rim, a target to weigh low rather than none. ``canopies``: a crown is
+   crown's radius at its rim, a target to weigh low rather than none; pixels of excess blue above
+   ``upward_max_blue`` and their neighbours are left out (where a crown blends into the sky, the
+   blended pixels are sky). ``canopies``: a crown is
    many small green segments, most above the LiDAR's top beam; every connected region of the
    above-horizon pixels of green segments that no ground plane explains and that hold no things
    is filled the same way, as one crown, from the depths its lower part holds, if at least
@@ -97,7 +99,8 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    (windows between two such segments). Then it is part of that region, so a facade climbs
    through ``upward_steps`` segments at most. Only with sky labels (nothing else tells the sky
    above a roofline from a wall), and only from planes of dense depth (sparse depth leaks into
-   the sky at silhouettes). Ground planes never climb.
+   the sky at silhouettes). Ground planes never climb. A climbed segment's pixels of excess blue above
+   ``upward_max_blue`` stay empty (a roofline's segment takes in some sky).
 
 Everything else stays empty (0): crowns the LiDAR saw nothing of, vehicles' curved parts, what no
 LiDAR point anchors (buildings beyond the LiDAR's range or hidden behind others, unless a facade below them
@@ -1102,6 +1105,12 @@ class _Completer:
             labels = inputs.classes.reshape(-1)
             self.lies = _majority_in(flat, labels, n, tx.GROUND_IDS)
             self.stands = _majority_in(flat, labels, n, STANDING_CLASSES)
+        # Pixels of excess blue (2 b - r - g) above ``upward_max_blue``: sky the labels missed; with
+        # their 8 neighbours, the rim where a crown blends into it (blended pixels are sky).
+        blue = inputs.rgb.reshape(-1, 3).astype(np.float64) @ np.array([-1.0, -1.0, 2.0])
+        self.sky_like = blue > p.upward_max_blue
+        rim = cv2.dilate(self.sky_like.reshape(self.shape).view(np.uint8), np.ones((3, 3), np.uint8))
+        self.sky_rim = rim.astype(bool).reshape(-1)
         self.vegetation = np.zeros(n, bool)
         self.vehicle = np.zeros(n, bool)
         if inputs.classes is not None:
@@ -1540,6 +1549,7 @@ class _Completer:
                 fits, t, factor, _ = self.facades[k]
                 idx = self.pixels(s)
                 empty = idx[self.fillable[idx] & (self.depth[idx] == 0)]
+                empty = empty[~self.sky_like[empty]]  # a roofline's segment takes in some sky
                 rows = np.maximum(float(np.mean(ref // w)) - empty // w, 0)
                 dist = (rows + float(np.mean(self.fill_dist[ref]))).astype(np.float32)
                 factor *= p.upward_confidence
@@ -1608,8 +1618,7 @@ class _Completer:
         (green, without things) is filled as one crown (:meth:`fill_facing`) from the depths its
         lower part holds."""
         # Not the sky a segment took in at the crown's rim: no pixel of excess blue.
-        blue = self.image.reshape(-1, 3).astype(np.float64) @ np.array([-1.0, -1.0, 2.0])
-        mask = segs[self.flat] & ((self.rays @ self.up) > 0) & (blue <= self.p.upward_max_blue)
+        mask = segs[self.flat] & ((self.rays @ self.up) > 0) & ~self.sky_rim
         count, comp = cv2.connectedComponents(mask.reshape(self.shape).view(np.uint8), connectivity=4)
         if count <= 1:
             return
@@ -1656,7 +1665,7 @@ class _Completer:
             *(np.ones(1), np.array([z_mid]), np.array([float(np.mean(self.conf[kn]))])),
             np.zeros(1, bool),
         )
-        empty = px[self.fillable[px] & (self.depth[px] == 0)]
+        empty = px[self.fillable[px] & (self.depth[px] == 0) & ~self.sky_rim[px]]
         w = self.shape[1]
         dist_map, _ = _nearest_pixel(self.known.reshape(self.shape)[rs, cs] & member)
         er, ec = np.divmod(empty, w)
