@@ -53,6 +53,7 @@ ABLATIONS = {
     "no ground beyond the data": {"propagate_ground": False},
     "no second plane per segment": {"min_plane_share": 0.7},
     "no thin vertical structures": {"max_thin_width_ref_px": 1e-3},
+    "no planes for thin segments step 6 left (thin_planes)": {"thin_planes": False},
     "no facades climbing (propagate_up)": {"propagate_up": False},
     "no planes from sparse depth": {"sparse_planes": False},
     "no planes through a line of points (line_planes)": {"line_planes": False},

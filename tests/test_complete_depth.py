@@ -323,6 +323,24 @@ def test_a_pole_is_filled_up_at_its_base_depth_and_nothing_else():
     assert not np.any(out.depth_m[:100, : cols.start - 1]) and not np.any(out.depth_m[:100, cols.stop + 1 :])
 
 
+def test_a_thin_strip_of_wall_seen_too_little_for_a_pole_takes_its_plane():
+    # A dark strip 5 pixels wide down the facade (a wall between two columns of windows), its own
+    # segment, with depth on its lowest 20 rows only: too little of it for a thin structure's
+    # evidence (min_thin_evidence), enough for a plane.
+    depth, conf, rgb, truth, sky, roof, _, _ = facade_scene()
+    strip = np.zeros((H, W), bool)
+    strip[roof:, 88:93] = True
+    rgb[strip] = textured((H, W), (110, 40, 40), 8)[strip]
+    depth = np.where(strip & (np.arange(H)[:, None] < 100), 0, depth).astype(np.float32)
+    conf = (depth > 0).astype(np.float32) * 0.9
+    upper = strip & (np.arange(H)[:, None] < 100)
+    out = complete(depth, conf, rgb, sky=sky)
+    assert np.all(out.depth_m[upper] > 0) and np.all(out.origin[upper] == PLANE)
+    np.testing.assert_allclose(out.depth_m[upper], truth[upper], rtol=1e-4)
+    off = complete(depth, conf, rgb, sky=sky, params=CompletionParams(thin_planes=False))
+    assert (off.depth_m[upper] > 0).mean() < 0.5
+
+
 def test_a_grazing_plane_is_not_extended_into_huge_depths():
     # A wall along the line of sight (x = 1 m, to the right), seen almost edge-on by the centre
     # columns: the ray meets it at less than min_incidence_deg there.

@@ -67,7 +67,9 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    depths (dense, and sparse where the densifier dropped the edge pixels a thin pole is made of)
    agree and rise ``min_height_m`` vertically, with ``min_thin_trusted`` trusted pixels among
    them, is filled in the columns of that evidence with the vertical plane facing the camera
-   through its base (the median depth of its lowest ``base_band_ref_px`` rows of evidence).
+   through its base (the median depth of its lowest ``base_band_ref_px`` rows of evidence). A thin
+   segment this does not fill (a strip of wall between two columns of windows, too little of it
+   seen to show a pole's rise) is fitted and filled as any other segment (``thin_planes``).
 6b. **Tree crowns** (``crowns``; origin ``vertical``): a green segment (excess green above
    ``upward_max_green``, or a majority label of vegetation) that no plane explains and whose
    dense depths lie within ``crown_max_spread`` of their median (interquartile range) takes the
@@ -213,6 +215,7 @@ class CompletionParams:
         crown_max_spread: largest interquartile range of such a segment's known depths, relative
             to their median.
         crown_confidence: cap of their pixels' confidence.
+        thin_planes: a thin segment step 6 did not fill is fitted as any other (6).
         canopies: fill each connected green region above the horizon as one crown (6b) ...
         canopy_min_known_share: ... if this share of its pixels has depth.
         vehicle_max_spread: largest interquartile range of a vehicle segment's known depths,
@@ -284,6 +287,7 @@ class CompletionParams:
     min_line_m: float = 1.0
     crowns: bool = True
     canopies: bool = True
+    thin_planes: bool = True
     canopy_min_known_share: float = 0.02
     vehicle_max_spread: float = 0.05
     crown_max_spread: float = 0.15
@@ -1171,6 +1175,15 @@ class _Completer:
         enough = evidence >= np.maximum(p.min_thin_known, p.min_thin_evidence * self.sizes)
         for s in np.flatnonzero(todo & thin & enough & (self.n_dense >= p.min_thin_trusted)).tolist():
             self.fill_thin(s)
+        if p.thin_planes:
+            # A thin segment the step above did not fill (a strip of wall between two columns of
+            # windows, a kerb, seen too little to show a pole's rise) is fitted like any other.
+            completed = np.bincount(self.flat, (self.depth > 0) & ~self.known, self.count)
+            rest = np.flatnonzero(todo & thin & (completed == 0) & (self.n_known >= p.min_inliers))
+            if len(rest):
+                thin_fits, thin_px = self.fit_segments(rest)
+                for s in rest[thin_fits[0].kind[rest] != KIND_NONE].tolist():
+                    self.fill_segment(s, thin_fits, thin_px)
         # Thin ones too (the wall between two columns of windows); only with sky labels: nothing
         # else tells the sky above a roofline from a wall.
         if p.propagate_up and self.sky is not None:
