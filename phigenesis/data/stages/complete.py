@@ -79,8 +79,8 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    ``upward_max_blue`` and their neighbours are left out (where a crown blends into the sky, the
    blended pixels are sky). ``canopies``: a crown is
    many small green segments, most above the LiDAR's top beam; every connected region of the
-   above-horizon pixels of green segments that no ground plane explains and that hold no things
-   is filled the same way, as one crown, from the depths its lower part holds, if at least
+   above-horizon pixels of green segments that hold no things (the sky's rim left out) is filled
+   the same way, as one crown, from the depths its lower part holds, if at least
    ``canopy_min_known_share`` of its pixels hold one (a few known pixels in a large green region
    are as often a facade's that a segment took in, or depth seen through the leaves).
 6c. **Vehicles** (``vehicle_max_spread``; origin ``vertical``): a segment labelled a vehicle
@@ -1118,10 +1118,8 @@ class _Completer:
         self.vegetation = np.zeros(n, bool)
         self.vehicle = np.zeros(n, bool)
         if inputs.classes is not None:
-            self.vehicle = _majority_in(flat, inputs.classes.reshape(-1), n, VEHICLE_CLASSES)
-        if inputs.classes is not None:
             self.vegetation = _majority_in(flat, inputs.classes.reshape(-1), n, frozenset({tx.VEGETATION}))
-        if inputs.classes is not None:
+            self.vehicle = _majority_in(flat, inputs.classes.reshape(-1), n, VEHICLE_CLASSES)
             things = np.isin(inputs.classes.reshape(-1), list(tx.THING_IDS))
             share = np.bincount(flat, weights=things, minlength=n) / np.maximum(self.sizes, 1)
             self.thing_touched = share > p.upward_max_thing_share
@@ -1162,8 +1160,7 @@ class _Completer:
                 self.fill_crown(s)
             if p.vehicle_max_spread > 0:
                 for s in planar[(planes[0].kind[planar] == KIND_NONE) & self.vehicle[planar]].tolist():
-                    rs, cs = self.crop(s)
-                    self.fill_facing(self.pixels(s), rs, cs, self.segments[rs, cs] == s, p.vehicle_max_spread)
+                    self.fill_crown(s, p.vehicle_max_spread)
             if p.canopies:
                 self.fill_canopies(~self.skip & green & ~self.thing_touched)
         if p.propagate_ground:
@@ -1617,20 +1614,22 @@ class _Completer:
         dist = np.maximum(rows[on].min() - empty // w, 0).astype(np.float32)  # rows above the evidence
         self._fill(empty, fits, 0, dist, 1.0, ORIGIN["vertical"], cap=p.vertical_confidence)
 
-    def fill_crown(self, s: int) -> None:
+    def fill_crown(self, s: int, max_spread: float | None = None) -> None:
         """A green segment no plane explains (a tree's crown) with enough dense depth of about one
         depth (``crown_max_spread``: the spread of its known depths relative to their median)
         takes the vertical plane facing the camera through its known points' median, at
-        ``crown_confidence`` at most (origin ``vertical``)."""
+        ``crown_confidence`` at most (origin ``vertical``); with ``max_spread``, a vehicle's
+        segment (6c)."""
         rs, cs = self.crop(s)
-        self.fill_facing(self.pixels(s), rs, cs, self.segments[rs, cs] == s)
+        self.fill_facing(self.pixels(s), rs, cs, self.segments[rs, cs] == s, max_spread)
 
     def fill_canopies(self, segs: Mask) -> None:
         """A tree's crown is many small green segments, most above the LiDAR's top beam: each
         connected region of the pixels above the horizon (and not blue) of the segments ``segs``
         (green, without things) is filled as one crown (:meth:`fill_facing`) from the depths its
         lower part holds."""
-        # Not the sky a segment took in at the crown's rim: no pixel of excess blue.
+        # Not the sky a segment took in at the crown's rim: no pixel of excess blue, nor its
+        # neighbours.
         mask = segs[self.flat] & ((self.rays @ self.up) > 0) & ~self.sky_rim
         count, comp = cv2.connectedComponents(mask.reshape(self.shape).view(np.uint8), connectivity=4)
         if count <= 1:
