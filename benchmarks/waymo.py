@@ -79,7 +79,7 @@ from phigenesis.data.sources.waymo.raw import (
     RawLaser,
     RawLaserCalibration,
 )
-from phigenesis.malloc_tuning import keep_freed_memory
+from phigenesis.malloc_tuning import avoid_huge_page_faults, huge_pages_disabled, keep_freed_memory
 
 #: Goal: the full reader takes at most this multiple of the floor's time per frame.
 FLOOR_RATIO_GOAL = 1.5
@@ -848,7 +848,9 @@ def report_throughput(report: Report, t: dict[str, Timings], frames: int, rounds
         "over the frames; as `process_scene` does, without manifest and progress bar; the cache on "
         "the work folder's disk. Every variant runs with glibc's trim and mmap thresholds raised as "
         "`phigenesis-prep` raises them (`phigenesis/malloc_tuning.py`: freed memory is kept for the "
-        "next frame instead of being taken again page by page). **full, the cache on tmpfs**: the "
+        "next frame instead of being taken again page by page) and transparent huge pages off for the "
+        "process, as `phigenesis-prep` turns them off (a fresh 2 MiB page cost milliseconds on this VM). "
+        "**full, the cache on tmpfs**: the "
         "same, the cache written to "
         "`/dev/shm` (memory): the reader's own work without the disk's write and fsync, which "
         "depend on the machine's storage (here a virtual disk, where fsync waits for the host).",
@@ -968,11 +970,16 @@ def _tmpfs() -> str | None:
 
 
 def _malloc_setting() -> str:
+    pages = (
+        "transparent huge pages off"
+        if huge_pages_disabled()
+        else "transparent huge pages as the system sets them"
+    )
     if os.environ.get("MALLOC_TRIM_THRESHOLD_") is None:
-        return "the C library's defaults"
+        return f"the C library's defaults; {pages}"
     return (
         f"glibc trim threshold {int(os.environ['MALLOC_TRIM_THRESHOLD_']) >> 20} MiB, mmap threshold "
-        f"{int(os.environ['MALLOC_MMAP_THRESHOLD_']) >> 20} MiB (as phigenesis-prep sets them)"
+        f"{int(os.environ['MALLOC_MMAP_THRESHOLD_']) >> 20} MiB; {pages} (as phigenesis-prep sets them)"
     )
 
 
@@ -1000,6 +1007,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--memory-probe", help=argparse.SUPPRESS)  # internal: see peak_memory
     args = parser.parse_args(argv)
     keep_freed_memory()  # as phigenesis-prep does, for every variant alike
+    avoid_huge_page_faults()
     if args.memory_probe:
         memory_probe(args.memory_probe)
         return

@@ -10,6 +10,13 @@ would at start-up; ``phigenesis-prep`` calls it, and the worker processes it spa
 same settings through those variables. The cost is that a process keeps up to
 :data:`TRIM_THRESHOLD_BYTES` of freed memory after a frame, as its peak resident size already
 counted it. Nothing happens on a C library other than glibc; ``PHIGENESIS_MALLOC=0`` turns it off.
+
+:func:`avoid_huge_page_faults` turns transparent huge pages off for the process (and the processes
+it starts). NumPy advises the kernel to back every array of 4 MiB or more with 2 MiB pages, so one
+page fault zeroes 2 MiB, and on a virtual machine whose host takes free memory back (free page
+reporting) each such fault also waits for the host: on the Waymo benchmark's VM a v2 frame spent
+7-100 ms in the kernel, in a few such faults, against 2-8 ms with 4 KiB pages
+(``benchmarks/waymo.py``). A converter's arrays live for one frame, so huge pages buy it nothing.
 """
 
 from __future__ import annotations
@@ -49,4 +56,42 @@ def keep_freed_memory() -> bool:
     return bool(taken)
 
 
-__all__ = ["MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES", "keep_freed_memory"]
+# prctl options (linux/prctl.h).
+_PR_SET_THP_DISABLE = 41
+_PR_GET_THP_DISABLE = 42
+
+
+def _prctl(option: int, value: int = 0) -> int:
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    return int(libc.prctl(option, value, 0, 0, 0))
+
+
+def avoid_huge_page_faults() -> bool:
+    """Turns transparent huge pages off for this process and its children (Linux's
+    ``PR_SET_THP_DISABLE``, inherited across fork and exec); True if the kernel took it."""
+    if os.environ.get("PHIGENESIS_MALLOC") == "0" or platform.system() != "Linux":
+        return False
+    try:
+        return _prctl(_PR_SET_THP_DISABLE, 1) == 0
+    except (OSError, AttributeError) as error:
+        logger.debug("transparent huge pages left as they were: %s", error)
+        return False
+
+
+def huge_pages_disabled() -> bool:
+    """Whether transparent huge pages are off for this process (False off Linux)."""
+    if platform.system() != "Linux":
+        return False
+    try:
+        return _prctl(_PR_GET_THP_DISABLE) == 1
+    except (OSError, AttributeError):
+        return False
+
+
+__all__ = [
+    "MMAP_THRESHOLD_BYTES",
+    "TRIM_THRESHOLD_BYTES",
+    "avoid_huge_page_faults",
+    "huge_pages_disabled",
+    "keep_freed_memory",
+]

@@ -63,3 +63,65 @@ def test_the_settings_reach_processes_started_later(monkeypatch: pytest.MonkeyPa
         assert malloc_tuning.keep_freed_memory()
         assert os.environ["MALLOC_TRIM_THRESHOLD_"] == str(malloc_tuning.TRIM_THRESHOLD_BYTES)
         assert os.environ["MALLOC_MMAP_THRESHOLD_"] == str(malloc_tuning.MMAP_THRESHOLD_BYTES)
+
+
+HUGE_PROBE = """
+import sys
+import numpy as np
+from phigenesis import malloc_tuning
+if sys.argv[1] == "1":
+    assert malloc_tuning.avoid_huge_page_faults()
+a = np.ones(64 << 20, np.uint8)  # numpy advises huge pages for arrays of 4 MiB and more
+huge_kib = 0
+with open("/proc/self/smaps_rollup") as f:
+    for line in f:
+        if line.startswith("AnonHugePages:"):
+            huge_kib = int(line.split()[1])
+print(malloc_tuning.huge_pages_disabled(), huge_kib)
+"""
+
+
+def _huge_pages(disable: bool, env: dict[str, str] | None = None) -> tuple[bool, int]:
+    out = subprocess.run(
+        [sys.executable, "-c", HUGE_PROBE, "1" if disable else "0"],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=env,
+    )
+    disabled, kib = out.stdout.split()
+    return disabled == "True", int(kib)
+
+
+@pytest.mark.skipif(platform.system() != "Linux", reason="PR_SET_THP_DISABLE is Linux's")
+def test_huge_pages_off_means_a_large_array_gets_none_and_children_inherit_it() -> None:
+    control_disabled, control_kib = _huge_pages(disable=False)
+    assert not control_disabled
+    disabled, kib = _huge_pages(disable=True)
+    assert disabled
+    assert kib == 0, kib
+    if control_kib == 0:
+        pytest.skip("this machine gave the control no huge pages either (THP off or memory fragmented)")
+
+
+@pytest.mark.skipif(platform.system() != "Linux", reason="PR_SET_THP_DISABLE is Linux's")
+def test_huge_pages_setting_is_inherited_and_can_be_turned_off(monkeypatch: pytest.MonkeyPatch) -> None:
+    code = (
+        "import subprocess, sys\n"
+        "from phigenesis import malloc_tuning\n"
+        "print(malloc_tuning.avoid_huge_page_faults())\n"
+        "child = 'from phigenesis import malloc_tuning; print(malloc_tuning.huge_pages_disabled())'\n"
+        "out = subprocess.run([sys.executable, '-c', child], capture_output=True, text=True)\n"
+        "print(out.stdout.strip())\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "PHIGENESIS_MALLOC"}
+    on = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+    assert on.stdout.split() == ["True", "True"]
+    off = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**env, "PHIGENESIS_MALLOC": "0"},
+    )
+    assert off.stdout.split() == ["False", "False"]

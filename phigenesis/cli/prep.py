@@ -13,7 +13,7 @@ from phigenesis.cli.common import Command, Parser, positive, run
 from phigenesis.data.executors import EXECUTORS
 from phigenesis.data.shards import CacheReader, Manifest
 from phigenesis.data.sources.synthetic.rigs import RIG_NAMES
-from phigenesis.malloc_tuning import keep_freed_memory
+from phigenesis.malloc_tuning import avoid_huge_page_faults, keep_freed_memory
 
 
 def _run_options(p: argparse.ArgumentParser) -> None:
@@ -197,6 +197,7 @@ def interrupted(args: argparse.Namespace) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     keep_freed_memory()  # frame after frame of the same sizes: reuse the pages (see the module)
+    avoid_huge_page_faults()  # a frame's arrays live for one frame: 4 KiB pages (see the module)
     return run("phigenesis-prep", build_parser, argv, COMMANDS, interrupted)
 
 
