@@ -61,6 +61,7 @@ ABLATIONS = {
     "no crowns of many segments (canopies)": {"canopies": False},
     "no vehicles of one depth (vehicle_max_spread 0)": {"vehicle_max_spread": 0.0},
     "no climbing columns of two apart facades (climb_columns)": {"climb_columns": False},
+    "no walls climbing from each column's top (wall_columns)": {"wall_columns": False},
     "min_height_m only (min_height_rel 1)": {"min_height_rel": 1.0},
     "min_incidence_deg 8": {"min_incidence_deg": 8.0},
 }

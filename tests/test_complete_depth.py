@@ -337,7 +337,7 @@ def test_a_thin_strip_of_wall_seen_too_little_for_a_pole_takes_its_plane():
     out = complete(depth, conf, rgb, sky=sky)
     assert np.all(out.depth_m[upper] > 0) and np.all(out.origin[upper] == PLANE)
     np.testing.assert_allclose(out.depth_m[upper], truth[upper], rtol=1e-4)
-    off = complete(depth, conf, rgb, sky=sky, params=CompletionParams(thin_planes=False))
+    off = complete(depth, conf, rgb, sky=sky, params=CompletionParams(thin_planes=False, wall_columns=False))
     assert (off.depth_m[upper] > 0).mean() < 0.5
 
 
@@ -726,8 +726,57 @@ def test_two_facades_of_one_segment_climb_their_own_columns():
     assert filled.sum() > 0.95 * upper.sum()
     np.testing.assert_allclose(out.depth_m[filled], truth[filled], rtol=1e-4)
     # Without the climb the two planes, apart, reach only split_extrapolation_ref_px.
-    alone = complete(depth, conf, rgb, sky=sky, params=CompletionParams(climb_columns=False))
+    alone = complete(
+        depth, conf, rgb, sky=sky, params=CompletionParams(climb_columns=False, wall_columns=False)
+    )
     assert not np.any(alone.depth_m[20:40] > 0)
+
+
+def round_tower(radius_m: float = 3.0, centre_z_m: float = 12.0, known_from: int = 50):
+    """A round tower (a vertical cylinder of ``radius_m`` whose axis is ``centre_z_m`` ahead) of one
+    colour, seen by a level pinhole: no plane explains it. The LiDAR saw rows >= ``known_from``
+    (above the horizon, row 59.5); the sky is above row 20 and beside the tower."""
+    r = rays().reshape(H, W, 3)
+    a = r[..., 0] ** 2 + 1.0  # |(x, z)| of the ray per unit depth, squared
+    disc = centre_z_m**2 - a * (centre_z_m**2 - radius_m**2)
+    hit = disc >= 0
+    truth = np.where(hit, (centre_z_m - np.sqrt(np.maximum(disc, 0))) / a, 0).astype(np.float32)
+    sky = ~hit
+    sky[:20] = True
+    truth[sky] = 0
+    rgb = np.where(sky[..., None], SKY_RGB, textured((H, W), (200, 180, 150), 7)).astype(np.uint8)
+    depth = np.zeros((H, W), np.float32)
+    depth[known_from:] = truth[known_from:]
+    return depth, (depth > 0).astype(np.float32) * 0.9, rgb, truth, sky
+
+
+def test_each_column_of_a_wall_no_plane_explains_climbs_from_its_topmost_known_pixel():
+    depth, conf, rgb, truth, sky = round_tower()
+    upper = (truth > 0) & (depth == 0)
+    upper[:, :1] = upper[:, -1:] = False
+    alone = complete(depth, conf, rgb, sky=sky, params=CompletionParams(wall_columns=False))
+    assert not np.any(alone.depth_m[upper] > 0), "no plane explains a round tower"
+    out = complete(depth, conf, rgb, sky=sky)
+    filled = upper & (out.depth_m > 0)
+    assert filled.sum() > 0.95 * upper.sum()
+    # A vertical surface keeps its horizontal distance up a column of a level camera: exact.
+    np.testing.assert_allclose(out.depth_m[filled], truth[filled], rtol=1e-4)
+    assert np.all(out.origin[filled] == VERTICAL)
+    assert out.confidence[filled].max() <= CompletionParams().wall_confidence
+    assert out.confidence[20, W // 2] < out.confidence[49, W // 2], "lower farther from the data"
+    assert not np.any(out.depth_m[sky]), "the sky stays empty"
+    # Not without sky labels (nothing tells the sky above a roofline from a wall), nor for a
+    # segment labelled ground, nor from a thing's known pixels.
+    assert not np.any(complete(depth, conf, rgb).depth_m[upper] > 0)
+    road = np.where(sky, tx.SKY, tx.ROAD).astype(np.uint8)
+    assert not np.any(complete(depth, conf, rgb, sky=sky, classes=road).origin[upper] == VERTICAL)
+    car_base = np.where(sky, tx.SKY, 255).astype(np.uint8)
+    car_base[50:53] = np.where(sky[50:53], tx.SKY, tx.CAR)  # a car's roof seen just below the wall
+    out = complete(depth, conf, rgb, sky=sky, classes=car_base)
+    climbed = upper & (out.origin == VERTICAL)
+    assert climbed.any()
+    np.testing.assert_allclose(out.depth_m[climbed], truth[climbed], rtol=1e-4)
+    assert not np.any(out.depth_m[50:53][depth[50:53] == 0] > 0)
 
 
 def _one_scan_line(truth: np.ndarray, row: int) -> tuple[np.ndarray, np.ndarray]:

@@ -87,6 +87,18 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    (:data:`VEHICLE_CLASSES`) that no plane explains (a rounded body, a windscreen), whose known
    depths lie within ``vehicle_max_spread`` of their median, takes the camera-facing plane
    through them as a crown does: the back or the side of a car that faces the camera.
+6d. **Walls above their data** (``wall_columns``; origin ``vertical``): in a segment with
+   ``min_inliers`` pixels of dense depth (thin or not; any but ground, vegetation or vehicles by
+   their majority label), each column's pixels
+   above its topmost known pixel (not a thing's) and above the horizon take the vertical plane
+   facing the camera through that pixel's point: a vertical surface holds one horizontal
+   distance up a column of a level camera, whatever way it faces. A column climbs if its known
+   pixels ``wall_min_height_m`` lower lie at that same horizontal distance (a rounded body is
+   upright only at its widest), or, if they span less height, if most of the segment's checked
+   columns do. It reaches the upper part of a facade no plane explains (the segment mixes two
+   surfaces, or curves) or that lies beyond a plane's reach, at ``wall_confidence`` at most;
+   pixels labelled things or of excess blue above ``upward_max_blue`` stay empty. Only with sky
+   labels, as step 7.
 7. **Facades above the data** (``propagate_up``; origin ``plane``): the upper part of a facade,
    above the LiDAR's top beam, is often a segment of its own (cut off by a ledge, a row of
    windows) without depth. A segment the LiDAR did not see (fewer than ``min_inliers`` pixels of
@@ -221,6 +233,10 @@ class CompletionParams:
         vehicle_max_spread: largest interquartile range of a vehicle segment's known depths,
             relative to their median, for the camera-facing plane (6c; 0: never).
         climb_columns: a segment's two vertical planes that do not meet climb their columns (3).
+        wall_columns: each column of a seen segment climbs from its topmost known pixel (6d).
+        wall_confidence: cap of the confidences of those pixels.
+        wall_min_height_m: a column climbs if its known pixels this far below its topmost one
+            lie at that one's horizontal distance (6d).
         ransac_iterations: hypotheses per fit.
         ransac_points: points of a segment each hypothesis is scored on.
         fit_points: known pixels per segment a fit uses (at random); all are scored at the end.
@@ -284,6 +300,9 @@ class CompletionParams:
     sparse_plane_confidence: float = 0.7
     line_planes: bool = True
     climb_columns: bool = True
+    wall_columns: bool = True
+    wall_confidence: float = 0.2
+    wall_min_height_m: float = 1.0
     min_line_m: float = 1.0
     crowns: bool = True
     canopies: bool = True
@@ -340,6 +359,7 @@ class CompletionParams:
             "sparse_plane_confidence",
             "line_confidence",
             "crown_confidence",
+            "wall_confidence",
             "canopy_min_known_share",
             "sparse_min_share",
             "upward_confidence",
@@ -357,6 +377,7 @@ class CompletionParams:
             "max_thin_width_ref_px",
             "min_thin_aspect",
             "base_band_ref_px",
+            "wall_min_height_m",
             "conf_distance_ref_px",
             "conf_relative_residual",
             "min_line_m",
@@ -1117,11 +1138,15 @@ class _Completer:
         self.sky_rim = rim.astype(bool).reshape(-1)
         self.vegetation = np.zeros(n, bool)
         self.vehicle = np.zeros(n, bool)
+        self.ground = np.zeros(n, bool)
+        self.things = np.zeros(self.depth.size, bool)
         if inputs.classes is not None:
-            self.vegetation = _majority_in(flat, inputs.classes.reshape(-1), n, frozenset({tx.VEGETATION}))
-            self.vehicle = _majority_in(flat, inputs.classes.reshape(-1), n, VEHICLE_CLASSES)
-            things = np.isin(inputs.classes.reshape(-1), list(tx.THING_IDS))
-            share = np.bincount(flat, weights=things, minlength=n) / np.maximum(self.sizes, 1)
+            labels = inputs.classes.reshape(-1)
+            self.vegetation = _majority_in(flat, labels, n, frozenset({tx.VEGETATION}))
+            self.vehicle = _majority_in(flat, labels, n, VEHICLE_CLASSES)
+            self.ground = _majority_in(flat, labels, n, tx.GROUND_IDS)
+            self.things = np.isin(labels, list(tx.THING_IDS))
+            share = np.bincount(flat, weights=self.things, minlength=n) / np.maximum(self.sizes, 1)
             self.thing_touched = share > p.upward_max_thing_share
 
     def pixels(self, s: int) -> NDArray[np.intp]:
@@ -1181,8 +1206,14 @@ class _Completer:
                 thin_fits, thin_px = self.fit_segments(rest)
                 for s in rest[thin_fits[0].kind[rest] != KIND_NONE].tolist():
                     self.fill_segment(s, thin_fits, thin_px)
-        # Thin ones too (the wall between two columns of windows); only with sky labels: nothing
-        # else tells the sky above a roofline from a wall.
+        # Only with sky labels: nothing else tells the sky above a roofline from a wall.
+        if p.wall_columns and self.sky is not None:
+            walls = todo & (self.n_dense >= p.min_inliers) & ~(self.ground | self.vegetation | self.vehicle)
+            open_above = self.fillable & (self.depth == 0) & ((self.rays @ self.up) > 0)
+            walls &= np.bincount(self.flat, open_above & ~self.things & ~self.sky_like, self.count) > 0
+            for s in np.flatnonzero(walls).tolist():
+                self.climb_walls(s)
+        # Thin ones too (the wall between two columns of windows).
         if p.propagate_up and self.sky is not None:
             self.propagate_up(todo)
 
@@ -1568,6 +1599,74 @@ class _Completer:
                 if len(filled):
                     self.facade_of[filled] = len(self.facades)
                     self.facades.append((fits, t, factor, q))
+
+    def climb_walls(self, s: int) -> None:
+        """Each column of segment ``s`` climbs from its topmost known pixel (step 6d): its empty
+        pixels above that one and above the horizon take the vertical plane facing the camera
+        through that pixel's point (each column its own plane), at ``wall_confidence`` at most,
+        the distance to the data being the rows up from that pixel."""
+        p = self.p
+        h, w = self.shape
+        idx = self.pixels(s)
+        rows, cols = np.divmod(idx, w)
+        ref_ok = self.known[idx] & ~self.things[idx]
+        top = np.full(w, h, np.intp)
+        np.minimum.at(top, cols[ref_ok], rows[ref_ok])
+        top[~self._column_is_vertical(s, top)] = h
+        above = (top[cols] < h) & (rows < top[cols]) & ((self.rays[idx] @ self.up) > 0)
+        empty = above & self.fillable[idx] & (self.depth[idx] == 0) & ~self.things[idx] & ~self.sky_like[idx]
+        if not empty.any():
+            return
+        px, col = idx[empty], cols[empty]
+        ref = top[col] * w + col
+        point = self.rays[ref] * self.depth[ref, None]
+        normal = point - (point @ self.up)[:, None] * self.up
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
+        offset = -np.einsum("ij,ij->i", normal, point)
+        z, ok = self.intersect(self.rays[px], normal, offset)
+        px, ref, z, normal, offset = px[ok], ref[ok], z[ok], normal[ok], offset[ok]
+        dist = (ref // w - px // w).astype(np.float32)
+        conf = np.minimum(p.wall_confidence, self.conf[ref]) * np.exp(
+            -dist / (p.conf_distance_ref_px * self.scale)
+        )
+        self.depth[px], self.conf[px], self.origin[px] = z, conf, ORIGIN["vertical"]
+        self.plane_normal[px], self.plane_offset[px], self.fill_dist[px] = normal, offset, dist
+
+    def _column_is_vertical(self, s: int, top: NDArray[np.intp]) -> Mask:
+        """(W,) whether the known pixels of segment ``s`` in each column stand upright below its
+        topmost one ``top`` (``h``: none): the known pixel ``wall_min_height_m`` lower (the first
+        at or below the row that height takes at its depth) lies at the same horizontal distance
+        within ``inlier_tol_m + inlier_tol_rel * z`` (a rounded body is upright at its widest
+        only). A column whose known pixels span less height stands if most of the segment's
+        columns that could be checked do."""
+        p = self.p
+        h, w = self.shape
+        out = np.zeros(w, bool)
+        cols = np.flatnonzero(top < h)
+        if len(cols) == 0:
+            return out
+        # The first known pixel at or below each probe row: a search over (column, row) keys.
+        idx = self.pixels(s)
+        idx = idx[self.known[idx] & ~self.things[idx]]
+        keys = np.sort((idx % w) * h + idx // w)
+        ref = top[cols] * w + cols
+        z_ref = self.depth[ref]
+        step = np.ceil(p.wall_min_height_m * self.scale * REFERENCE_FOCAL_PX / z_ref).astype(np.intp)
+        at = np.searchsorted(keys, cols * h + top[cols] + np.maximum(step, 1))
+        found = keys[np.minimum(at, len(keys) - 1)]
+        has = (at < len(keys)) & (found // h == cols)
+        probe_px = (found % h) * w + cols
+
+        def horizontal(px: NDArray[np.intp]) -> F64:
+            point = self.rays[px] * self.depth[px, None]
+            return np.linalg.norm(point - (point @ self.up)[:, None] * self.up, axis=1)
+
+        tol = p.inlier_tol_m + p.inlier_tol_rel * z_ref
+        upright = np.abs(horizontal(ref) - horizontal(probe_px)) <= tol
+        # A column too short to check stands if most of the segment's checked columns do.
+        wall = bool(has.any()) and float(upright[has].mean()) >= 0.5
+        out[cols] = np.where(has, upright, wall)
+        return out
 
     # -- thin vertical structures ------------------------------------------------------------
 
