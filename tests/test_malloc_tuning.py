@@ -65,7 +65,13 @@ def test_the_settings_reach_processes_started_later(monkeypatch: pytest.MonkeyPa
         assert os.environ["MALLOC_MMAP_THRESHOLD_"] == str(malloc_tuning.MMAP_THRESHOLD_BYTES)
 
 
-HUGE_PROBE = """
+# Each probe first turns huge pages back on for itself: it inherits the setting, and a test that ran
+# phigenesis-prep's main in this process turned them off here.
+RESET = "import ctypes; ctypes.CDLL(None).prctl(41, 0, 0, 0, 0)\n"
+
+HUGE_PROBE = (
+    RESET
+    + """
 import sys
 import numpy as np
 from phigenesis import malloc_tuning
@@ -79,6 +85,7 @@ with open("/proc/self/smaps_rollup") as f:
             huge_kib = int(line.split()[1])
 print(malloc_tuning.huge_pages_disabled(), huge_kib)
 """
+)
 
 
 def _huge_pages(disable: bool, env: dict[str, str] | None = None) -> tuple[bool, int]:
@@ -106,7 +113,7 @@ def test_huge_pages_off_means_a_large_array_gets_none_and_children_inherit_it() 
 
 @pytest.mark.skipif(platform.system() != "Linux", reason="PR_SET_THP_DISABLE is Linux's")
 def test_huge_pages_setting_is_inherited_and_can_be_turned_off(monkeypatch: pytest.MonkeyPatch) -> None:
-    code = (
+    code = RESET + (
         "import subprocess, sys\n"
         "from phigenesis import malloc_tuning\n"
         "print(malloc_tuning.avoid_huge_page_faults())\n"
