@@ -779,6 +779,32 @@ def test_each_column_of_a_wall_no_plane_explains_climbs_from_its_topmost_known_p
     assert not np.any(out.depth_m[50:53][depth[50:53] == 0] > 0)
 
 
+def test_a_climbed_column_goes_on_up_through_a_segment_the_lidar_did_not_see():
+    depth, conf, rgb, truth, sky = round_tower()
+    # The tower's top, rows 20-34, a darker band: a segment of its own, without depth.
+    band = np.zeros((H, W), bool)
+    band[20:35] = True
+    band &= ~sky
+    rgb[band] = textured((H, W), (90, 70, 60), 9)[band]
+    inner = band & ~cv2.dilate((~band).view(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    inner[:, :2] = inner[:, -2:] = False
+    out = complete(depth, conf, rgb, sky=sky)
+    assert out.segments[inner].min() == out.segments[inner].max(), "the band is one segment"
+    assert out.segments[inner][0] not in set(out.segments[40:50][~sky[40:50]].ravel()), "not the tower's"
+    filled = inner & (out.depth_m > 0)
+    assert filled.sum() > 0.9 * inner.sum()
+    np.testing.assert_allclose(out.depth_m[filled], truth[filled], rtol=1e-4)
+    assert np.all(out.origin[filled] == VERTICAL)
+    params = CompletionParams()
+    assert out.confidence[filled].max() <= params.wall_confidence * params.upward_confidence
+    off = complete(depth, conf, rgb, sky=sky, params=CompletionParams(wall_columns=False))
+    assert not np.any(off.depth_m[inner] > 0)
+    # A band labelled a thing (a truck's top in front of the tower) is not climbed into.
+    labels = np.where(sky, tx.SKY, 255).astype(np.uint8)
+    labels[band] = tx.TRUCK
+    assert not np.any(complete(depth, conf, rgb, sky=sky, classes=labels).depth_m[inner] > 0)
+
+
 def _one_scan_line(truth: np.ndarray, row: int) -> tuple[np.ndarray, np.ndarray]:
     depth = np.zeros((H, W), np.float32)
     depth[row] = truth[row]

@@ -97,8 +97,11 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    upright only at its widest), or, if they span less height, if most of the segment's checked
    columns do. It reaches the upper part of a facade no plane explains (the segment mixes two
    surfaces, or curves) or that lies beyond a plane's reach, at ``wall_confidence`` at most;
-   pixels labelled things or of excess blue above ``upward_max_blue`` stay empty. Only with sky
-   labels, as step 7.
+   pixels labelled things or of excess blue above ``upward_max_blue`` stay empty. After step 7,
+   each climbed column goes on up through the segments above that step 7 could have climbed into
+   (the LiDAR did not see them; no things; neither green nor blue) until the sky or anything
+   else, at ``upward_confidence`` times the confidence it climbed with. Only with sky labels, as
+   step 7.
 7. **Facades above the data** (``propagate_up``; origin ``plane``): the upper part of a facade,
    above the LiDAR's top beam, is often a segment of its own (cut off by a ledge, a row of
    windows) without depth. A segment the LiDAR did not see (fewer than ``min_inliers`` pixels of
@@ -1211,11 +1214,15 @@ class _Completer:
             walls = todo & (self.n_dense >= p.min_inliers) & ~(self.ground | self.vegetation | self.vehicle)
             open_above = self.fillable & (self.depth == 0) & ((self.rays @ self.up) > 0)
             walls &= np.bincount(self.flat, open_above & ~self.things & ~self.sky_like, self.count) > 0
+            before = self.depth > 0
             for s in np.flatnonzero(walls).tolist():
                 self.climb_walls(s)
+            walled = (self.depth > 0) & ~before
         # Thin ones too (the wall between two columns of windows).
         if p.propagate_up and self.sky is not None:
             self.propagate_up(todo)
+        if p.wall_columns and self.sky is not None:
+            self.climb_through(walled, todo)  # after step 7, which climbs whole segments first
 
     # -- planes ------------------------------------------------------------------------------
 
@@ -1631,6 +1638,63 @@ class _Completer:
         )
         self.depth[px], self.conf[px], self.origin[px] = z, conf, ORIGIN["vertical"]
         self.plane_normal[px], self.plane_offset[px], self.fill_dist[px] = normal, offset, dist
+
+    def climb_through(self, walled: Mask, todo: Mask) -> None:
+        """The columns step 6d climbed go on up (after step 7): from each pixel of ``walled``, the
+        empty pixels straight above it take its plane while they belong to segments step 7 could
+        climb into (of ``todo``, not seen by the LiDAR, without things, neither green nor blue, not
+        ground or vegetation), lie above the horizon and are not sky; the first pixel that is not
+        ends the column's climb. Confidence: the walled pixel's times ``upward_confidence``, and
+        ``exp(-d / d0)`` of the rows climbed beyond it."""
+        p = self.p
+        h, w = self.shape
+        mean = self.segment_colours()
+        green, blue = mean @ np.array([-1.0, 2.0, -1.0]), mean @ np.array([-1.0, -1.0, 2.0])
+        evidence = np.bincount(self.flat, self.thin_depth > 0, self.count)
+        unseen = todo & ~self.thing_touched & (self.n_known < p.min_inliers) & (evidence < p.min_inliers)
+        unseen &= (
+            (green <= p.upward_max_green) & (blue <= p.upward_max_blue) & ~(self.ground | self.vegetation)
+        )
+        sky = np.zeros(self.depth.size, bool) if self.sky is None else self.sky
+        open_px = unseen[self.flat] & self.fillable & (self.depth == 0) & ~sky & ~self.things & ~self.sky_like
+        open_px = (open_px & ((self.rays @ self.up) > 0)).reshape(h, w)
+        walled = walled.reshape(h, w)
+        # Row by row upward, each column carrying the plane, distance and confidence it climbs with.
+        per_row = np.float32(np.exp(-1.0 / (p.conf_distance_ref_px * self.scale)))
+        active = np.zeros(w, bool)
+        normal, offset = np.zeros((w, 3), np.float32), np.zeros(w, np.float32)
+        dist, conf = np.zeros(w, np.float32), np.zeros(w, np.float32)
+        taken: list[tuple[NDArray[np.intp], NDArray[np.float32], NDArray[np.float32], F32, F32]] = []
+        for r in range(h - 1, -1, -1):
+            here = np.arange(r * w, (r + 1) * w)
+            start = walled[r]
+            normal[start], offset[start] = self.plane_normal[here[start]], self.plane_offset[here[start]]
+            dist[start], conf[start] = (
+                self.fill_dist[here[start]],
+                self.conf[here[start]] * p.upward_confidence,
+            )
+            go_on = active & ~start & open_px[r]
+            if go_on.any():
+                cols = np.flatnonzero(go_on)
+                dist[cols] += 1
+                conf[cols] *= per_row
+                taken.append(
+                    (
+                        r * w + cols,
+                        normal[cols].copy(),
+                        offset[cols].copy(),
+                        dist[cols].copy(),
+                        conf[cols].copy(),
+                    )
+                )
+            active = start | go_on
+        if not taken:
+            return
+        px, n, o, d, c = (np.concatenate(parts) for parts in zip(*taken, strict=True))
+        z, ok = self.intersect(self.rays[px], n.astype(np.float64), o.astype(np.float64))
+        px, z, n, o, d, c = px[ok], z[ok], n[ok], o[ok], d[ok], c[ok]
+        self.depth[px], self.conf[px], self.origin[px] = z, c, ORIGIN["vertical"]
+        self.plane_normal[px], self.plane_offset[px], self.fill_dist[px] = n, o, d
 
     def _column_is_vertical(self, s: int, top: NDArray[np.intp]) -> Mask:
         """(W,) whether the known pixels of segment ``s`` in each column stand upright below its
