@@ -1210,6 +1210,7 @@ class _Completer:
                 for s in rest[thin_fits[0].kind[rest] != KIND_NONE].tolist():
                     self.fill_segment(s, thin_fits, thin_px)
         # Only with sky labels: nothing else tells the sky above a roofline from a wall.
+        walled: Mask | None = None
         if p.wall_columns and self.sky is not None:
             walls = todo & (self.n_dense >= p.min_inliers) & ~(self.ground | self.vegetation | self.vehicle)
             open_above = self.fillable & (self.depth == 0) & ((self.rays @ self.up) > 0)
@@ -1221,7 +1222,7 @@ class _Completer:
         # Thin ones too (the wall between two columns of windows).
         if p.propagate_up and self.sky is not None:
             self.propagate_up(todo)
-        if p.wall_columns and self.sky is not None:
+        if walled is not None:
             self.climb_through(walled, todo)  # after step 7, which climbs whole segments first
 
     # -- planes ------------------------------------------------------------------------------
