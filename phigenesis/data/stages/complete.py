@@ -1152,6 +1152,10 @@ class _Completer:
             share = np.bincount(flat, weights=self.things, minlength=n) / np.maximum(self.sizes, 1)
             self.thing_touched = share > p.upward_max_thing_share
 
+    def horizontal(self, points: F64) -> F64:
+        """The part of (..., 3) camera-frame points across ``up``: the horizontal direction to them."""
+        return points - (points @ self.up)[..., None] * self.up
+
     def pixels(self, s: int) -> NDArray[np.intp]:
         """Flat indices of the pixels of segment ``s``."""
         return self.order[self.starts[s] : self.starts[s + 1]]
@@ -1520,6 +1524,19 @@ class _Completer:
         sums = np.stack([np.bincount(self.flat, colour[:, c], self.count) for c in range(3)], axis=1)
         return sums / np.maximum(self.sizes, 1)[:, None]
 
+    def unseen_facade_parts(self, todo: Mask) -> Mask:
+        """The segments of ``todo`` a facade may climb into (step 7): fewer than ``min_inliers``
+        pixels of depth (dense or sparse: the LiDAR did not see them), at most
+        ``upward_max_thing_share`` of their pixels labelled things, neither green nor blue."""
+        p = self.p
+        mean = self.segment_colours()
+        green, blue = mean @ np.array([-1.0, 2.0, -1.0]), mean @ np.array([-1.0, -1.0, 2.0])
+        evidence = np.bincount(self.flat, self.thin_depth > 0, self.count)
+        todo = todo & ~self.thing_touched & (self.n_known < p.min_inliers) & (evidence < p.min_inliers)
+        # Excess green (2 g - r - b), a vegetation index: a tree's crown above a roof is not the
+        # facade; nor is the sky above it that the labels missed, blue (2 b - r - g).
+        return todo & (green <= p.upward_max_green) & (blue <= p.upward_max_blue)
+
     def propagate_up(self, todo: Mask) -> None:
         """Vertical planes climb into the segments above them (step 7): the upper part of a
         facade, beyond the LiDAR's top beam, is often a segment of its own (cut off by a ledge, a
@@ -1541,13 +1558,7 @@ class _Completer:
         h, w = self.shape
         if h < 2 or not self.facades:
             return
-        mean = self.segment_colours()
-        green, blue = mean @ np.array([-1.0, 2.0, -1.0]), mean @ np.array([-1.0, -1.0, 2.0])
-        evidence = np.bincount(self.flat, self.thin_depth > 0, self.count)
-        todo = todo & ~self.thing_touched & (self.n_known < p.min_inliers) & (evidence < p.min_inliers)
-        # Excess green (2 g - r - b), a vegetation index: a tree's crown above a roof is not the
-        # facade; nor is the sky above it that the labels missed, blue (2 b - r - g).
-        todo &= (green <= p.upward_max_green) & (blue <= p.upward_max_blue)
+        todo = self.unseen_facade_parts(todo)
         i, j = _adjacent_pixels(self.shape)
         cut = self.flat[i] != self.flat[j]
         i, j = i[cut], j[cut]
@@ -1628,7 +1639,7 @@ class _Completer:
         px, col = idx[empty], cols[empty]
         ref = top[col] * w + col
         point = self.rays[ref] * self.depth[ref, None]
-        normal = point - (point @ self.up)[:, None] * self.up
+        normal = self.horizontal(point)
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
         offset = -np.einsum("ij,ij->i", normal, point)
         z, ok = self.intersect(self.rays[px], normal, offset)
@@ -1649,15 +1660,11 @@ class _Completer:
         ``exp(-d / d0)`` of the rows climbed beyond it."""
         p = self.p
         h, w = self.shape
-        mean = self.segment_colours()
-        green, blue = mean @ np.array([-1.0, 2.0, -1.0]), mean @ np.array([-1.0, -1.0, 2.0])
-        evidence = np.bincount(self.flat, self.thin_depth > 0, self.count)
-        unseen = todo & ~self.thing_touched & (self.n_known < p.min_inliers) & (evidence < p.min_inliers)
-        unseen &= (
-            (green <= p.upward_max_green) & (blue <= p.upward_max_blue) & ~(self.ground | self.vegetation)
+        assert self.sky is not None  # the wall step runs only with sky labels
+        unseen = self.unseen_facade_parts(todo) & ~(self.ground | self.vegetation)
+        open_px = (
+            unseen[self.flat] & self.fillable & (self.depth == 0) & ~self.sky & ~self.things & ~self.sky_like
         )
-        sky = np.zeros(self.depth.size, bool) if self.sky is None else self.sky
-        open_px = unseen[self.flat] & self.fillable & (self.depth == 0) & ~sky & ~self.things & ~self.sky_like
         open_px = (open_px & ((self.rays @ self.up) > 0)).reshape(h, w)
         walled = walled.reshape(h, w)
         # Row by row upward, each column carrying the plane, distance and confidence it climbs with.
@@ -1722,12 +1729,11 @@ class _Completer:
         has = (at < len(keys)) & (found // h == cols)
         probe_px = (found % h) * w + cols
 
-        def horizontal(px: NDArray[np.intp]) -> F64:
-            point = self.rays[px] * self.depth[px, None]
-            return np.linalg.norm(point - (point @ self.up)[:, None] * self.up, axis=1)
+        def distance(px: NDArray[np.intp]) -> F64:
+            return np.linalg.norm(self.horizontal(self.rays[px] * self.depth[px, None]), axis=1)
 
         tol = p.inlier_tol_m + p.inlier_tol_rel * z_ref
-        upright = np.abs(horizontal(ref) - horizontal(probe_px)) <= tol
+        upright = np.abs(distance(ref) - distance(probe_px)) <= tol
         # A column too short to check stands if most of the segment's checked columns do.
         wall = bool(has.any()) and float(upright[has].mean()) >= 0.5
         out[cols] = np.where(has, upright, wall)
@@ -1758,7 +1764,7 @@ class _Completer:
         z_base = float(np.median(self.thin_depth[base]))
         spread = float(np.median(np.abs(self.thin_depth[base] - z_base)))
         point = self.rays[base].mean(axis=0) * z_base
-        facing = point - (point @ self.up) * self.up  # horizontal direction to the base
+        facing = self.horizontal(point)  # horizontal direction to the base
         norm = float(np.linalg.norm(facing))
         on = np.abs(z - z_base) <= tol
         # The low-confidence sparse depths alone, where foreground and background leak, do not do.
@@ -1830,7 +1836,7 @@ class _Completer:
         if (q75 - q25) > (p.crown_max_spread if max_spread is None else max_spread) * z_mid:
             return
         point = np.median(self.rays[kn] * z[:, None], axis=0)
-        facing = point - (point @ self.up) * self.up
+        facing = self.horizontal(point)
         norm = float(np.linalg.norm(facing))
         if norm < 1e-6:
             return
