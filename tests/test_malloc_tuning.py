@@ -28,17 +28,18 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
 """
 
 
+def _probe(code: str, *args: str, env: dict[str, str] | None = None) -> list[str]:
+    """What a fresh Python running ``code`` prints, split into words."""
+    out = subprocess.run(
+        [sys.executable, "-c", code, *args], capture_output=True, text=True, check=True, env=env
+    )
+    return out.stdout.split()
+
+
 def _page_faults(keep: bool) -> int:
     # Not inherited from this process, which may have run phigenesis-prep's main already.
     env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
-    out = subprocess.run(
-        [sys.executable, "-c", PROBE, "1" if keep else "0"],
-        capture_output=True,
-        text=True,
-        check=True,
-        env=env,
-    )
-    return int(out.stdout.strip())
+    return int(_probe(PROBE, "1" if keep else "0", env=env)[0])
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="the thresholds are glibc's")
@@ -88,20 +89,13 @@ print(malloc_tuning.huge_pages_disabled(), huge_kib)
 )
 
 
-def _huge_pages(disable: bool, env: dict[str, str] | None = None) -> tuple[bool, int]:
-    out = subprocess.run(
-        [sys.executable, "-c", HUGE_PROBE, "1" if disable else "0"],
-        capture_output=True,
-        text=True,
-        check=True,
-        env=env,
-    )
-    disabled, kib = out.stdout.split()
+def _huge_pages(disable: bool) -> tuple[bool, int]:
+    disabled, kib = _probe(HUGE_PROBE, "1" if disable else "0")
     return disabled == "True", int(kib)
 
 
 @pytest.mark.skipif(platform.system() != "Linux", reason="PR_SET_THP_DISABLE is Linux's")
-def test_huge_pages_off_means_a_large_array_gets_none_and_children_inherit_it() -> None:
+def test_huge_pages_off_means_a_large_array_gets_none() -> None:
     control_disabled, control_kib = _huge_pages(disable=False)
     assert not control_disabled
     disabled, kib = _huge_pages(disable=True)
@@ -112,7 +106,7 @@ def test_huge_pages_off_means_a_large_array_gets_none_and_children_inherit_it() 
 
 
 @pytest.mark.skipif(platform.system() != "Linux", reason="PR_SET_THP_DISABLE is Linux's")
-def test_huge_pages_setting_is_inherited_and_can_be_turned_off(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_huge_pages_setting_is_inherited_and_can_be_turned_off() -> None:
     code = RESET + (
         "import subprocess, sys\n"
         "from phigenesis import malloc_tuning\n"
@@ -122,13 +116,5 @@ def test_huge_pages_setting_is_inherited_and_can_be_turned_off(monkeypatch: pyte
         "print(out.stdout.strip())\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "PHIGENESIS_MALLOC"}
-    on = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
-    assert on.stdout.split() == ["True", "True"]
-    off = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        check=True,
-        env={**env, "PHIGENESIS_MALLOC": "0"},
-    )
-    assert off.stdout.split() == ["False", "False"]
+    assert _probe(code, env=env) == ["True", "True"]
+    assert _probe(code, env={**env, "PHIGENESIS_MALLOC": "0"}) == ["False", "False"]
