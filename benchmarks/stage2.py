@@ -22,6 +22,8 @@ Usage (from the repository root, on a quiet machine)::
    render trusted wherever it covers: the "no SF" row), ``SF random``, ``SF entropy``, ``SF
    localization potential`` and ``truth geometry`` (localization potential on the truth's render).
    ``render only`` is the history's Stage 1 render scored at the same cameras (no diffusion).
+   Sampling uses render anchoring (``--anchor``, ``--anchor-until``; the defaults are
+   ``GenerateOptions``'); ``--no-anchor-rows`` also scores every geometry row without it.
 5. An omega sweep of the localization-potential model of the first seed.
 
 Writes the ``stage2`` section of BENCHMARKS.md (mean +- std over the seeds) and a picture per row.
@@ -46,6 +48,7 @@ import yaml
 from _report import REPO_ROOT, Report
 
 from phigenesis import prep
+from phigenesis.infer.generate import GenerateOptions
 from phigenesis.train.runner import read_metrics
 
 BIN = Path(sys.executable).parent
@@ -61,6 +64,8 @@ ROWS = (
 SECTIONS_SHOWN = ("+5", "+10", "shift_1m", "shift_2m", "shift_4m")
 CEILING = "VAE reconstruction of the truth (ceiling)"
 RENDER_ONLY = "render only (Stage 1, no diffusion)"
+#: A run's evaluation without render anchoring (``--no-anchor-rows``).
+UNANCHORED_EVAL = "eval-anchor0.json"
 
 
 def _cmd(cmd: list[str], env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
@@ -156,6 +161,16 @@ def main() -> None:
     ap.add_argument("--sample-steps", type=int, default=10)
     ap.add_argument("--fid-model", type=Path, help="local TorchScript Inception (default_1.pt) for FID/KID")
     ap.add_argument("--rows", nargs="*", help="only these rows (by uncertainty name), for a partial run")
+    defaults = GenerateOptions()
+    ap.add_argument("--anchor", type=float, default=defaults.anchor, help="render anchoring's strength")
+    ap.add_argument(
+        "--anchor-until", type=float, default=defaults.anchor_until, help="flow time the anchor stops at"
+    )
+    ap.add_argument(
+        "--no-anchor-rows",
+        action="store_true",
+        help="also evaluate every geometry row without render anchoring (rollouts to --rollout-frames)",
+    )
     args = ap.parse_args()
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
@@ -256,6 +271,9 @@ def main() -> None:
                     args.long_rollout_frames if seed in args.long_rollout_seeds else []
                 )
                 eval_jobs.append(_eval_cmd(out, eval_cache, result, args, 1.0, rollout_frames=frames))
+            unanchored = out / UNANCHORED_EVAL
+            if args.no_anchor_rows and kind != "none" and not unanchored.exists():
+                eval_jobs.append(_eval_cmd(out, eval_cache, unanchored, args, 1.0, anchor=0.0))
     train_wall = _in_pairs(train_jobs)
     eval_wall = _in_pairs(eval_jobs)
     lp_name = "SF localization potential"
@@ -281,7 +299,16 @@ def main() -> None:
         _in_pairs(jobs)
 
     results = {key: json.loads((out / "eval.json").read_text()) for key, out in runs.items()}
-    _report_tables(report, args, rows, runs, results, sweep, precompute_s, train_wall, eval_wall)
+    unanchored_rows = []
+    for name, kind, _ in rows:
+        paths = {seed: runs[(name, seed)] / UNANCHORED_EVAL for seed in args.seeds}
+        if kind != "none" and args.no_anchor_rows and all(p.exists() for p in paths.values()):
+            label = f"{name}, no anchoring"
+            unanchored_rows.append((label, kind, "stage1"))
+            results |= {(label, seed): json.loads(p.read_text()) for seed, p in paths.items()}
+    _report_tables(
+        report, args, rows, unanchored_rows, runs, results, sweep, precompute_s, train_wall, eval_wall
+    )
     picture = _rows_picture([(name, runs[(name, args.seeds[0])] / "eval.png") for name, _, _ in rows])
     if picture is not None:
         report.text(
@@ -315,7 +342,8 @@ def _intro(args: argparse.Namespace) -> str:
         f"{args.stage1_steps} steps, torchrun 2 x 1 thread). Each row and seed: `stage2_tiny` trained "
         f"{args.stage2_steps} steps (`configs/stage2/tiny.yaml`: 1 history frame + 5 generated frames a "
         f"window, the flow on {latents}), two runs at a time on the 2 cores. Evaluation "
-        f"(`phigenesis-eval stage2`, {args.sample_steps} Euler steps, omega 1): one clip per held-out scene "
+        f"(`phigenesis-eval stage2`, {args.sample_steps} Euler steps, omega 1, render anchoring "
+        f"{args.anchor:g} until flow time {args.anchor_until:g}): one clip per held-out scene "
         "from frame 1 (history frame 0); +5 and +10 along the recorded trajectory; the first window of "
         "trajectories shifted 1, 2 and 4 m left against the ray-cast truth (a frame whose shifted rig comes "
         "within 0.5 m of a labelled road user is not scored); one rollout per scene through the Gaussian "
@@ -358,6 +386,7 @@ def _eval_cmd(
     args: argparse.Namespace,
     omega: float,
     rollout_frames: list[int] | None = None,
+    anchor: float | None = None,
 ) -> list[str]:
     cmd = [
         str(BIN / "phigenesis-eval"),
@@ -376,6 +405,10 @@ def _eval_cmd(
         "1",
         "--rollout-frames",
         *[str(k) for k in (args.rollout_frames if rollout_frames is None else rollout_frames)],
+        "--anchor",
+        f"{args.anchor if anchor is None else anchor:g}",
+        "--anchor-until",
+        f"{args.anchor_until:g}",
     ]
     if omega == 1.0 and out.name == "eval.json":
         cmd += ["--picture", str(run / "eval.png")]
@@ -400,7 +433,9 @@ def _fixed_row(secs: dict, renderer: str, sections: list[str], key: str, digits:
     return cells
 
 
-def _report_tables(report, args, rows, runs, results, sweep, precompute_s, train_wall, eval_wall) -> None:  # type: ignore[no-untyped-def]
+def _report_tables(
+    report, args, rows, unanchored_rows, runs, results, sweep, precompute_s, train_wall, eval_wall
+) -> None:  # type: ignore[no-untyped-def]
     seeds = args.seeds
     rollout_sections = [f"rollout_{k}" for k in sorted({*args.rollout_frames, *args.long_rollout_frames})]
     sections = [*SECTIONS_SHOWN, *rollout_sections]
@@ -422,12 +457,16 @@ def _report_tables(report, args, rows, runs, results, sweep, precompute_s, train
                 row = _fixed_row(with_ceiling[0], "vae_reconstruction", sections, key, digits)
                 table.append([CEILING, *row])
         table += [
-            [name, *[_metric(results, name, seeds, s, key, digits) for s in sections]] for name, _, _ in rows
+            [name, *[_metric(results, name, seeds, s, key, digits) for s in sections]]
+            for name, _, _ in [*rows, *unanchored_rows]
         ]
         report.table(f"Held-out {label}, mean ± std over {len(seeds)} seeds", ["row", *sections], table)
     if args.fid_model is not None:
         cols = [(s, k) for s in rollout_sections for k in ("fid", "kid")]
-        fid_rows = [[name, *[_metric(results, name, seeds, s, k, 3) for s, k in cols]] for name, _, _ in rows]
+        fid_rows = [
+            [name, *[_metric(results, name, seeds, s, k, 3) for s, k in cols]]
+            for name, _, _ in [*rows, *unanchored_rows]
+        ]
         if with_ceiling:
             cells = [with_ceiling[0].get(s, {}).get("vae_reconstruction", {}).get(k) for s, k in cols]
             fid_rows.append([CEILING, *["—" if c is None else f"{c:.3f}" for c in cells]])

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from torch.testing import assert_close
 
 from phigenesis.infer.flow import (
+    Anchor,
     FixedFrames,
     as_frame_time,
     broadcast_time,
@@ -85,6 +86,82 @@ def test_euler_recovers_z0_in_float32_to_float_tolerance():
     out = euler_sample(lambda z, t, c: velocity_target(z0, eps), eps, steps=30, shift=3.0)
     assert out.dtype == torch.float32
     assert_close(out, z0, rtol=0, atol=1e-5)
+
+
+def _cell_weight(seed: int) -> torch.Tensor:
+    """[B, V, 1, T, h, w] weights in [0, 1] with exact zeros and ones among them."""
+    w = torch.rand(SHAPE[0], SHAPE[1], 1, *SHAPE[3:], generator=torch.Generator().manual_seed(seed))
+    w[..., 0, 0] = 0.0
+    w[..., 1, 0] = 1.0
+    return w.double()
+
+
+def test_a_full_anchor_to_the_end_lands_on_its_latents_and_a_zero_weight_leaves_the_network_alone():
+    ref, noise = latents(5), latents(6)
+    weight = _cell_weight(0)
+    free = euler_sample(lambda z, t, c: -z, noise, steps=5, shift=2.0)
+    out = euler_sample(lambda z, t, c: -z, noise, steps=5, shift=2.0, anchor=Anchor(ref, weight))
+    full = (weight == 1).expand_as(ref)
+    none = (weight == 0).expand_as(ref)
+    assert torch.equal(out[full], ref[full])
+    assert torch.equal(out[none], free[none])
+    between = ((weight > 0) & (weight < 1)).expand_as(ref)
+    assert bool(((out - ref).abs()[between] < (free - ref).abs()[between]).float().mean() > 0.9)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(1, 30), st.floats(0.2, 5.0), st.floats(0.0, 0.95), st.integers(0, 2**16))
+def test_anchoring_to_the_latents_the_exact_velocity_leads_to_changes_nothing(steps, shift, until, seed):
+    # The anchor's path is the straight one from the sampler's noise to its latents: a network
+    # that already follows it is not moved, whatever the weights.
+    z0, eps = latents(seed), latents(seed + 1)
+    plain = euler_sample(lambda z, t, c: velocity_target(z0, eps), eps, steps=steps, shift=shift)
+    anchored = euler_sample(
+        lambda z, t, c: velocity_target(z0, eps),
+        eps,
+        steps=steps,
+        shift=shift,
+        anchor=Anchor(z0, _cell_weight(seed), until=until),
+    )
+    assert_close(anchored, plain, rtol=0, atol=1e-10)
+
+
+def test_an_anchor_stops_at_its_time_and_leaves_held_frames_as_held():
+    ref, noise, hist = latents(5), latents(6), latents(7)
+    grid = time_grid(4).tolist()  # 1, 0.75, 0.5, 0.25, 0
+    states = []
+    fixed = FixedFrames(mask=torch.tensor([True, False, False, False, False]), z0=hist, level=0.0)
+    anchor = Anchor(ref, torch.ones(SHAPE[0], SHAPE[1], 1, *SHAPE[3:], dtype=torch.float64), until=0.5)
+    euler_sample(
+        lambda z, t, c: -z, noise, 4, fixed=fixed, anchor=anchor, callback=lambda i, t, z: states.append(z)
+    )
+    for step, z in enumerate(states):
+        t_now = grid[step + 1]
+        on_path = interpolate(ref, noise, t_now)[:, :, :, 1:]
+        assert torch.equal(z[:, :, :, 0], hist[:, :, :, 0])
+        if t_now >= 0.5:
+            assert_close(z[:, :, :, 1:], on_path, rtol=0, atol=1e-12)
+        else:  # the network's own steps from there: dz = -(t - t') z
+            assert_close(z[:, :, :, 1:], states[step - 1][:, :, :, 1:] * (1 - (grid[step] - t_now)))
+
+
+@pytest.mark.parametrize("bad", ["weight", "until", "nan", "shape"])
+def test_a_bad_anchor_raises(bad):
+    weight = torch.ones(SHAPE[0], SHAPE[1], 1, *SHAPE[3:])
+    if bad == "weight":
+        with pytest.raises(ValueError, match=r"\[0, 1\]"):
+            Anchor(latents(0), weight * 1.5)
+    elif bad == "until":
+        with pytest.raises(ValueError, match="until"):
+            Anchor(latents(0), weight, until=1.0)
+    elif bad == "nan":
+        with pytest.raises(ValueError, match="NaN"):
+            Anchor(latents(0) * float("nan"), weight)
+    else:
+        with pytest.raises(ValueError, match=r"anchor\.z0 and noise"):
+            euler_sample(
+                lambda z, t, c: -z, latents(1, (1, 3, 4, 5, 3, 2)), 2, anchor=Anchor(latents(0), weight)
+            )
 
 
 def test_shift_time_fixes_the_endpoints_is_monotone_and_is_the_identity_at_one():

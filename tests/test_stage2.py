@@ -434,6 +434,51 @@ def test_a_200_frame_rollout_keeps_its_buffer_bounded_and_finite(
     assert verify_cache(tmp_path / "long").frames == 200
 
 
+def test_render_anchoring_pulls_the_targets_to_the_render_over_the_sky_where_u_trusts_it(
+    cache: Path, stage2_checkpoint: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from phigenesis.infer import generate as gen
+
+    seen: list = []
+    renders: list = []
+    real_sample, real_with_sky = gen.euler_sample, gen.with_sky
+
+    def spy_sample(*args, anchor=None, **kwargs):  # type: ignore[no-untyped-def]
+        z = real_sample(*args, anchor=anchor, **kwargs)
+        seen.append((anchor, args[5], z))
+        return z
+
+    def spy_with_sky(render, stage1, cams):  # type: ignore[no-untyped-def]
+        out = real_with_sky(render, stage1, cams)
+        renders.append((out, stage1))
+        return out
+
+    monkeypatch.setattr(gen, "euler_sample", spy_sample)
+    monkeypatch.setattr(gen, "with_sky", spy_with_sky)
+    options = gen.GenerateOptions(steps=3, uncertainty="coverage", anchor=1.0, anchor_until=0.0)
+    result = gen.generate(
+        stage2_checkpoint, cache, "synthetic-s7-0000", 2, 5, tmp_path / "a", options=options, progress=False
+    )
+    assert len(seen) == 1 and len(renders) == 1
+    anchor, condition, z = seen[0]
+    c = anchor.z0.shape[2]
+    u = condition[:, :, c:]  # the condition's trust channel
+    assert torch.equal(anchor.weight, u) and anchor.until == 0.0
+    t_h = 1  # one latent history frame
+    assert float(anchor.weight[:, :, :, :t_h].abs().max()) == 0.0  # history is never anchored
+    full, stage1 = renders[0]
+    denoiser, _ = gen._stage2_checkpoint(stage2_checkpoint)
+    z_full = denoiser.normalize_latents(stage1.encode(full.permute(0, 1, 4, 2, 3)[None]))
+    assert torch.allclose(anchor.z0[:, :, :, t_h:], z_full, atol=1e-5)
+    trusted = (u[:, :, :, t_h:] == 1).expand_as(z_full)
+    assert bool(trusted.any()) and torch.equal(z[:, :, :, t_h:][trusted], anchor.z0[:, :, :, t_h:][trusted])
+    assert torch.isfinite(result.rollout.images).all()
+    with pytest.raises(ValueError, match="anchor must be in"):
+        gen.GenerateOptions(anchor=1.5)
+    with pytest.raises(ValueError, match="anchor_until"):
+        gen.GenerateOptions(anchor_until=1.0)
+
+
 def test_generation_refuses_bad_inputs_naming_what_is_wrong(
     cache: Path,
     stage1_checkpoint: Path,

@@ -79,6 +79,34 @@ def positive(value: str) -> int:
     return n
 
 
+def unit_interval(value: str) -> float:
+    """argparse type: a float in [0, 1]."""
+    x = float(value)
+    if not 0.0 <= x <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {value}")
+    return x
+
+
+def add_anchor_options(parser: argparse.ArgumentParser) -> None:
+    """Stage 2 sampling's render anchoring (``GenerateOptions.anchor`` and ``anchor_until``)."""
+    from phigenesis.infer.generate import GenerateOptions
+
+    defaults = GenerateOptions()
+    parser.add_argument(
+        "--anchor",
+        type=unit_interval,
+        default=defaults.anchor,
+        help="render anchoring: pull each latent cell anchor x u of the way to the render's latent "
+        f"after every sampling step; 0 turns it off (default {defaults.anchor:g})",
+    )
+    parser.add_argument(
+        "--anchor-until",
+        type=unit_interval,
+        default=defaults.anchor_until,
+        help=f"the anchor acts while the flow time is at least this (default {defaults.anchor_until:g})",
+    )
+
+
 def size_hw(value: str) -> tuple[int, int]:
     """argparse type: ``HxW`` in pixels (e.g. ``48x72``)."""
     try:

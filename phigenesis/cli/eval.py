@@ -15,7 +15,7 @@ import math
 import sys
 from typing import Any
 
-from phigenesis.cli.common import Parser, positive, run
+from phigenesis.cli.common import Parser, add_anchor_options, positive, run
 
 #: Table columns: (metric key, header, format).
 COLUMNS = (
@@ -73,6 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--omega", type=float, default=1.0, help="guidance scale (default 1)")
     d.add_argument("--steps", type=positive, default=10, help="Euler steps per window (default 10)")
     d.add_argument("--seed", type=int, default=0, help="seed of the noise")
+    add_anchor_options(d)
     d.add_argument("--fid-model", help="local TorchScript Inception (default_1.pt) for FID/KID")
     d.add_argument("--picture", help="write a PNG of the first clip here")
     d.add_argument("--threads", type=positive, help="torch CPU threads")
@@ -105,6 +106,8 @@ def _stage2(args: argparse.Namespace) -> int:
         uncertainty=args.uncertainty or trained_uncertainty(args.ckpt),
         omega=args.omega,
         steps=args.steps,
+        anchor=args.anchor,
+        anchor_until=args.anchor_until,
         seed=args.seed,
     )
     report = evaluate_stage2(

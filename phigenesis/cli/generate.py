@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from phigenesis.cli.common import Parser, positive, run
+from phigenesis.cli.common import Parser, add_anchor_options, positive, run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,6 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--history-level", type=float, default=0.02, help="noise level generated history is held at"
     )
+    add_anchor_options(parser)
     parser.add_argument(
         "--geometry", choices=GEOMETRY_SOURCES, default="stage1", help="the first window's history Gaussians"
     )
@@ -65,6 +66,8 @@ def _generate(args: argparse.Namespace) -> int:
         omega=args.omega,
         steps=args.steps,
         history_level=args.history_level,
+        anchor=args.anchor,
+        anchor_until=args.anchor_until,
         geometry=args.geometry,
         max_gaussians=args.max_gaussians,
         seed=args.seed,

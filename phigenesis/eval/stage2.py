@@ -45,7 +45,7 @@ import torch
 from torch import Tensor
 
 from phigenesis.eval.depth_protocol import DepthAccumulator
-from phigenesis.infer.conditions import TargetCameras, history_scene, render_condition
+from phigenesis.infer.conditions import TargetCameras, history_scene, render_condition, with_sky
 from phigenesis.infer.generate import GenerateOptions, Rollout, Stage2Runner
 from phigenesis.models.losses import psnr, ssim
 
@@ -116,13 +116,7 @@ def _render_only(runner: Stage2Runner, clip: Any, cams: TargetCameras) -> tuple[
     Gaussians at ``cams``."""
     scene = history_scene("stage1", clip, runner.stage1)
     out = render_condition(scene, cams)
-    f, v = cams.frames, cams.views
-    sky = runner.stage1.background(
-        cams.world_from_camera.flatten(0, 1).float(),
-        cams.intrinsics.expand(f, v, 3, 3).flatten(0, 1).float(),
-        *cams.size_hw,
-    ).reshape(f, v, *cams.size_hw, 3)
-    return (out.rgb + (1 - out.alpha[..., None]) * sky).clamp(0, 1), out.depth
+    return with_sky(out, runner.stage1, cams), out.depth
 
 
 def clip_starts(length: int, history: int, needed: int, count: int) -> list[int]:

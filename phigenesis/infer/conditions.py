@@ -319,3 +319,17 @@ def sequence_plucker(
     k = resize_intrinsics(targets.intrinsics.double(), targets.size_hw, (h, w))  # [V, 3, 3]
     rays = plucker_rays(k.expand(t_h + t, v, 3, 3), rel, h, w)  # [T_h + T, V, 6, h, w]
     return rays.permute(1, 2, 0, 3, 4).float()
+
+
+def with_sky(render: ConditionRender, stage1: Stage1Model, cameras: TargetCameras) -> Tensor:
+    """[F, V, H, W, 3] ``render`` over Stage 1's sky (:meth:`Stage1Model.background` seen from each
+    target camera): the whole image the history's Gaussians predict, in [0, 1]. The sky lies at
+    infinity, so it is as valid from a new camera as from a recorded one."""
+    f, v = cameras.frames, cameras.views
+    with torch.no_grad():
+        sky = stage1.background(
+            cameras.world_from_camera.flatten(0, 1).float(),
+            cameras.intrinsics.expand(f, v, 3, 3).flatten(0, 1).float(),
+            *cameras.size_hw,
+        ).reshape(f, v, *cameras.size_hw, 3)
+    return (render.rgb + (1 - render.alpha[..., None]) * sky).clamp(0, 1)

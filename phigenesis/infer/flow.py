@@ -226,6 +226,37 @@ class FixedFrames:
             _check_same_shape(self.z0, self.noise, "z0 and noise", "FixedFrames")
 
 
+@dataclass(frozen=True, eq=False)
+class Anchor:
+    """Clean latents the sampler pulls its latents towards, cell by cell (render anchoring).
+
+    After every Euler step that lands at a time ``t' >= until``, each latent cell moves by
+    ``weight`` of the way to ``interpolate(z0, noise, t')``, the point of the straight path from
+    the sampler's own starting noise to ``z0`` at that time (the path the flow would follow if
+    the network knew ``z0`` exactly). ``weight = 1`` with ``until = 0`` ends at ``z0`` exactly;
+    ``weight = 0`` leaves the cell to the network. With ``until > 0`` the last steps are the
+    network's alone, so it can smooth the seams between anchored and free cells (SDEdit's idea,
+    applied per cell as RePaint replaces the known region of an inpainting).
+    """
+
+    z0: Tensor  # [B, V, C, T, h, w] the latents to anchor to
+    weight: Tensor  # [B, V, 1 or C, T, h, w] in [0, 1], how strongly each cell is pulled
+    until: float = 0.0  # the anchor acts at flow times >= until; in [0, 1)
+
+    def __post_init__(self) -> None:
+        _check_latents(self.z0, "z0", "Anchor")
+        if not torch.isfinite(self.z0).all():
+            raise ValueError("Anchor: z0 has NaN or infinite values")
+        if self.weight.ndim != 6 or torch.isnan(self.weight).any():
+            raise ValueError(
+                f"Anchor: weight must be [B, V, 1 or C, T, h, w] without NaN, got {tuple(self.weight.shape)}"
+            )
+        if float(self.weight.min()) < 0 or float(self.weight.max()) > 1:
+            raise ValueError("Anchor: weight must lie in [0, 1]")
+        if not (0.0 <= self.until < 1.0):
+            raise ValueError(f"Anchor: until must be in [0, 1), got {self.until}")
+
+
 def _frame_mask(mask: Tensor, batch: int, frames: int, fn: str) -> Tensor:
     """Bool [B, T] from a frame mask [T] or [B, T]."""
     if mask.dtype != torch.bool:
@@ -266,6 +297,7 @@ def euler_sample(
     fixed: FixedFrames | None = None,
     generator: torch.Generator | None = None,
     callback: StepCallback | None = None,
+    anchor: Anchor | None = None,
 ) -> Tensor:
     """Sample latents by Euler integration of the flow from ``t = 1`` (noise) to ``t = 0``.
 
@@ -285,6 +317,8 @@ def euler_sample(
         fixed: latent frames held at a small noise level throughout (:class:`FixedFrames`).
         generator: draws the held frames' noise when ``fixed.noise`` is None; unused otherwise.
         callback: called after every step as ``callback(step, t, z)``.
+        anchor: latents to pull cells towards after each step (:class:`Anchor`), along the path
+            from ``noise``; held frames stay as held.
 
     Returns:
         [B, V, C, T, h, w] the latents at ``t = 0``; held frames are returned as they were held,
@@ -297,6 +331,8 @@ def euler_sample(
         raise ValueError("euler_sample: noise has NaN or infinite values")
     if not math.isfinite(omega):
         raise ValueError(f"euler_sample: omega must be finite, got {omega}")
+    if anchor is not None:
+        _check_same_shape(anchor.z0, noise, "anchor.z0 and noise", "euler_sample")
     batch, _, _, frames, _, _ = noise.shape
     grid = time_grid(steps, shift).tolist()
     uncond = None if condition is None else torch.zeros_like(condition)
@@ -326,6 +362,9 @@ def euler_sample(
                 f"euler_sample: velocity_fn returned shape {tuple(v.shape)}, expected {tuple(z.shape)}"
             )
         z = z + (grid[step] - grid[step + 1]) * v  # steps along v = z_0 - eps as t falls
+        if anchor is not None and grid[step + 1] >= anchor.until:
+            target = interpolate(anchor.z0.to(z.dtype), noise, grid[step + 1])
+            z = torch.lerp(z, target, anchor.weight.to(z.dtype).expand_as(z))  # exact at weights 0 and 1
         if held_cells is not None:
             z = torch.where(held_cells, held, z)
         t = frame_time(grid[step + 1])

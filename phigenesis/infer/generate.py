@@ -12,7 +12,11 @@ A rollout generates ``frames`` frames of a scene from frame ``start`` on, window
 3. the denoiser samples the window's latents by Euler steps of the rectified flow with guidance
    ``omega`` (:func:`~phigenesis.infer.flow.euler_sample`), the history's latents held at a small
    noise level (0 for recorded history, ``history_level`` for generated history: DFoT's
-   stabilisation against drift);
+   stabilisation against drift); with render anchoring (``anchor > 0``) each latent cell of the
+   window is pulled, after every step down to flow time ``anchor_until``, ``anchor * u`` of the way
+   to the straight path from its starting noise to the latent of the render over Stage 1's sky
+   (:class:`~phigenesis.infer.flow.Anchor`): the render fixes the layout where u trusts it and the
+   network fills the holes and finishes the details;
 4. the latents go through the VAE decoder and the Stage 1 adapter
    (:meth:`~phigenesis.models.stage1.Stage1Model.forward_latents`) into the window's Gaussians,
    which join the buffer and condition the next window.
@@ -72,8 +76,9 @@ from phigenesis.infer.conditions import (
     sequence_plucker,
     truth_maps,
     uncertainty_maps,
+    with_sky,
 )
-from phigenesis.infer.flow import FixedFrames, euler_sample
+from phigenesis.infer.flow import Anchor, FixedFrames, euler_sample
 from phigenesis.infer.stereo_forcing import pool_to_latent, stereo_forcing
 from phigenesis.models.dit import MultiViewDiT
 from phigenesis.models.gaussians import GaussianScene
@@ -108,6 +113,8 @@ class GenerateOptions:
     steps: int = 10  # Euler steps per window
     shift: float = 1.0  # time shift of the sampling grid
     history_level: float = 0.02  # flow time generated history is held at (recorded history: 0)
+    anchor: float = 1.0  # render anchoring: each latent cell pulled anchor * u of the way to the render
+    anchor_until: float = 0.1  # the anchor acts at flow times >= this (the rest is the network's)
     geometry: str = "stage1"  # window 0's history Gaussians: stage1 | cache | truth
     voxel_m: float = 0.2  # the buffer's de-duplication voxel
     max_gaussians: int = 200_000  # the buffer's bound
@@ -124,6 +131,10 @@ class GenerateOptions:
             raise ValueError(f"steps must be at least 1, got {self.steps}")
         if not 0 <= self.history_level < 1:
             raise ValueError(f"history_level must be in [0, 1), got {self.history_level}")
+        if not 0 <= self.anchor <= 1:
+            raise ValueError(f"anchor must be in [0, 1], got {self.anchor}")
+        if not 0 <= self.anchor_until < 1:
+            raise ValueError(f"anchor_until must be in [0, 1), got {self.anchor_until}")
         if self.geometry not in GEOMETRY_SOURCES:
             raise ValueError(f"geometry must be one of {GEOMETRY_SOURCES}, got {self.geometry!r}")
 
@@ -353,8 +364,24 @@ def rollout(
             return denoiser(z, t, cnd if cnd is not None else torch.zeros_like(zero), plucker)
 
         cond_arg = None if options.uncertainty == "none" else condition
+        anchor = None
+        if options.anchor > 0 and options.uncertainty != "none":
+            # The render over Stage 1's sky, where u trusts it (u is the condition's last channel).
+            weight = options.anchor * condition[:, :, c:]  # [1, V, 1, T_zh + T_z, h, w]; 0 for history
+            full = with_sky(render, stage1, cams).permute(0, 1, 4, 2, 3)  # [F, V, 3, H, W]
+            z_full = denoiser.normalize_latents(_encode(stage1, full))
+            z_ref = torch.cat([torch.zeros_like(z_hist), z_full], dim=3)
+            anchor = Anchor(z0=z_ref, weight=weight, until=options.anchor_until)
         z = euler_sample(
-            velocity, noise, options.steps, options.shift, options.omega, cond_arg, fixed, generator
+            velocity,
+            noise,
+            options.steps,
+            options.shift,
+            options.omega,
+            cond_arg,
+            fixed,
+            generator,
+            anchor=anchor,
         )
         if not torch.isfinite(z).all():
             raise FloatingPointError(f"window {w}: the sampler produced NaN or Inf latents")
