@@ -301,11 +301,11 @@ def main() -> None:
 
     results = {key: json.loads((out / "eval.json").read_text()) for key, out in runs.items()}
     unanchored_rows = []
-    for name, kind, _ in rows:
+    for name, kind, geometry in rows:
         paths = {seed: runs[(name, seed)] / UNANCHORED_EVAL for seed in args.seeds}
         if kind != "none" and args.no_anchor_rows and all(p.exists() for p in paths.values()):
             label = f"{name}, no anchoring"
-            unanchored_rows.append((label, kind, "stage1"))
+            unanchored_rows.append((label, kind, geometry))
             results |= {(label, seed): json.loads(p.read_text()) for seed, p in paths.items()}
     _report_tables(
         report, args, rows, unanchored_rows, runs, results, sweep, precompute_s, train_wall, eval_wall
