@@ -1,6 +1,7 @@
 """The native CPU rasterizer against the per-pixel reference (values) and the tiled PyTorch path
-(gradients), on random scenes and hard cases; its determinism; the native no-grad projection against the
-PyTorch one, and when it is used; and the fallback where it cannot be built."""
+(gradients), on random scenes and hard cases; its determinism; the native projection's forward against
+the PyTorch one, and when each is used (its backward: tests/test_native_projection_backward.py); and the
+fallback where it cannot be built."""
 
 from __future__ import annotations
 
@@ -391,9 +392,11 @@ def test_native_projection_takes_non_contiguous_inputs_and_any_thread_count():
 
 
 @needs_native
-def test_projection_dispatch_keeps_gradients_on_the_pytorch_path(monkeypatch):
-    """With grad mode on and an input that requires grad, the PyTorch projection runs and gradients flow;
-    with grad mode off (or no input requiring grad) the native one does."""
+def test_projection_dispatch_keeps_camera_gradients_on_the_pytorch_path(monkeypatch):
+    """With grad mode on and means, quats or scales requiring grad, the native projection and its backward
+    run (tests/test_native_projection_backward.py checks those gradients); with poses or intrinsics
+    requiring grad, the PyTorch projection, and gradients flow; with grad mode off (or no input requiring
+    grad) the native forward alone."""
     from phigenesis.models import rasterizer
 
     calls = []
@@ -411,7 +414,9 @@ def test_projection_dispatch_keeps_gradients_on_the_pytorch_path(monkeypatch):
         call = [*args[:index], leaf, *args[index + 1 :]]
         calls.clear()
         proj = rasterizer.project_gaussians(*call)
-        assert calls and proj.conics.requires_grad
+        native_backward = type(proj.conics.grad_fn).__name__ == "_NativeProjectionBackward"
+        assert native_backward == (index < 3) and bool(calls) == (index >= 3)
+        assert proj.conics.requires_grad and not proj.radii.requires_grad
         (grad,) = torch.autograd.grad(proj.means2d.sum() + proj.conics.sum() + proj.depths.sum(), leaf)
         assert torch.isfinite(grad).all() and grad.abs().max() > 0
         calls.clear()

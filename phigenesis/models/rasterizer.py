@@ -67,6 +67,8 @@ FOV_CLAMP_MARGIN = 0.3
 MAX_SCALE = 1e4
 #: Below this squared norm a quaternion is treated as "no rotation" (identity).
 QUATERNION_ZERO_SQNORM = 1e-24
+#: The constants the native projection (``project``, ``project_backward``) takes after ``near``, in order.
+_PROJECTION_CONSTANTS = (EPS_2D, FOV_CLAMP_MARGIN, MAX_SCALE, QUATERNION_ZERO_SQNORM)
 
 Backend = Literal["auto", "cpu", "torch", "gsplat"]
 BACKENDS = ("auto", "cpu", "torch", "gsplat")
@@ -131,33 +133,77 @@ def project_gaussians(
     those below 1/255; without them the extent is :data:`GAUSSIAN_EXTEND` (gsplat's pure-PyTorch
     projection).
 
-    Where no gradient can flow (grad mode off, or no input requires grad) and the tensors are float32 or
-    float64 on the CPU, the native extension's forward-only twin of the PyTorch code computes it (same
-    formulas in the same order and precision, multi-threaded); otherwise, or where the extension is not
-    built, the PyTorch code (:func:`_project_gaussians_torch`, the reference) does.
+    On the CPU, with float32 or float64 tensors, the native extension computes it (the twin of the
+    PyTorch code: same formulas in the same order and precision, multi-threaded): where no gradient can
+    flow (grad mode off, or no input requires grad) its forward alone, else :class:`_NativeProjection`, its
+    forward and its hand-written backward as one autograd step, giving ``means``, ``quats`` and ``scales``
+    the gradients autograd gives through the PyTorch code (to rounding). Where ``world_from_camera`` or
+    ``intrinsics`` require grad (the native backward has none for them), the inputs do not fit, or the
+    extension is not built, the PyTorch code (:func:`_project_gaussians_torch`, the reference) does.
+    ``radii`` and ``valid`` never carry gradients.
     """
     ext = _native_projection(means, quats, scales, world_from_camera, intrinsics, opacities)
     if ext is not None:
         extend = _box_extend(means.shape[-2], opacities, means.dtype, means.device)
-        means2d, conics, depths, radii, valid = ext.project(
-            means.contiguous(),
-            quats.contiguous(),
-            scales.contiguous(),
-            world_from_camera.contiguous(),
-            intrinsics.contiguous(),
-            extend.contiguous(),
-            int(width),
-            int(height),
-            float(near),
-            EPS_2D,
-            FOV_CLAMP_MARGIN,
-            MAX_SCALE,
-            QUATERNION_ZERO_SQNORM,
-        )
+        inputs = (means, quats, scales, world_from_camera, intrinsics)
+        sizes = (int(width), int(height), float(near))
+        if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
+            means2d, conics, depths, radii, valid = _NativeProjection.apply(
+                *(t.contiguous() for t in inputs), extend, *sizes
+            )
+        else:
+            means2d, conics, depths, radii, valid = ext.project(
+                *(t.contiguous() for t in inputs), extend, *sizes, *_PROJECTION_CONSTANTS
+            )
         return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii, valid=valid)
     return _project_gaussians_torch(
         means, quats, scales, world_from_camera, intrinsics, width, height, near, opacities
     )
+
+
+class _NativeProjection(torch.autograd.Function):
+    """The native projection (``ext.project``) and its backward (``ext.project_backward``) as one autograd
+    step: gradients reach ``means`` ((N, 3) or (C, N, 3)), ``quats`` (N, 4) and ``scales`` (N, 3) from
+    those of ``means2d``, ``conics`` and ``depths``; none reach the cameras (``project_gaussians`` keeps
+    cameras that require grad on the PyTorch path) or the box extent. Inputs are contiguous CPU tensors of
+    one dtype (float32 or float64); the backward recomputes what it needs from them, nothing else is saved.
+    """
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, world_from_camera, intrinsics, extend, width, height, near):
+        ext = native.load_rasterizer()
+        assert ext is not None
+        means2d, conics, depths, radii, valid = ext.project(
+            means,
+            quats,
+            scales,
+            world_from_camera,
+            intrinsics,
+            extend,
+            width,
+            height,
+            near,
+            *_PROJECTION_CONSTANTS,
+        )
+        ctx.save_for_backward(means, quats, scales, world_from_camera, intrinsics)
+        ctx.size = (width, height, near)
+        ctx.mark_non_differentiable(radii, valid)
+        return means2d, conics, depths, radii, valid
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_means2d, grad_conics, grad_depths, _grad_radii, _grad_valid):
+        ext = native.load_rasterizer()
+        assert ext is not None
+        grad_means, grad_quats, grad_scales = ext.project_backward(
+            *ctx.saved_tensors,
+            grad_means2d.contiguous(),
+            grad_conics.contiguous(),
+            grad_depths.contiguous(),
+            *ctx.size,
+            *_PROJECTION_CONSTANTS,
+        )
+        return grad_means, grad_quats, grad_scales, None, None, None, None, None, None
 
 
 def _native_projection(means, quats, scales, world_from_camera, intrinsics, opacities):
@@ -165,8 +211,8 @@ def _native_projection(means, quats, scales, world_from_camera, intrinsics, opac
     tensors = (means, quats, scales, world_from_camera, intrinsics)
     if not all(isinstance(t, Tensor) for t in tensors):
         return None
-    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-        return None
+    if torch.is_grad_enabled() and (world_from_camera.requires_grad or intrinsics.requires_grad):
+        return None  # the native backward has no gradients for the cameras
     dtype = means.dtype
     if dtype not in (torch.float32, torch.float64) or any(
         t.dtype != dtype or t.device.type != "cpu" or t.layout != torch.strided for t in tensors

@@ -1,8 +1,8 @@
 // Native CPU Gaussian rasterizer: tile binning, front-to-back compositing and its backward pass.
 //
 // The projection (3D Gaussians -> screen-space means, conics, depths, radii) is PyTorch's
-// (phigenesis/models/rasterizer.py, differentiable by autograd), with a forward-only native twin for
-// no-grad renders in project_cpu.cpp (bound here as `project`); this file does what is slow there:
+// (phigenesis/models/rasterizer.py, differentiable by autograd), with a native twin and its backward in
+// project_cpu.cpp (bound here as `project` and `project_backward`); this file does the rest:
 //
 //   bin:      every (camera, Gaussian) with a non-zero radius goes to each 16x16 tile its per-axis box
 //             touches (boxes are clipped to the image, so one Gaussian holds at most every tile); each
@@ -496,12 +496,19 @@ std::vector<at::Tensor> backward(const at::Tensor& means2d, const at::Tensor& co
 }  // namespace
 
 namespace phigenesis_native {
-// project_cpu.cpp: the forward-only EWA projection.
+// project_cpu.cpp: the EWA projection.
 std::vector<at::Tensor> project_forward(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
                                         const at::Tensor& world_from_camera, const at::Tensor& intrinsics,
                                         const at::Tensor& extend, int64_t width, int64_t height, double near,
                                         double eps2d, double fov_clamp_margin, double max_scale,
                                         double quaternion_zero_sqnorm);
+// project_cpu.cpp: its backward (gradients of means, quats, scales).
+std::vector<at::Tensor> project_backward(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                         const at::Tensor& world_from_camera, const at::Tensor& intrinsics,
+                                         const at::Tensor& grad_means2d, const at::Tensor& grad_conics,
+                                         const at::Tensor& grad_depths, int64_t width, int64_t height, double near,
+                                         double eps2d, double fov_clamp_margin, double max_scale,
+                                         double quaternion_zero_sqnorm);
 }  // namespace phigenesis_native
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -515,7 +522,11 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project", &phigenesis_native::project_forward,
         "(means, quats, scales, world_from_camera, intrinsics, extend, width, height, near, eps2d, "
         "fov_clamp_margin, max_scale, quaternion_zero_sqnorm) -> [means2d, conics, depths, radii, valid] "
-        "(forward only; see project_cpu.cpp)");
+        "(see project_cpu.cpp)");
+  m.def("project_backward", &phigenesis_native::project_backward,
+        "(means, quats, scales, world_from_camera, intrinsics, grad_means2d, grad_conics, grad_depths, width, "
+        "height, near, eps2d, fov_clamp_margin, max_scale, quaternion_zero_sqnorm) -> "
+        "[grad_means, grad_quats, grad_scales] (see project_cpu.cpp)");
   m.def("max_alpha", [] { return kMaxAlpha; });
   m.def("alpha_threshold", [] { return kAlphaThreshold; });
   m.def("transmittance_threshold", [] { return kTransmittanceThreshold; });
