@@ -10,10 +10,11 @@ Usage (from the repository root, on a quiet machine)::
    frames and ``--eval-scenes`` held-out scenes (seed 100) of 40 frames, at 96 x 144, bundled
    synthetic pipeline.
 2. ``phigenesis-train vae`` (vae_tiny, 5-frame clips at 48 x 72, 2 threads).
-3. Step time before/after the native rasterizer: ``--speed-steps`` (15) steps of the same Stage 1
-   run (same config, VAE and ``torchrun`` setup as step 4), once with ``PHIGENESIS_RASTERIZER=torch``
-   (tiled PyTorch) and once with ``PHIGENESIS_RASTERIZER=cpu`` (the native kernel); not counted in the
-   budget.
+3. Step time before/after the native rasterizer and projection: ``--speed-steps`` (15) steps of the
+   same Stage 1 run (same config, VAE and ``torchrun`` setup as step 4), once with
+   ``PHIGENESIS_RASTERIZER=torch`` (tiled PyTorch), once with ``PHIGENESIS_RASTERIZER=cpu`` and
+   ``PHIGENESIS_PROJECTION=torch`` (the native kernel, the projection in PyTorch) and once with the
+   native kernel and projection; not counted in the budget.
 4. ``phigenesis-train stage1`` with ``configs/stage1/tiny.yaml`` under ``torchrun`` with 2 CPU
    processes of 1 thread each (gloo), each drawing one clip per step (batch 2), with the native
    rasterizer where it builds. Its steps fill the budget: the trainer has no wall-clock limit (its
@@ -55,8 +56,18 @@ from phigenesis.models.rasterizer import native_available
 from phigenesis.train.runner import read_metrics
 
 BIN = Path(sys.executable).parent
-#: PHIGENESIS_RASTERIZER values of the two speed runs, and their names in the table.
+#: PHIGENESIS_RASTERIZER values of the two full-run choices, and their names in the tables.
 SPEED_BACKENDS = {"torch": "tiled PyTorch", "cpu": "native C++"}
+#: The speed runs: key -> (name, environment). The second is the first native version (its projection,
+#: forward and backward, still in PyTorch); the last is what the full run uses where the kernel builds.
+SPEED_RUNS = {
+    "torch": ("tiled PyTorch rasterizer", {"PHIGENESIS_RASTERIZER": "torch"}),
+    "cpu-torch-projection": (
+        "native C++ rasterizer, PyTorch projection",
+        {"PHIGENESIS_RASTERIZER": "cpu", "PHIGENESIS_PROJECTION": "torch"},
+    ),
+    "cpu": ("native C++ rasterizer and projection", {"PHIGENESIS_RASTERIZER": "cpu"}),
+}
 
 
 def _run(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, float]:
@@ -78,11 +89,11 @@ def _train_stage1(
     vae_run: Path,
     out: Path,
     steps: int,
-    rasterizer: str,
+    env: dict[str, str],
     time_limit_s: float | None = None,
 ) -> tuple[float, float]:
     """Stage 1 of ``configs/stage1/tiny.yaml`` for ``steps`` steps under torchrun (2 x 1 thread) with
-    ``PHIGENESIS_RASTERIZER=rasterizer``; (wall seconds, peak RSS GiB)."""
+    ``env`` (the rasterizer's choice); (wall seconds, peak RSS GiB)."""
     shutil.rmtree(out, ignore_errors=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     cfg = yaml.safe_load((REPO_ROOT / "configs/stage1/tiny.yaml").read_text())
@@ -94,7 +105,7 @@ def _train_stage1(
         f"{sys.executable} -m torch.distributed.run --nproc_per_node 2 -m phigenesis.cli.train stage1 "
         f"--shards {train_cache} --config {cfg_path} --out {out} --no-progress".split()
         + ([] if time_limit_s is None else ["--time-limit-min", f"{time_limit_s / 60:.3f}"]),
-        env={"OMP_NUM_THREADS": "1", "PHIGENESIS_RASTERIZER": rasterizer},
+        env={"OMP_NUM_THREADS": "1", **env},
     )
 
 
@@ -207,12 +218,12 @@ def main() -> None:
 
     # Before/after: a few steps of the same run with each rasterizer (not counted in the budget).
     speed: dict[str, tuple[list[float], float, float]] = {}  # backend: (step seconds, wall s, RSS GiB)
-    for backend in SPEED_BACKENDS if native else ("torch",):
+    for backend in SPEED_RUNS if native else ("torch",):
         run = work / f"speed-{backend}"
         key = f"speed_{backend}"
         reused = args.reuse and key in timings and (run / "model.safetensors").exists()
         if not reused:
-            timings[key] = _train_stage1(train_cache, vae_run, run, args.speed_steps, backend)
+            timings[key] = _train_stage1(train_cache, vae_run, run, args.speed_steps, SPEED_RUNS[backend][1])
             timings_path.write_text(json.dumps(timings))
         speed[backend] = (_step_seconds(run), *timings[key])
 
@@ -239,7 +250,9 @@ def main() -> None:
     if not (args.reuse and (s1_run / "model.safetensors").exists() and "stage1" in timings):
         print(plan, flush=True)
         limit = None if args.stage1_steps is not None else budget_s - vae_wall
-        timings["stage1"] = _train_stage1(train_cache, vae_run, s1_run, s1_steps, full_backend, limit)
+        timings["stage1"] = _train_stage1(
+            train_cache, vae_run, s1_run, s1_steps, SPEED_RUNS[full_backend][1], limit
+        )
         timings["stage1_plan"] = plan
         timings_path.write_text(json.dumps(timings))
     plan = timings.get("stage1_plan", "")  # how the reused run's steps were chosen
@@ -293,44 +306,50 @@ def main() -> None:
 def _speed_table(
     speed: dict[str, tuple[list[float], float, float]], steps: int, native: bool
 ) -> tuple[str, list[str], list[list[object]], str]:
-    """Stage 1 step time with the tiled PyTorch rasterizer and with the native kernel."""
+    """Stage 1 step time with the tiled PyTorch rasterizer, the native kernel with the PyTorch
+    projection, and the native kernel and projection."""
     medians = {b: statistics.median(sec) for b, (sec, _, _) in speed.items()}
     rows: list[list[object]] = []
-    for backend, label in SPEED_BACKENDS.items():
-        if backend not in speed:
-            rows.append([label, f"`{backend}`", "—", "—", "—", "—", "—"])
+    for key, (label, env) in SPEED_RUNS.items():
+        setting = ", ".join(f"`{k}={v}`" for k, v in env.items())
+        if key not in speed:
+            rows.append([label, setting, "—", "—", "—", "—", "—", "—"])
             continue
-        seconds, wall, rss = speed[backend]
-        ratio = medians["torch"] / medians[backend]
+        seconds, wall, rss = speed[key]
+        previous = medians.get("cpu-torch-projection")
         rows.append(
             [
                 label,
-                f"`{backend}`",
+                setting,
                 len(seconds),
-                f"{medians[backend]:.2f}",
+                f"{medians[key]:.2f}",
                 f"{wall:.0f}",
                 f"{rss:.2f}",
-                "1.0x" if backend == "torch" else f"{ratio:.1f}x",
+                f"{medians['torch'] / medians[key]:.1f}x",
+                "—" if previous is None else f"{previous / medians[key]:.2f}x",
             ]
         )
     note = (
         f"{steps} steps of the Stage 1 run above (same config, VAE, data and torchrun layout; the first "
-        "steps of its warm-up), once per rasterizer, chosen with `PHIGENESIS_RASTERIZER`. Median s/step "
+        "steps of its warm-up), once per setting, one after the other. The projection (EWA, shared by the "
+        "CPU rasterizers) is native unless `PHIGENESIS_PROJECTION=torch`. Median s/step "
         "of the logged step times (the first step included in the median); wall: the whole command, "
-        "start-up and the final checkpoint included. Speed-up: tiled median / this median."
+        "start-up and the final checkpoint included. Speed-ups: the tiled run's median, and the native "
+        "run's with the PyTorch projection (the previous state), over this one's."
     )
     if not native:
         note += " The native kernel is not built here (`native_available()` is False): no native row."
     return (
-        "Stage 1 step time: tiled PyTorch vs native rasterizer",
+        "Stage 1 step time: tiled PyTorch vs native rasterizer vs native projection",
         [
             "rasterizer",
-            "PHIGENESIS_RASTERIZER",
+            "environment",
             "steps",
             "median s/step",
             "wall s",
             "peak RSS GiB",
-            "speed-up",
+            "speed-up over tiled",
+            "speed-up over PyTorch projection",
         ],
         rows,
         note,

@@ -288,6 +288,19 @@ def test_cameras_that_require_grad_keep_the_pytorch_projection():
     assert grad.abs().max() > 0
 
 
+def test_phigenesis_projection_torch_keeps_the_pytorch_projection(monkeypatch):
+    scene = _scene(30, 11)
+    cams, k = _cameras(2), _intrinsics(2, 30, 20, 25.0)
+    means = scene["means"].clone().requires_grad_()
+    monkeypatch.setenv("PHIGENESIS_PROJECTION", "torch")
+    proj = project_gaussians(means, scene["quats"], scene["scales"], cams, k, 30, 20)
+    assert type(proj.means2d.grad_fn).__name__ != "_NativeProjectionBackward"
+    monkeypatch.setenv("PHIGENESIS_PROJECTION", "auto")
+    native_proj = project_gaussians(means, scene["quats"], scene["scales"], cams, k, 30, 20)
+    assert type(native_proj.means2d.grad_fn).__name__ == "_NativeProjectionBackward"
+    torch.testing.assert_close(proj.conics, native_proj.conics)
+
+
 def test_gradients_flow_through_non_contiguous_and_expanded_inputs():
     """Per-camera centres made by expanding one set (the backward's (C, N, 3) gradient is summed back by
     autograd), transposed and sliced inputs."""

@@ -138,8 +138,9 @@ def project_gaussians(
     flow (grad mode off, or no input requires grad) its forward alone, else :class:`_NativeProjection`, its
     forward and its hand-written backward as one autograd step, giving ``means``, ``quats`` and ``scales``
     the gradients autograd gives through the PyTorch code (to rounding). Where ``world_from_camera`` or
-    ``intrinsics`` require grad (the native backward has none for them), the inputs do not fit, or the
-    extension is not built, the PyTorch code (:func:`_project_gaussians_torch`, the reference) does.
+    ``intrinsics`` require grad (the native backward has none for them), the inputs do not fit, the
+    extension is not built, or ``$PHIGENESIS_PROJECTION`` is ``torch``, the PyTorch code
+    (:func:`_project_gaussians_torch`, the reference) does.
     ``radii`` and ``valid`` never carry gradients.
     """
     ext = _native_projection(means, quats, scales, world_from_camera, intrinsics, opacities)
@@ -213,6 +214,8 @@ def _native_projection(means, quats, scales, world_from_camera, intrinsics, opac
         return None
     if torch.is_grad_enabled() and (world_from_camera.requires_grad or intrinsics.requires_grad):
         return None  # the native backward has no gradients for the cameras
+    if os.environ.get("PHIGENESIS_PROJECTION", "").strip().lower() == "torch":
+        return None  # kept in PyTorch on purpose (to compare, or to debug)
     dtype = means.dtype
     if dtype not in (torch.float32, torch.float64) or any(
         t.dtype != dtype or t.device.type != "cpu" or t.layout != torch.strided for t in tensors
