@@ -22,8 +22,9 @@ Usage (from the repository root, on a quiet machine)::
    render trusted wherever it covers: the "no SF" row), ``SF random``, ``SF entropy``, ``SF
    localization potential`` and ``truth geometry`` (localization potential on the truth's render).
    ``render only`` is the history's Stage 1 render scored at the same cameras (no diffusion).
-   Sampling uses render anchoring (``--anchor``, ``--anchor-until``; the defaults are
-   ``GenerateOptions``'); ``--no-anchor-rows`` also scores every geometry row without it.
+   Sampling uses render anchoring and pasting (``--anchor``, ``--anchor-until``, ``--paste``; the
+   defaults are ``GenerateOptions``'); ``--no-anchor-rows`` also scores every geometry row with
+   neither (the network alone), ``--no-paste-rows`` anchored but not pasted.
 5. An omega sweep of the localization-potential model of the first seed.
 
 Writes the ``stage2`` section of BENCHMARKS.md (mean +- std over the seeds) and a picture per row.
@@ -64,8 +65,12 @@ ROWS = (
 SECTIONS_SHOWN = ("+5", "+10", "shift_1m", "shift_2m", "shift_4m")
 CEILING = "VAE reconstruction of the truth (ceiling)"
 RENDER_ONLY = "render only (Stage 1, no diffusion)"
-#: A run's evaluation without render anchoring (``--no-anchor-rows``).
-UNANCHORED_EVAL = "eval-anchor0.json"
+#: A run's other evaluations: (flag, file, row-name suffix, options): without render anchoring or
+#: pasting (``--no-anchor-rows``), anchored but not pasted (``--no-paste-rows``).
+VARIANTS = (
+    ("no_anchor_rows", "eval-anchor0.json", "no anchoring", {"anchor": 0.0, "paste": 0.0}),
+    ("no_paste_rows", "eval-paste0.json", "anchored, not pasted", {"paste": 0.0}),
+)
 
 
 def _cmd(cmd: list[str], env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
@@ -169,7 +174,14 @@ def main() -> None:
     ap.add_argument(
         "--no-anchor-rows",
         action="store_true",
-        help="also evaluate every geometry row without render anchoring (rollouts to --rollout-frames)",
+        help="also evaluate every geometry row without render anchoring and pasting (rollouts to "
+        "--rollout-frames)",
+    )
+    ap.add_argument("--paste", type=float, default=defaults.paste, help="render pasting's strength")
+    ap.add_argument(
+        "--no-paste-rows",
+        action="store_true",
+        help="also evaluate every geometry row anchored but not pasted (rollouts to --rollout-frames)",
     )
     args = ap.parse_args()
     work = args.work
@@ -271,9 +283,9 @@ def main() -> None:
                     args.long_rollout_frames if seed in args.long_rollout_seeds else []
                 )
                 eval_jobs.append(_eval_cmd(out, eval_cache, result, args, 1.0, rollout_frames=frames))
-            unanchored = out / UNANCHORED_EVAL
-            if args.no_anchor_rows and kind != "none" and not unanchored.exists():
-                eval_jobs.append(_eval_cmd(out, eval_cache, unanchored, args, 1.0, anchor=0.0))
+            for flag, file, _, options in VARIANTS:
+                if getattr(args, flag) and kind != "none" and not (out / file).exists():
+                    eval_jobs.append(_eval_cmd(out, eval_cache, out / file, args, 1.0, **options))
     train_wall = _in_pairs(train_jobs)
     eval_wall = _in_pairs(eval_jobs)
     precompute_s, train_wall, eval_wall = _remembered(work, precompute_s, train_wall, eval_wall)
@@ -300,15 +312,16 @@ def main() -> None:
         _in_pairs(jobs)
 
     results = {key: json.loads((out / "eval.json").read_text()) for key, out in runs.items()}
-    unanchored_rows = []
-    for name, kind, geometry in rows:
-        paths = {seed: runs[(name, seed)] / UNANCHORED_EVAL for seed in args.seeds}
-        if kind != "none" and args.no_anchor_rows and all(p.exists() for p in paths.values()):
-            label = f"{name}, no anchoring"
-            unanchored_rows.append((label, kind, geometry))
-            results |= {(label, seed): json.loads(p.read_text()) for seed, p in paths.items()}
+    variant_rows = []
+    for flag, file, suffix, _ in VARIANTS:
+        for name, kind, geometry in rows:
+            paths = {seed: runs[(name, seed)] / file for seed in args.seeds}
+            if kind != "none" and getattr(args, flag) and all(p.exists() for p in paths.values()):
+                label = f"{name}, {suffix}"
+                variant_rows.append((label, kind, geometry))
+                results |= {(label, seed): json.loads(p.read_text()) for seed, p in paths.items()}
     _report_tables(
-        report, args, rows, unanchored_rows, runs, results, sweep, precompute_s, train_wall, eval_wall
+        report, args, rows, variant_rows, runs, results, sweep, precompute_s, train_wall, eval_wall
     )
     picture = _rows_picture([(name, runs[(name, args.seeds[0])] / "eval.png") for name, _, _ in rows])
     if picture is not None:
@@ -344,10 +357,11 @@ def _intro(args: argparse.Namespace) -> str:
         f"{args.stage2_steps} steps (`configs/stage2/tiny.yaml`: 1 history frame + 5 generated frames a "
         f"window, the flow on {latents}), two runs at a time on the 2 cores. Evaluation "
         f"(`phigenesis-eval stage2`, {args.sample_steps} Euler steps, omega 1, render anchoring "
-        f"{args.anchor:g} until flow time {args.anchor_until:g}): one clip per held-out scene "
-        "from frame 1 (history frame 0); +5 and +10 along the recorded trajectory; the first window of "
-        "trajectories shifted 1, 2 and 4 m left against the ray-cast truth (a frame whose shifted rig comes "
-        "within 0.5 m of a labelled road user is not scored); one rollout per scene through the Gaussian "
+        f"{args.anchor:g} until flow time {args.anchor_until:g}, render pasting {args.paste:g}): one clip "
+        "per held-out scene from frame 1 (history frame 0); +5 and +10 along the recorded "
+        "trajectory; the first window of trajectories shifted 1, 2 and 4 m left against the ray-cast "
+        "truth (a frame whose shifted rig comes within 0.5 m of a labelled road user is not scored); "
+        "one rollout per scene through the Gaussian "
         f"buffer to frame {max(args.rollout_frames, default=0)} for every seed and to frame {longest} for "
         f"seed(s) {', '.join(map(str, args.long_rollout_seeds)) or 'none'} (the columns past "
         f"{max(args.rollout_frames, default=0)} are those seeds'). FID/KID at rollout frame k over the 5 "
@@ -410,6 +424,7 @@ def _eval_cmd(
     omega: float,
     rollout_frames: list[int] | None = None,
     anchor: float | None = None,
+    paste: float | None = None,
 ) -> list[str]:
     cmd = [
         str(BIN / "phigenesis-eval"),
@@ -432,6 +447,8 @@ def _eval_cmd(
         f"{args.anchor if anchor is None else anchor:g}",
         "--anchor-until",
         f"{args.anchor_until:g}",
+        "--paste",
+        f"{args.paste if paste is None else paste:g}",
     ]
     if omega == 1.0 and out.name == "eval.json":
         cmd += ["--picture", str(run / "eval.png")]
@@ -457,7 +474,7 @@ def _fixed_row(secs: dict, renderer: str, sections: list[str], key: str, digits:
 
 
 def _report_tables(
-    report, args, rows, unanchored_rows, runs, results, sweep, precompute_s, train_wall, eval_wall
+    report, args, rows, variant_rows, runs, results, sweep, precompute_s, train_wall, eval_wall
 ) -> None:  # type: ignore[no-untyped-def]
     seeds = args.seeds
     rollout_sections = [f"rollout_{k}" for k in sorted({*args.rollout_frames, *args.long_rollout_frames})]
@@ -481,14 +498,14 @@ def _report_tables(
                 table.append([CEILING, *row])
         table += [
             [name, *[_metric(results, name, seeds, s, key, digits) for s in sections]]
-            for name, _, _ in [*rows, *unanchored_rows]
+            for name, _, _ in [*rows, *variant_rows]
         ]
         report.table(f"Held-out {label}, mean ± std over {len(seeds)} seeds", ["row", *sections], table)
     if args.fid_model is not None:
         cols = [(s, k) for s in rollout_sections for k in ("fid", "kid")]
         fid_rows = [
             [name, *[_metric(results, name, seeds, s, k, 3) for s, k in cols]]
-            for name, _, _ in [*rows, *unanchored_rows]
+            for name, _, _ in [*rows, *variant_rows]
         ]
         if with_ceiling:
             cells = [with_ceiling[0].get(s, {}).get("vae_reconstruction", {}).get(k) for s, k in cols]

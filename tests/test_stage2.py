@@ -479,6 +479,53 @@ def test_render_anchoring_pulls_the_targets_to_the_render_over_the_sky_where_u_t
         gen.GenerateOptions(anchor_until=1.0)
 
 
+def test_render_pasting_keeps_the_render_where_u_trusts_it_and_the_decoding_in_the_holes(
+    cache: Path, stage2_checkpoint: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from phigenesis.infer import generate as gen
+
+    renders: list = []
+    real_with_sky = gen.with_sky
+
+    def spy_with_sky(render, stage1, cams):  # type: ignore[no-untyped-def]
+        out = real_with_sky(render, stage1, cams)
+        renders.append(out)
+        return out
+
+    monkeypatch.setattr(gen, "with_sky", spy_with_sky)
+    results = {}
+    for paste in (0.0, 1.0):
+        options = gen.GenerateOptions(steps=2, uncertainty="coverage", paste=paste)
+        results[paste] = gen.generate(
+            stage2_checkpoint,
+            cache,
+            "synthetic-s7-0000",
+            2,
+            5,
+            tmp_path / f"p{paste:g}",
+            options=options,
+            progress=False,
+        ).rollout
+    assert len(renders) == 2  # one window each
+    decoded, pasted = results[0.0], results[1.0]
+    u = pasted.u  # [N, V, H, W], the same map in both runs (the same history)
+    assert torch.equal(u, decoded.u)
+    trusted, holes = u == 1, u == 0
+    assert bool(trusted.any()) and bool(holes.any())
+    full = renders[1].clamp(0, 1)  # [N, V, H, W, 3] the render over Stage 1's sky
+    assert torch.equal(pasted.images[trusted], full[trusted])
+    assert torch.equal(pasted.images[holes], decoded.images[holes])
+    between = (u > 0.1) & (u < 0.9)
+    if bool(between.any()):  # a blend: between the two, never outside them
+        lo = torch.minimum(full, decoded.images)[between] - 1e-6
+        hi = torch.maximum(full, decoded.images)[between] + 1e-6
+        assert bool(((pasted.images[between] >= lo) & (pasted.images[between] <= hi)).all())
+    # The Gaussians are those of the frames as kept: the pasted run's differ from the decoded run's.
+    assert not torch.equal(pasted.windows[0].means, decoded.windows[0].means)
+    with pytest.raises(ValueError, match="paste must be in"):
+        gen.GenerateOptions(paste=-0.1)
+
+
 def test_generation_refuses_bad_inputs_naming_what_is_wrong(
     cache: Path,
     stage1_checkpoint: Path,

@@ -88,7 +88,8 @@ def unit_interval(value: str) -> float:
 
 
 def add_anchor_options(parser: argparse.ArgumentParser) -> None:
-    """Stage 2 sampling's render anchoring (``GenerateOptions.anchor`` and ``anchor_until``)."""
+    """Stage 2 sampling's render anchoring and pasting (``GenerateOptions.anchor``, ``anchor_until``
+    and ``paste``)."""
     from phigenesis.infer.generate import GenerateOptions
 
     defaults = GenerateOptions()
@@ -104,6 +105,13 @@ def add_anchor_options(parser: argparse.ArgumentParser) -> None:
         type=unit_interval,
         default=defaults.anchor_until,
         help=f"the anchor acts while the flow time is at least this (default {defaults.anchor_until:g})",
+    )
+    parser.add_argument(
+        "--paste",
+        type=unit_interval,
+        default=defaults.paste,
+        help="render pasting: move each decoded pixel paste x u of the way to the render; 0 keeps the "
+        f"VAE's decoding as it is (default {defaults.paste:g})",
     )
 
 

@@ -108,6 +108,7 @@ def _stage2(args: argparse.Namespace) -> int:
         steps=args.steps,
         anchor=args.anchor,
         anchor_until=args.anchor_until,
+        paste=args.paste,
         seed=args.seed,
     )
     report = evaluate_stage2(

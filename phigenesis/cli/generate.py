@@ -68,6 +68,7 @@ def _generate(args: argparse.Namespace) -> int:
         history_level=args.history_level,
         anchor=args.anchor,
         anchor_until=args.anchor_until,
+        paste=args.paste,
         geometry=args.geometry,
         max_gaussians=args.max_gaussians,
         seed=args.seed,

@@ -17,9 +17,13 @@ A rollout generates ``frames`` frames of a scene from frame ``start`` on, window
    to the straight path from its starting noise to the latent of the render over Stage 1's sky
    (:class:`~phigenesis.infer.flow.Anchor`): the render fixes the layout where u trusts it and the
    network fills the holes and finishes the details;
-4. the latents go through the VAE decoder and the Stage 1 adapter
-   (:meth:`~phigenesis.models.stage1.Stage1Model.forward_latents`) into the window's Gaussians,
-   which join the buffer and condition the next window.
+4. the latents go through the VAE decoder; with render pasting (``paste > 0``) each pixel of the
+   decoded frame is then moved ``paste * u`` of the way to the render over Stage 1's sky (the
+   render kept where u trusts it, the generation in the holes: a small VAE's decoding is blurrier
+   than what it encodes, so a generated copy of the render falls below the render itself), and the
+   frames are encoded again;
+5. the Stage 1 adapter (:meth:`~phigenesis.models.stage1.Stage1Model.forward_latents`) turns the
+   window's latents into its Gaussians, which join the buffer and condition the next window.
 
 Trajectories: ``recorded`` (the cache's own poses and capture times), ``shift:Xm`` (the recorded
 ones moved X metres along the ego's +y, left; negative: right) or a JSON file (``{"frames":
@@ -115,6 +119,7 @@ class GenerateOptions:
     history_level: float = 0.02  # flow time generated history is held at (recorded history: 0)
     anchor: float = 1.0  # render anchoring: each latent cell pulled anchor * u of the way to the render
     anchor_until: float = 0.1  # the anchor acts at flow times >= this (the rest is the network's)
+    paste: float = 1.0  # render pasting: each decoded pixel moved paste * u of the way to the render
     geometry: str = "stage1"  # window 0's history Gaussians: stage1 | cache | truth
     voxel_m: float = 0.2  # the buffer's de-duplication voxel
     max_gaussians: int = 200_000  # the buffer's bound
@@ -135,6 +140,8 @@ class GenerateOptions:
             raise ValueError(f"anchor must be in [0, 1], got {self.anchor}")
         if not 0 <= self.anchor_until < 1:
             raise ValueError(f"anchor_until must be in [0, 1), got {self.anchor_until}")
+        if not 0 <= self.paste <= 1:
+            raise ValueError(f"paste must be in [0, 1], got {self.paste}")
         if self.geometry not in GEOMETRY_SOURCES:
             raise ValueError(f"geometry must be one of {GEOMETRY_SOURCES}, got {self.geometry!r}")
 
@@ -143,7 +150,7 @@ class GenerateOptions:
 class Rollout:
     """What a rollout generated, per frame (N frames, V views of H x W at the model's size)."""
 
-    images: Tensor  # [N, V, H, W, 3] RGB in [0, 1], the VAE's decoding of the generated latents
+    images: Tensor  # [N, V, H, W, 3] RGB in [0, 1], the VAE's decoding of the generated latents (pasted)
     depth: Tensor  # [N, V, H, W] z-depth of the generated Gaussians, metres, 0 = none
     alpha: Tensor  # [N, V, H, W] their accumulated opacity
     semantic: Tensor  # [N, V, H, W] uint8 argmax class (SKY where alpha < HOLE_ALPHA)
@@ -364,11 +371,12 @@ def rollout(
             return denoiser(z, t, cnd if cnd is not None else torch.zeros_like(zero), plucker)
 
         cond_arg = None if options.uncertainty == "none" else condition
-        anchor = None
-        if options.anchor > 0 and options.uncertainty != "none":
+        anchor = full = None
+        if options.uncertainty != "none" and (options.anchor > 0 or options.paste > 0):
+            full = with_sky(render, stage1, cams).permute(0, 1, 4, 2, 3)  # [F, V, 3, H, W]
+        if options.anchor > 0 and full is not None:
             # The render over Stage 1's sky, where u trusts it (u is the condition's last channel).
             weight = options.anchor * condition[:, :, c:]  # [1, V, 1, T_zh + T_z, h, w]; 0 for history
-            full = with_sky(render, stage1, cams).permute(0, 1, 4, 2, 3)  # [F, V, 3, H, W]
             z_full = denoiser.normalize_latents(_encode(stage1, full))
             z_ref = torch.cat([torch.zeros_like(z_hist), z_full], dim=3)
             anchor = Anchor(z0=z_ref, weight=weight, until=options.anchor_until)
@@ -387,6 +395,9 @@ def rollout(
             raise FloatingPointError(f"window {w}: the sampler produced NaN or Inf latents")
         z_gen = denoiser.denormalize_latents(z[:, :, :, t_zh:])  # the VAE's latents again
         images = stage1.decode(z_gen)[0]  # [F, V, 3, H, W]
+        if options.paste > 0 and full is not None:
+            images = torch.lerp(images, full, (options.paste * u)[:, :, None].to(images.dtype))
+            z_gen = _encode(stage1, images)  # the Gaussians of the frames as they are kept
         scene = _window_scene(stage1, z_gen, cams, origin)
         own = render_condition(scene.detach(), cams, semantics=True)
         ego = torch.as_tensor(padded[(w + 1) * window_frames - 1].world_from_ego[:3, 3]).float()
