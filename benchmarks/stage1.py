@@ -5,7 +5,6 @@ Usage (from the repository root, on a quiet machine)::
 
     python benchmarks/stage1.py [--work /tmp/stage1-bench] [--vae-steps 1000] [--budget-min 30] [--reuse]
     python benchmarks/stage1.py --stage1-steps 560   # a fixed step count instead of the budget
-    python benchmarks/stage1.py --speed-only         # step 3 alone, into section stage1_speed
 
 1. Caches (reused when present): ``--train-scenes`` synthetic scenes (seed 1000) of ``--train-frames``
    frames and ``--eval-scenes`` held-out scenes (seed 100) of 40 frames, at 96 x 144, bundled
@@ -179,11 +178,6 @@ def main() -> None:
     ap.add_argument(
         "--reuse", action="store_true", help="keep trained runs in --work (and their timings, timings.json)"
     )
-    ap.add_argument(
-        "--speed-only",
-        action="store_true",
-        help="only the step-time runs (step 3), written to their own section (stage1_speed)",
-    )
     args = ap.parse_args()
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
@@ -232,18 +226,6 @@ def main() -> None:
             timings[key] = _train_stage1(train_cache, vae_run, run, args.speed_steps, SPEED_RUNS[backend][1])
             timings_path.write_text(json.dumps(timings))
         speed[backend] = (_step_seconds(run), *timings[key])
-    if args.speed_only:
-        only = Report(
-            "stage1_speed",
-            "Stage 1 step time (benchmarks/stage1.py --speed-only)",
-            "The step-time runs of `benchmarks/stage1.py` alone (its step 3), on the caches and VAE of "
-            f"`{work}`: `configs/stage1/tiny.yaml` under `torchrun --nproc_per_node 2`, 1 thread per "
-            "process, one clip per process per step. The 30-minute run and its held-out table are in the "
-            "section above, from its own date and commit.",
-        )
-        only.table(*_speed_table(speed, args.speed_steps, native))
-        only.write()
-        return
 
     vae_wall = timings["vae"][0]
     budget_s = 60.0 * args.budget_min

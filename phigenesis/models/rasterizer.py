@@ -174,19 +174,11 @@ class _NativeProjection(torch.autograd.Function):
     def forward(ctx, means, quats, scales, world_from_camera, intrinsics, extend, width, height, near):
         ext = native.load_rasterizer()
         assert ext is not None
+        inputs = (means, quats, scales, world_from_camera, intrinsics)
         means2d, conics, depths, radii, valid = ext.project(
-            means,
-            quats,
-            scales,
-            world_from_camera,
-            intrinsics,
-            extend,
-            width,
-            height,
-            near,
-            *_PROJECTION_CONSTANTS,
+            *inputs, extend, width, height, near, *_PROJECTION_CONSTANTS
         )
-        ctx.save_for_backward(means, quats, scales, world_from_camera, intrinsics)
+        ctx.save_for_backward(*inputs)
         ctx.size = (width, height, near)
         ctx.mark_non_differentiable(radii, valid)
         return means2d, conics, depths, radii, valid
