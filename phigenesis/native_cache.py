@@ -1,6 +1,6 @@
 """Where compiled parts of the package live, and what a build depends on beyond its source.
 
-Native code (the CPU rasterizer, the range-image kernel) is compiled on first use into a cache
+Native code (the CPU rasterizer, the data kernels) is compiled on first use into a cache
 folder, once per machine: ``$PHIGENESIS_NATIVE_DIR`` if set, else
 ``$XDG_CACHE_HOME/phigenesis/native`` (``~/.cache/...``). Builds use ``-march=native``, so a build
 folder's name hashes this CPU's instruction set too (:func:`cpu_flags`): a shared home never hands

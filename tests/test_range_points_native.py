@@ -168,9 +168,10 @@ def test_without_a_compiler_the_reader_falls_back_to_numpy_with_one_warning(
         assert native.load_range_points() is None
         assert native.load_range_points() is None
     assert [r.getMessage() for r in caplog.records] == [
-        "native range-image kernel not available: no C compiler (cc, gcc or clang) on PATH; "
-        "converting range images with numpy"
+        "native data kernels not available: no C compiler (cc, gcc or clang) on PATH; "
+        "converting range images with numpy and checksumming shard rows twice"
     ]
+    assert native.load_crc32c_combine() is None
     cal = RawLaserCalibration(2, transform(rz(0.3), (4.0, 0, 0.5)), None, -1.5, 0.5)
     image = _image(np.random.default_rng(1), 5, 8, 0.5)
     sweep = convert.lidar_sweep(_frame([RawLaser(2, image, None, None)], [cal]), 0, np.eye(4))
@@ -183,7 +184,7 @@ def test_a_failed_compile_is_one_line_naming_the_compiler(
     broken = tmp_path / "broken.c"
     broken.write_text("this is not C;\n")
     monkeypatch.setenv("PHIGENESIS_NATIVE_DIR", str(tmp_path / "native"))
-    monkeypatch.setattr(native, "SOURCE", broken)
+    monkeypatch.setattr(native, "SOURCES", (*native.SOURCES, broken))
     monkeypatch.setattr(native, "_library", None)
     monkeypatch.setattr(native, "_failure", None)
     with caplog.at_level(logging.WARNING, logger="phigenesis.data.native"):

@@ -5,12 +5,17 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from types import SimpleNamespace
 
+import google_crc32c
 import numpy as np
 import pyarrow as pa
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from phigenesis.data import shards
+from phigenesis.data.native import load_crc32c_combine
 from phigenesis.data.shards import ShardInfo, ShardReader, ShardWriter
 
 SCHEMA = pa.schema(
@@ -98,7 +103,7 @@ def _count_fallbacks(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     calls: list[int] = []
     decode = shards._row_entry
 
-    def counting(*args: object, **kwargs: object) -> list[int]:
+    def counting(*args: object, **kwargs: object) -> object:
         calls.append(1)
         return decode(*args, **kwargs)  # type: ignore[arg-type]
 
@@ -201,3 +206,77 @@ def test_a_system_without_writev_or_fdatasync_writes_the_same_shards(
     monkeypatch.undo()
     assert dataclasses.asdict(info) == dataclasses.asdict(expected)
     assert (tmp_path / "a" / info.path).read_bytes() == (tmp_path / "b" / info.path).read_bytes()
+
+
+needs_combine = pytest.mark.skipif(load_crc32c_combine() is None, reason="native data kernels not built here")
+
+
+@needs_combine
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=300), st.binary(max_size=300), st.binary(max_size=300))
+def test_the_crc32c_combination_is_the_crc32c_of_the_concatenation(a: bytes, b: bytes, c: bytes) -> None:
+    combine = load_crc32c_combine()
+    assert combine is not None
+    crc = google_crc32c.value
+    assert combine(crc(a), crc(b), len(b)) == crc(a + b)
+    assert combine(combine(crc(a), crc(b), len(b)), crc(c), len(c)) == crc(a + b + c)
+
+
+@needs_combine
+@pytest.mark.parametrize("length", [1 << 20, (1 << 33) + 5, (1 << 62) + 3])
+def test_the_crc32c_combination_composes_over_lengths_no_test_can_write(length: int) -> None:
+    combine = load_crc32c_combine()
+    assert combine is not None
+    x, y, z = 0x12345678, 0x9ABCDEF0, 0x0F1E2D3C
+    # Shifting by lengths m then n is shifting by m + n: (x y) z == x (y z).
+    assert combine(combine(x, y, length), z, 77) == combine(x, combine(y, z, 77), length + 77)
+    with pytest.raises(ValueError, match="negative length"):
+        combine(x, y, -1)
+
+
+def _hashed_bytes(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Counts the bytes the shard writer passes to CRC-32C."""
+    counted: list[int] = []
+    real = google_crc32c.extend
+
+    def extend(crc: int, data: pa.Buffer) -> int:
+        counted.append(len(memoryview(data)))
+        return real(crc, data)
+
+    monkeypatch.setattr(shards, "google_crc32c", SimpleNamespace(extend=extend, value=google_crc32c.value))
+    return counted
+
+
+@pytest.mark.parametrize("native_combine", [True, False])
+def test_the_file_crc_comes_from_the_rows_crcs_without_a_second_pass(
+    native_combine: bool, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    if native_combine and load_crc32c_combine() is None:
+        pytest.skip("native data kernels not built here")
+    if not native_combine:
+        monkeypatch.setattr(shards, "load_crc32c_combine", lambda: None)
+    hashed = _hashed_bytes(monkeypatch)
+    (info,) = write(
+        tmp_path, rows(5, image_bytes=200_000, seed=4).to_batches(max_chunksize=1), max_bytes=1 << 30
+    )
+    monkeypatch.undo()
+    assert info.file_crc32c == shards.crc32c_file(tmp_path / info.path)
+    assert dataclasses.asdict(info) == dataclasses.asdict(reread(tmp_path, info))
+    passes = sum(hashed) / info.bytes
+    # Each row's metadata and columns are hashed once; the file's CRC adds only the padding
+    # between them with the native combination, and a second pass over every byte without it.
+    assert (1.0 <= passes < 1.01) if native_combine else (1.99 < passes < 2.01)
+
+
+def test_parts_that_overlap_or_overrun_the_row_are_not_combined() -> None:
+    def combine(a: int, b: int, n: int) -> int:
+        return 0
+
+    row = shards._RowBytes(0, [pa.py_buffer(b"0123456789")])
+    assert shards._crc_from_parts(row, [(0, 6, 1), (5, 8, 2)], combine) is None
+    assert shards._crc_from_parts(row, [(4, 11, 1)], combine) is None
+    real = load_crc32c_combine()
+    if real is not None:
+        crc = google_crc32c.value
+        parts = [(2, 5, crc(b"234")), (7, 7, 123), (8, 10, crc(b"89"))]  # gaps and an empty part
+        assert shards._crc_from_parts(row, parts, real) == crc(b"0123456789")

@@ -1,6 +1,8 @@
-"""The range-image kernel of the Waymo reader (``csrc/range_points.c``), compiled on first use.
+"""The data pipeline's C kernels (``csrc/*.c``), compiled on first use into one library: the Waymo
+reader's range-image kernel (``range_points.c``) and the shard writer's CRC-32C combination
+(``crc32c_combine.c``).
 
-Entry point: :func:`load_range_points`.
+Entry points: :func:`load_range_points`, :func:`load_crc32c_combine`.
 
 Turning a Waymo frame's range images into points was a quarter of the v1 reader's time in numpy
 (16 ms of 65 ms a frame: a mask, a gather per channel, the ray arithmetic and the concatenation, each
@@ -9,7 +11,8 @@ of its returns. It is plain C, built with the system C compiler (``cc``, or ``$C
 second into the native cache folder (:mod:`phigenesis.native_cache`) and loaded with ctypes, so
 reading data never needs torch. When it cannot be built (no compiler, a read-only cache) the reason
 is one warning line, :func:`load_range_points` returns ``None`` and the reader uses its numpy path,
-which the tests hold the kernel against. ``PHIGENESIS_NATIVE=0`` skips it.
+which the tests hold the kernel against; the shard writer reads its rows a second time to checksum
+the whole file. ``PHIGENESIS_NATIVE=0`` skips them.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import sys
 import threading
 import uuid
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,7 +36,11 @@ from phigenesis.native_cache import cache_root, cpu_flags, native_enabled
 
 logger = logging.getLogger(__name__)
 
-SOURCE = Path(__file__).parent / "csrc" / "range_points.c"
+SOURCES = (
+    Path(__file__).parent / "csrc" / "range_points.c",
+    Path(__file__).parent / "csrc" / "crc32c_combine.c",
+)
+LIBRARY_NAME = "libphigenesis_data"
 CFLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fPIC", "-shared", "-std=c99")
 
 #: The arrays :meth:`RangePoints.gather` writes: name -> (dtype, shape of one return's value).
@@ -46,7 +54,7 @@ OUTPUT_FIELDS: dict[str, tuple[type, tuple[int, ...]]] = {
 }
 
 _lock = threading.Lock()
-_library: RangePoints | None = None
+_library: _Kernels | None = None
 _failure: str | None = None
 
 
@@ -58,10 +66,12 @@ def _compiler() -> str | None:
 
 
 def build_directory() -> Path:
-    """Where this machine's build of the current source lives (hash of source, flags, CPU)."""
-    digest = hashlib.sha256(SOURCE.read_bytes())
+    """Where this machine's build of the current sources lives (hash of sources, flags, CPU)."""
+    digest = hashlib.sha256()
+    for source in SOURCES:
+        digest.update(source.read_bytes())
     digest.update(f"{CFLAGS} {sys.platform} {cpu_flags()}".encode())
-    return cache_root() / f"range_points-{digest.hexdigest()[:16]}"
+    return cache_root() / f"data_kernels-{digest.hexdigest()[:16]}"
 
 
 def _address(a: NDArray) -> int:
@@ -127,18 +137,21 @@ class RangePoints:
 
 
 def _build(build_dir: Path) -> Path:
-    """Compiles the kernel into ``build_dir`` (atomically: a temporary name, then a rename)."""
-    library = build_dir / "librange_points.so"
+    """Compiles the kernels into ``build_dir`` (atomically: a temporary name, then a rename)."""
+    library = build_dir / f"{LIBRARY_NAME}.so"
     if library.is_file():
         return library
     compiler = _compiler()
     if compiler is None:
         raise OSError("no C compiler (cc, gcc or clang) on PATH")
     build_dir.mkdir(parents=True, exist_ok=True)
-    tmp = build_dir / f".librange_points-{uuid.uuid4().hex[:8]}.so"
+    tmp = build_dir / f".{LIBRARY_NAME}-{uuid.uuid4().hex[:8]}.so"
     try:
         result = subprocess.run(
-            [compiler, *CFLAGS, str(SOURCE), "-o", str(tmp)], capture_output=True, text=True, timeout=120
+            [compiler, *CFLAGS, *map(str, SOURCES), "-o", str(tmp)],
+            capture_output=True,
+            text=True,
+            timeout=120,
         )
         if result.returncode != 0:
             lines = [line for line in result.stderr.splitlines() if "error" in line.lower()]
@@ -149,9 +162,14 @@ def _build(build_dir: Path) -> Path:
     return library
 
 
-def load_range_points() -> RangePoints | None:
-    """The compiled kernel, built on first call, or ``None`` if it cannot be built here; the reason
-    is logged once and kept in :func:`failure_reason`."""
+class _Kernels(NamedTuple):
+    range_points: RangePoints
+    crc32c_combine: Crc32cCombine
+
+
+def _load_library() -> _Kernels | None:
+    """The compiled library's kernels, built on first call, or ``None`` if it cannot be built here; the
+    reason is logged once and kept in :func:`failure_reason`."""
     global _library, _failure
     with _lock:
         if _library is not None or _failure is not None:
@@ -160,18 +178,56 @@ def load_range_points() -> RangePoints | None:
             _failure = "disabled by PHIGENESIS_NATIVE=0"
             return None
         try:
-            _library = RangePoints(ctypes.CDLL(str(_build(build_directory()))))
+            library = ctypes.CDLL(str(_build(build_directory())))
+            _library = _Kernels(RangePoints(library), Crc32cCombine(library))
         except (OSError, subprocess.SubprocessError, AttributeError) as error:
             _failure = str(error).splitlines()[0][:300] if str(error) else type(error).__name__
             logger.warning(
-                "native range-image kernel not available: %s; converting range images with numpy", _failure
+                "native data kernels not available: %s; converting range images with numpy and "
+                "checksumming shard rows twice",
+                _failure,
             )
         return _library
 
 
+def load_range_points() -> RangePoints | None:
+    """The range-image kernel, or ``None`` where the library cannot be built (:func:`_load_library`)."""
+    kernels = _load_library()
+    return None if kernels is None else kernels.range_points
+
+
+class Crc32cCombine:
+    """The loaded ``phigenesis_crc32c_combine`` (see ``csrc/crc32c_combine.c``)."""
+
+    def __init__(self, library: ctypes.CDLL):
+        self._combine = library.phigenesis_crc32c_combine
+        self._combine.argtypes = [ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint64]
+        self._combine.restype = ctypes.c_uint32
+
+    def __call__(self, crc_a: int, crc_b: int, length_b: int) -> int:
+        """The CRC-32C of bytes A then B from ``crc_a`` = CRC-32C(A), ``crc_b`` = CRC-32C(B) and
+        B's length in bytes (1-2 us, whatever the lengths)."""
+        if length_b < 0:
+            raise ValueError(f"crc32c combine: negative length {length_b}")
+        return int(self._combine(crc_a, crc_b, length_b))
+
+
+def load_crc32c_combine() -> Crc32cCombine | None:
+    """The CRC-32C combination, or ``None`` where the library cannot be built (:func:`_load_library`)."""
+    kernels = _load_library()
+    return None if kernels is None else kernels.crc32c_combine
+
+
 def failure_reason() -> str | None:
-    """Why the kernel is not available (after :func:`load_range_points` returned ``None``)."""
+    """Why the kernels are not available (after a loader returned ``None``)."""
     return _failure
 
 
-__all__ = ["RangePoints", "build_directory", "failure_reason", "load_range_points"]
+__all__ = [
+    "Crc32cCombine",
+    "RangePoints",
+    "build_directory",
+    "failure_reason",
+    "load_crc32c_combine",
+    "load_range_points",
+]

@@ -58,6 +58,7 @@ from phigenesis.data.ipc_layout import (
     column_buffer_counts,
     record_batch_layout,
 )
+from phigenesis.data.native import load_crc32c_combine
 from phigenesis.errors import CacheError, PrepError
 
 log = logging.getLogger(__name__)
@@ -379,16 +380,18 @@ def _write_all(fd: int, pieces: list[pa.Buffer]) -> None:
 
 class _HashingSink:
     """The sink a shard's IPC writer writes into. It holds what the writer hands it until
-    :meth:`take` writes it to the file (one ``writev``), adds it to the file's CRC-32C (in file
-    order) and returns it for indexing. The writer takes each row as soon as ``write_batch``
-    returns, and the footer at the end, so the shard's checksums are computed from the bytes as
-    they are written and nothing is read back. Column buffers are not copied on the way: the
-    sink keeps the writer's buffers (and so the batch's memory) until the row is taken."""
+    :meth:`take` writes it to the file (one ``writev``) and returns it for indexing; each taken
+    row is added to the file's CRC-32C in file order, from the CRC-32Cs of its parts where
+    :meth:`add_checksummed` is given them, else by reading it. The writer takes each row as soon
+    as ``write_batch`` returns, and the footer at the end, so the shard's checksums are computed
+    from the bytes as they are written and nothing is read back. Column buffers are not copied on
+    the way: the sink keeps the writer's buffers (and so the batch's memory) until the row is taken."""
 
     def __init__(self, fd: int):
         self.fd = fd
-        #: CRC-32C of the bytes passed on to the file so far.
-        self.file_crc32c = 0
+        self._file_crc32c = 0
+        #: The last row taken, until it is added to the file's CRC-32C.
+        self._unhashed: _RowBytes | None = None
         #: Bytes passed on to the file so far.
         self.flushed = 0
         self._pieces: list[pa.Buffer] = []
@@ -417,6 +420,7 @@ class _HashingSink:
     def take(self) -> _RowBytes:
         """What was written since the last call, after writing it to the file and adding it to
         the file's CRC-32C."""
+        self._hash_unhashed()
         self._seal_small()
         row = _RowBytes(self.flushed, self._pieces)
         self._pieces, self._held = [], 0
@@ -425,13 +429,39 @@ class _HashingSink:
             # Each row is handed to the disk as it is written, so that the fsync that completes
             # the shard does not wait for all of it (advisory: the fsync checks the write).
             _start_writeback(self.fd, row.start, row.size)
-        for piece in row.pieces:
-            self.file_crc32c = google_crc32c.extend(self.file_crc32c, piece)
+        self._unhashed = row
         self.flushed += row.size
         self._unflushed += row.size
         if self._unflushed >= FLUSH_BYTES and self._flush.start():
             self._unflushed = 0
         return row
+
+    def add_checksummed(self, row: _RowBytes, parts: Sequence[tuple[int, int, int]]) -> None:
+        """Adds ``row``, the row last taken, to the file's CRC-32C from ``parts``: ``(lo, hi,
+        crc)``, the CRC-32C of its bytes ``[lo, hi)`` (disjoint). The bytes between them are read;
+        without the native combination (:func:`phigenesis.data.native.load_crc32c_combine`) the
+        whole row is."""
+        if row is not self._unhashed:
+            raise ValueError("add_checksummed: not the row last taken, or already hashed")
+        combine = load_crc32c_combine()
+        crc = None if combine is None else _crc_from_parts(row, parts, combine)
+        if crc is None:
+            self._hash_unhashed()
+        else:
+            self._file_crc32c = combine(self._file_crc32c, crc, row.size)
+            self._unhashed = None
+
+    def _hash_unhashed(self) -> None:
+        if self._unhashed is not None:
+            for piece in self._unhashed.pieces:
+                self._file_crc32c = google_crc32c.extend(self._file_crc32c, piece)
+            self._unhashed = None
+
+    @property
+    def file_crc32c(self) -> int:
+        """CRC-32C of the bytes passed on to the file so far."""
+        self._hash_unhashed()
+        return self._file_crc32c
 
     def sync(self) -> None:
         """Waits for the background flush (raising its error), then fsyncs the file."""
@@ -462,7 +492,29 @@ class _HashingSink:
                 os.close(self.fd)
 
 
-def _row_entry(buffer: pa.Buffer, start: int, schema: pa.Schema, where: str) -> list[int]:
+def _crc_from_parts(
+    row: _RowBytes, parts: Sequence[tuple[int, int, int]], combine: Callable[[int, int, int], int]
+) -> int | None:
+    """CRC-32C of the whole row from the CRC-32Cs ``(lo, hi, crc)`` of parts of it, reading only
+    the bytes between them (an IPC message's padding); None if the parts overlap or overrun it."""
+    crc, pos = 0, 0
+    for lo, hi, part_crc in sorted(part for part in parts if part[1] > part[0]):
+        if lo < pos or hi > row.size:
+            return None
+        if lo > pos:
+            crc = combine(crc, row.crc(pos, lo), lo - pos)
+        crc, pos = combine(crc, part_crc, hi - lo), hi
+    if pos < row.size:
+        crc = combine(crc, row.crc(pos, row.size), row.size - pos)
+    return crc
+
+
+#: A row's index entry ``[end, body_start, metadata_crc, crc of each column...]`` and the
+#: ``(lo, hi, crc)`` of the row's byte ranges those CRCs cover.
+_Indexed = tuple[list[int], list[tuple[int, int, int]]]
+
+
+def _row_entry(buffer: pa.Buffer, start: int, schema: pa.Schema, where: str) -> _Indexed:
     """The row index entry ``[end, body_start, metadata_crc, crc of each column...]`` (CRC-32C) of
     one record batch, from the bytes the IPC writer wrote for it (``buffer``, starting at file
     offset ``start``; row 0 also holds the file's magic and schema).
@@ -483,13 +535,14 @@ def _row_entry(buffer: pa.Buffer, start: int, schema: pa.Schema, where: str) -> 
     body_start = min((lo for lo, hi in ranges if hi > lo), default=end)
     if not all(0 <= lo <= hi <= end for lo, hi in ranges if hi > lo):
         raise CacheError(f"{where}: a row's buffers lie outside its record batch; cannot index it")
-    crc = SHARD_CHECKSUM
-    return [start + end, start + body_start, _crc_range(crc, buffer, 0, body_start)] + [
-        _crc_range(crc, buffer, lo, hi) for lo, hi in ranges
+    spans = [(0, body_start), *ranges]
+    crcs = [_crc_range(SHARD_CHECKSUM, buffer, lo, hi) for lo, hi in spans]
+    return [start + end, start + body_start, *crcs], [
+        (lo, hi, c) for (lo, hi), c in zip(spans, crcs, strict=True)
     ]
 
 
-def _row_entry_from_layout(row: _RowBytes, counts: list[int], where: str) -> list[int]:
+def _row_entry_from_layout(row: _RowBytes, counts: list[int], where: str) -> _Indexed:
     """:func:`_row_entry` of a row from its message's metadata (:mod:`phigenesis.data.ipc_layout`),
     without joining its pieces; raises :class:`LayoutUnknown` where the metadata is not one that
     module reads."""
@@ -504,8 +557,10 @@ def _row_entry_from_layout(row: _RowBytes, counts: list[int], where: str) -> lis
         raise LayoutUnknown(f"the message ends at {body + layout.body_length}, the row at {row.size}")
     ranges = [(body + lo, body + hi) for lo, hi in column_body_ranges(layout, counts)]
     body_start = min((lo for lo, hi in ranges if hi > lo), default=row.size)
-    return [row.start + row.size, row.start + body_start, row.crc(0, body_start)] + [
-        row.crc(lo, hi) for lo, hi in ranges
+    spans = [(0, body_start), *ranges]
+    crcs = [row.crc(lo, hi) for lo, hi in spans]
+    return [row.start + row.size, row.start + body_start, *crcs], [
+        (lo, hi, c) for (lo, hi), c in zip(spans, crcs, strict=True)
     ]
 
 
@@ -565,13 +620,16 @@ class ShardWriter:
                 self._open_shard()
             assert self._writer is not None and self._sink is not None
             self._writer.write_batch(batch)
-            self._row_index.append(self._index(self._sink.take()))
+            row = self._sink.take()
+            entry, checksummed = self._index(row)
+            self._sink.add_checksummed(row, checksummed)
+            self._row_index.append(entry)
             if self._row_index[-1][0] >= self.max_bytes:
                 self._finish_shard()
         except OSError as e:
             raise self._write_failed(e) from e
 
-    def _index(self, row: _RowBytes) -> list[int]:
+    def _index(self, row: _RowBytes) -> _Indexed:
         """The row index entry of a row just written: from its metadata, or, for a message
         :mod:`phigenesis.data.ipc_layout` does not read, by decoding the joined row."""
         if self._buffer_counts is not None:
@@ -593,6 +651,7 @@ class ShardWriter:
         # The footer: from the last row's end to the end of the file.
         footer = self._sink.take()
         footer_crc32 = footer.crc(0, footer.size)
+        self._sink.add_checksummed(footer, [(0, footer.size, footer_crc32)])
         size, file_crc32c = self._sink.flushed, self._sink.file_crc32c
         self._sink.sync()
         self._sink.close()
