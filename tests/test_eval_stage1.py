@@ -439,3 +439,45 @@ def test_the_evaluation_skips_the_clips_whose_shifted_rig_would_collide(
     assert report["sections"]["+1"]["skipped_clips"] == 0 and report["sections"]["+1"]["images"] == 5 * len(
         starts
     )
+
+
+def test_depth_by_class_is_pooled_over_each_truth_classs_pixels() -> None:
+    from types import SimpleNamespace
+
+    from phigenesis.data.taxonomy import CLASS_NAMES, IGNORE_ID
+    from phigenesis.train.evaluate_stage1 import SectionScores
+
+    # Six pixels of a 16 x 16 image (SSIM needs its size); the others have no truth and no class.
+    truth, pred = torch.zeros(1, 16, 16), torch.zeros(1, 16, 16)
+    semantic = torch.full((1, 16, 16), IGNORE_ID)
+    truth[0, :2, :3] = torch.tensor([[10.0, 10.0, 20.0], [20.0, 0.0, 40.0]])
+    pred[0, :2, :3] = torch.tensor([[10.0, 12.0, 30.0], [20.0, 5.0, 40.0]])
+    semantic[0, :2, :3] = torch.tensor([[0, 0, 1], [1, 1, IGNORE_ID]])
+    image = torch.zeros(1, 16, 16, 3)
+    rendered = SimpleNamespace(rgb=image, depth=pred, semantic=semantic)
+    views = SimpleNamespace(images=image, depth=truth, lidar_covered=None, semantic=semantic)
+    scores = SectionScores()
+    scores.add(rendered, views)  # type: ignore[arg-type]
+    by_class = scores.class_summary()
+    first, second = CLASS_NAMES[0], CLASS_NAMES[1]
+    assert set(by_class) == {first, second}  # the ignored pixel counts in the section only
+    # Class 0: 10 -> 10 and 10 -> 12 (ratio 1.2, inside 1.25).
+    assert by_class[first]["abs_rel"] == pytest.approx(0.1)
+    assert by_class[first]["delta_1_25"] == 1.0 and by_class[first]["pixels"] == 2
+    # Class 1: 20 -> 30 (a miss) and 20 -> 20; its pixel without truth is not scored.
+    assert by_class[second]["abs_rel"] == pytest.approx(0.25)
+    assert by_class[second]["delta_1_25"] == 0.5 and by_class[second]["pixels"] == 2
+    # 5 truth pixels, one miss, all of it class 1's.
+    assert by_class[first]["share"] == by_class[second]["share"] == pytest.approx(0.4)
+    assert by_class[first]["miss_share"] == 0.0 and by_class[second]["miss_share"] == pytest.approx(1.0)
+
+
+def test_the_report_has_depth_by_class_that_adds_up(report: dict[str, Any]) -> None:
+    for name, entry in report["sections"].items():
+        for who in ("model", "oracle"):
+            by_class = entry[f"{who}_by_class"]
+            assert by_class, (name, who)
+            pixels = sum(v["pixels"] for v in by_class.values())
+            assert pixels <= entry[who]["depth_pixels"], (name, who)
+            misses = [v["miss_share"] for v in by_class.values() if v["miss_share"] == v["miss_share"]]
+            assert sum(misses) <= 1.0 + 1e-9 and all(0.0 <= m <= 1.0 for m in misses), (name, who)

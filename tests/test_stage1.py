@@ -37,7 +37,9 @@ from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 from phigenesis.train.runner import ProcessGroup, latest_checkpoint, read_metrics
 from phigenesis.train.stage1 import (
     Stage1TrainConfig,
+    VaeFeatureCache,
     _draw_clips,
+    clip_inputs,
     load_stage1,
     stage1_losses,
     train_stage1,
@@ -667,3 +669,56 @@ def test_checkpoint_made_before_the_ground_prior_loads_as_it_was(tmp_path):
     save_file(tensors, str(tmp_path / "claims.safetensors"), metadata=header)
     with pytest.raises(CheckpointError, match=r"claims\.safetensors: weights do not fit .*adapter\."):
         load_stage1(tmp_path / "claims.safetensors")
+
+
+def test_the_clip_and_vae_feature_caches_change_no_result(tiny_cache, tmp_path):
+    runs = {}
+    for name, mb in (("plain", 0.0), ("cached", 64.0)):
+        runs[name] = train_stage1(
+            tiny_cache, tmp_path / name, tiny_train_config(steps=6, cache_mb=mb), progress=False
+        )
+    a, b = read_metrics(tmp_path / "plain"), read_metrics(tmp_path / "cached")
+    for ra, rb in zip(a, b, strict=True):
+        for key in ("loss", "rgb", "depth", "pixel_depth", "semantic", "grad_norm"):
+            assert ra[key] == rb[key], (ra["step"], key)
+    sd_a, sd_b = (load_stage1(r.checkpoint).state_dict() for r in (runs["plain"], runs["cached"]))
+    for name in sd_a:
+        assert torch.equal(sd_a[name], sd_b[name]), name
+    # A run may resume with another cache size: it changes how the run uses memory, not its results.
+    train_stage1(
+        tiny_cache, tmp_path / "cached", tiny_train_config(steps=6, cache_mb=0.0), resume=True, progress=False
+    )
+    with pytest.raises(ValueError, match="must be a finite number >= 0"):
+        tiny_train_config(cache_mb=-1.0)
+
+
+def test_kept_clips_and_vae_features_equal_fresh_ones(tiny_cache):
+    model = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16})
+    fresh, kept = Stage1Clips(tiny_cache, SIZE), Stage1Clips(tiny_cache, SIZE, cache_mb=16.0)
+    scene = next(iter(fresh.scenes))
+    for offsets in ([1], [1], [-1, 1]):
+        a, b = fresh.clip(scene, 1, offsets), kept.clip(scene, 1, offsets)
+        for part in ("context", "targets"):
+            for f in dataclasses.fields(a.context):
+                assert torch.equal(getattr(getattr(a, part), f.name), getattr(getattr(b, part), f.name)), (
+                    part,
+                    f.name,
+                )
+        assert torch.equal(a.intrinsics, b.intrinsics) and a.time_origin_micros == b.time_origin_micros
+    # Frame 1 as context and frame 2 as a target: made once, then found twice; frame 0 as a target
+    # is new in the third clip.
+    assert kept.prepared.hits == 4 and kept.prepared.misses == 3
+    assert 0 < kept.prepared.bytes <= 16 * 2**20
+    cache = VaeFeatureCache(model, 2**30)
+    clips = [kept.clip(scene, 0, [1]), kept.clip(scene, 1, [1]), kept.clip(scene, 0, [2])]
+    images = clip_inputs(clips)[0]
+    got = cache(clips, images)
+    want = model.features(images)
+    for g, w in zip(got, want, strict=True):
+        torch.testing.assert_close(g, w, rtol=1e-5, atol=1e-6)
+    assert cache.kept.hits == 1 and cache.kept.misses == 2  # the third clip has the first's context
+    pred_kept = model(*clip_inputs(clips), got)
+    pred_fresh = model(*clip_inputs(clips))
+    torch.testing.assert_close(pred_kept.means, pred_fresh.means, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="do not match images"):
+        model(*clip_inputs(clips[:2]), got)

@@ -255,11 +255,25 @@ class Stage1Model(nn.Module):
         return images, out
 
     def forward(
-        self, images: Tensor, intrinsics: Tensor, world_from_camera: Tensor, time_s: Tensor
+        self,
+        images: Tensor,
+        intrinsics: Tensor,
+        world_from_camera: Tensor,
+        time_s: Tensor,
+        features: list[Tensor] | None = None,
     ) -> Stage1Prediction:
         """Per-pixel Gaussians of [B, T, V, 3, H, W] images: :meth:`forward_latents` of their
-        latents (:meth:`encode`), with the images themselves as the pixel colours."""
-        return self.forward_latents(self.encode(images), intrinsics, world_from_camera, time_s, images)
+        latents (:meth:`encode`), with the images themselves as the pixel colours. ``features``:
+        the frozen VAE's :meth:`features` of these images when the caller has them already
+        (training keeps them per clip), which skips the VAE; the result is the same."""
+        if features is None:
+            return self.forward_latents(self.encode(images), intrinsics, world_from_camera, time_s, images)
+        b, t, v = images.shape[:3]
+        if any(tuple(f.shape[:3]) != (b, t, v) for f in features):
+            raise ValueError(
+                f"features {[tuple(f.shape) for f in features]} do not match images {tuple(images.shape)}"
+            )
+        return self._gaussians(features, images, intrinsics, world_from_camera, time_s)
 
     def forward_latents(
         self,
@@ -278,12 +292,25 @@ class Stage1Model(nn.Module):
         decoded, latent_feats = self._decoded(latents)
         if images is None:
             images = decoded
-        b, t, _, _, h, w = images.shape
+        t = images.shape[1]
         if t != self.latent_frames(latents) or images.shape[:3:2] != latents.shape[:2]:
             raise ValueError(
                 f"images {tuple(images.shape)} do not match latents {tuple(latents.shape)} "
                 f"({self.latent_frames(latents)} frames, [B, V] = {list(latents.shape[:2])})"
             )
+        return self._gaussians(latent_feats, images, intrinsics, world_from_camera, time_s)
+
+    def _gaussians(
+        self,
+        latent_feats: list[Tensor],
+        images: Tensor,
+        intrinsics: Tensor,
+        world_from_camera: Tensor,
+        time_s: Tensor,
+    ) -> Stage1Prediction:
+        """The adapter's Gaussians from the decoder's features (as :meth:`features` gives them) and
+        the pixel colours ``images`` [B, T, V, 3, H, W]."""
+        b, t, _, _, h, w = images.shape
         if (h, w) != tuple(self.config.image_size):
             raise ValueError(f"Stage 1 model runs at {self.config.image_size}, got images of {h}x{w}")
         order = range_view_order(world_from_camera[0, 0])

@@ -34,7 +34,9 @@ The shifted views have no cache depth: their ``lidar`` / ``no_lidar`` values are
 The rendered semantics (argmax of the composited class probabilities, pixels with alpha < 0.5 as
 sky) feed one confusion matrix per section, whose mIoU is reported (truth semantics, else pseudo
 labels). Section values are means over images (depth: over the images with a pixel in the subset,
-as SurroundDepth averages).
+as SurroundDepth averages). Depth is also scored per class of those semantics, pooled over the
+class's pixels (``model_by_class``), with each class's share of the pixels outside delta < 1.25: where
+the depth error is.
 
 Report keys of a section (:meth:`SectionScores.summary`, in :data:`METRICS` order): ``psnr_db``,
 ``ssim``, then per subset the depth metrics ``abs_rel``, ``sq_rel``, ``rmse_m``, ``rmse_log``,
@@ -77,7 +79,7 @@ from torch import Tensor
 from phigenesis.data import taxonomy
 from phigenesis.data.records import DENSE_ORIGINS, CameraCalibration, CameraTruth
 from phigenesis.data.shards import MANIFEST_NAME
-from phigenesis.data.taxonomy import IGNORE_ID, NUM_CLASSES
+from phigenesis.data.taxonomy import CLASS_NAMES, IGNORE_ID, NUM_CLASSES
 from phigenesis.eval.depth_protocol import ALL, DEPTH_METRICS, DepthAccumulator
 from phigenesis.infer.render import Rendered, Views, lift_views, render_views, sky_background
 from phigenesis.models.losses import psnr, ssim
@@ -141,6 +143,7 @@ class SectionScores:
     depth: DepthAccumulator = field(default_factory=lambda: DepthAccumulator(DEPTH_SUBSETS[1:]))
     coverage: list[float] = field(default_factory=list)
     confusion: np.ndarray = field(default_factory=lambda: np.zeros((NUM_CLASSES, NUM_CLASSES + 1), np.int64))
+    by_class: DepthAccumulator = field(default_factory=lambda: DepthAccumulator(CLASS_NAMES))
 
     def add(self, rendered: Rendered, views: Views) -> None:
         """Scores every view of ``rendered`` against ``views``' truth (depth: see the module docstring)."""
@@ -155,7 +158,9 @@ class SectionScores:
         self.coverage += [
             h / k if k else float("nan") for h, k in zip(hit.tolist(), known.tolist(), strict=True)
         ]
-        self.confusion += confusion_matrix(rendered.semantic.numpy(), views.semantic.numpy(), NUM_CLASSES)
+        semantic = views.semantic.numpy()
+        self.confusion += confusion_matrix(rendered.semantic.numpy(), semantic, NUM_CLASSES)
+        self.by_class.add(pred, truth, {name: semantic == k for k, name in enumerate(CLASS_NAMES)})
 
     def summary(self) -> dict[str, float]:
         """The section's values (keys in the module docstring): means over images, depth under the
@@ -169,6 +174,27 @@ class SectionScores:
         out["miou"] = segmentation_scores(self.confusion).miou
         out |= {depth_key("depth_pixels", s): float(pooled[s].pixels) for s in DEPTH_SUBSETS}
         out["depth_coverage"] = _mean(self.coverage)
+        return out
+
+    def class_summary(self) -> dict[str, dict[str, float]]:
+        """Depth per truth class (the views' semantics), for each class with a scored pixel: the
+        protocol's metrics pooled over the class's pixels, ``pixels``, ``share`` (of the section's
+        truth pixels) and ``miss_share``: the class's share of the section's pixels outside
+        delta < 1.25 (where the error is)."""
+        pooled = self.by_class.pooled()
+        total = pooled[ALL]
+        misses = total.pixels * (1.0 - total.delta_1_25) if total.pixels else 0.0
+        out = {}
+        for name in CLASS_NAMES:
+            scores = pooled[name]
+            if not scores.pixels:
+                continue
+            missed = scores.pixels * (1.0 - scores.delta_1_25)
+            out[name] = {m: getattr(scores, m) for m in DEPTH_METRICS} | {
+                "pixels": float(scores.pixels),
+                "share": scores.pixels / total.pixels,
+                "miss_share": missed / misses if misses else float("nan"),
+            }
         return out
 
 
@@ -511,9 +537,10 @@ def evaluate_stage1(
     Returns a dict: ``checkpoint``, ``shards``, ``model``, ``image_size``, ``offsets``, ``shifts_m``
     (those evaluated), ``clips``, ``images`` (views scored per section), ``seconds_per_clip``,
     ``clip_list`` ([scene id, start]) and ``sections``: per section name ``{"images", "model",
-    "oracle", "gap"}`` with the metrics of :data:`METRICS` (model and oracle also with the pooled
-    depth metrics, ``depth_pixels*`` and ``depth_coverage``: see the module docstring); ``oracle`` and
-    ``gap`` only when ``oracle``. Writes it as JSON to ``out_json`` and a PNG of the first clip to
+    "oracle", "gap", "model_by_class", "oracle_by_class"}`` with the metrics of :data:`METRICS` (model
+    and oracle also with the pooled depth metrics, ``depth_pixels*`` and ``depth_coverage``: see the
+    module docstring) and the depth per truth class (:meth:`SectionScores.class_summary`); ``oracle*``
+    and ``gap`` only when ``oracle``. Writes it as JSON to ``out_json`` and a PNG of the first clip to
     ``picture`` when given. Raises :class:`CheckpointError` for a checkpoint that is not a Stage 1
     model and ValueError naming the cache when it is empty, lacks dense depth or has no scene long
     enough for ``max(offsets)``.
@@ -583,9 +610,11 @@ def evaluate_stage1(
             "images": len(scores[name][0].psnr_db),
             "skipped_clips": skipped[name],
             "model": scores[name][0].summary(),
+            "model_by_class": scores[name][0].class_summary(),
         }
         if oracle:
             entry["oracle"] = scores[name][1].summary()
+            entry["oracle_by_class"] = scores[name][1].class_summary()
             entry["gap"] = gap(entry["model"], entry["oracle"])
         report["sections"][name] = entry
     if out_json is not None:

@@ -52,6 +52,7 @@ from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.losses import edge_aware_smoothness, log_depth_loss, photometric_loss, semantic_loss
 from phigenesis.models.stage1 import Stage1Model, Stage1Prediction
 from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from phigenesis.train.memory_cache import BoundedCache, tensor_bytes
 from phigenesis.train.runner import (
     MetricsLog,
     ProcessGroup,
@@ -106,6 +107,10 @@ class Stage1TrainConfig:
         checkpoint_every, log_every: in steps.
         seed: seed of the initialisation and of every step's draws.
         threads: torch CPU threads per process (None: torch's default).
+        cache_mb: memory per process (MiB) for what a clip costs to prepare and the weights do not
+            change, kept between the steps that draw it again: a third for its frames decoded and
+            resized, two thirds for the frozen VAE's features of its context (:class:`VaeFeatureCache`).
+            The results are the same with any value; 0 keeps nothing.
     """
 
     model: str = "stage1_tiny"
@@ -140,6 +145,7 @@ class Stage1TrainConfig:
     log_every: int = 10
     seed: int = 0
     threads: int | None = None
+    cache_mb: float = 1024.0
 
     def __post_init__(self) -> None:
         unknown = set(self.weights) - set(LOSS_NAMES)
@@ -157,6 +163,10 @@ class Stage1TrainConfig:
             )
         if self.semantic_target not in ("auto", "pseudo", "truth"):
             raise ValueError(f"Stage1TrainConfig: semantic_target {self.semantic_target!r}")
+        if not (isinstance(self.cache_mb, int | float) and 0 <= self.cache_mb < float("inf")):
+            raise ValueError(
+                f"Stage1TrainConfig: cache_mb must be a finite number >= 0, got {self.cache_mb!r}"
+            )
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], **overrides: Any) -> Stage1TrainConfig:
@@ -312,10 +322,36 @@ def ground_gate_loss(logits: Tensor | None, b: int, labels: Tensor) -> Tensor:
     return F.binary_cross_entropy_with_logits(logits[b][known], target[known])
 
 
-def stage1_losses(model: Stage1Model, clips: list[Clip]) -> tuple[dict[str, Tensor], int]:
+class VaeFeatureCache:
+    """The frozen VAE's features (:meth:`Stage1Model.features`) of clips' context images, kept per
+    (scene, context frames) up to ``max_bytes``: the VAE does not train, and there is no image
+    augmentation, so a window's features are the same every time it is drawn (a sixth of a
+    ``stage1_tiny`` step on a CPU core)."""
+
+    def __init__(self, model: Stage1Model, max_bytes: int):
+        self.model = model
+        self.kept: BoundedCache[list[Tensor]] = BoundedCache(max_bytes, tensor_bytes)
+
+    def __call__(self, clips: list[Clip], images: Tensor) -> list[Tensor]:
+        """Per level, [B, T, V, C, h, w]: the features of ``images`` (the clips' context images,
+        [B, T, V, 3, H, W]), each clip's computed alone on a miss."""
+        per_clip = [
+            self.kept.get_or_make(
+                (c.scene_id, tuple(c.frame_indices)),
+                lambda b=b: [f[0] for f in self.model.features(images[b : b + 1])],
+            )
+            for b, c in enumerate(clips)
+        ]
+        return [torch.stack(level) for level in zip(*per_clip, strict=True)]
+
+
+def stage1_losses(
+    model: Stage1Model, clips: list[Clip], features: VaeFeatureCache | None = None
+) -> tuple[dict[str, Tensor], int]:
     """Every loss term (unweighted, means over the batch) of a batch of clips, and the number of
-    Gaussians rendered."""
-    pred = model(*clip_inputs(clips))
+    Gaussians rendered; ``features`` supplies the VAE's features where it has them."""
+    inputs = clip_inputs(clips)
+    pred = model(*inputs, None if features is None else features(clips, inputs[0]))
     terms: dict[str, list[Tensor]] = {k: [] for k in LOSS_NAMES}
     gaussians = 0
     for b, clip in enumerate(clips):
@@ -379,6 +415,11 @@ def _draw_clips(data: Stage1Clips, cfg: Stage1TrainConfig, step: int, group: Pro
     return clips
 
 
+#: Config fields that change how a run uses the machine, not its results: a run may resume with
+#: other values (and runs from before a field existed, without it).
+RESULT_NEUTRAL_FIELDS = frozenset({"cache_mb"})
+
+
 def check_run_folder(out: Path, cfg: Any, resume: bool) -> Path | None:
     """The checkpoint to resume from (or None) for a run of ``cfg`` (a training config with
     ``to_dict``, as its ``config.yaml`` records it; Stage 1's and Stage 2's); refuses to mix runs in
@@ -389,8 +430,11 @@ def check_run_folder(out: Path, cfg: Any, resume: bool) -> Path | None:
             raise ValueError(f"{out}: holds a run already ({evidence}); pass --resume or another --out")
         return None
     before = read_run_config(out)
-    if before is not None and before != cfg.to_dict():
-        diff = sorted(k for k in set(before) | set(cfg.to_dict()) if before.get(k) != cfg.to_dict().get(k))
+    now = {k: v for k, v in cfg.to_dict().items() if k not in RESULT_NEUTRAL_FIELDS}
+    if before is not None:
+        before = {k: v for k, v in before.items() if k not in RESULT_NEUTRAL_FIELDS}
+    if before is not None and before != now:
+        diff = sorted(k for k in set(before) | set(now) if before.get(k) != now.get(k))
         raise ValueError(
             f"{out / 'config.yaml'}: the run was started with another config (fields differ: {diff})"
         )
@@ -440,7 +484,15 @@ def _train(
     resume_from = check_run_folder(out, cfg, resume)
     torch.manual_seed(cfg.seed)
     model = build_model(cfg)
-    data = Stage1Clips(shards, model.config.image_size, model.config.frames, cfg.semantic_target)  # type: ignore[arg-type]
+    cache_bytes = int(cfg.cache_mb * 2**20)
+    data = Stage1Clips(
+        shards,
+        model.config.image_size,
+        model.config.frames,
+        cfg.semantic_target,
+        cache_mb=cfg.cache_mb / 3,  # type: ignore[arg-type]
+    )
+    features = VaeFeatureCache(model, cache_bytes - cache_bytes // 3)
     optimizer = torch.optim.AdamW(model.trainable_parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0
     if resume_from is not None:
@@ -477,7 +529,7 @@ def _train(
                 pg["lr"] = lr
             clips = _draw_clips(data, cfg, step, group)
             terms, gaussians = stage1_losses(
-                trainee if group.world_size == 1 else _Forward(trainee, model), clips
+                trainee if group.world_size == 1 else _Forward(trainee, model), clips, features
             )
             loss = sum(cfg.weights[k] * v for k, v in terms.items())
             optimizer.zero_grad(set_to_none=True)

@@ -24,6 +24,7 @@ from phigenesis.data.loader import FrameDataset
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheReader
 from phigenesis.data.taxonomy import IGNORE_ID
+from phigenesis.train.memory_cache import BoundedCache, tensor_bytes
 from phigenesis.train.views import resize_images, resize_intrinsics, resize_nearest
 
 #: A box moving faster than this (m/s) makes its pixels dynamic.
@@ -71,42 +72,70 @@ class Clip:
     frames: dict[int, dict[str, Any]] | None = None
 
 
-def _views(
-    frames: list[dict[str, Any]],
-    size_hw: tuple[int, int],
-    semantic: SemanticTarget,
-    origin: int,
-    moving_frames: int,
-) -> ViewSet:
-    """The views of ``frames`` at ``size_hw``; what moves is found for the first ``moving_frames``
-    only (the context: the losses use it nowhere else), the others are marked unknown (-1)."""
-    images, poses, times, depth, conf, sem, moving, vel = [], [], [], [], [], [], [], []
-    for j, f in enumerate(frames):
-        h_in, w_in = f["images"].shape[-2:]
-        images.append(resize_images(f["images"], size_hw))
-        wfc = f["camera_world_from_ego"] @ f["ego_from_camera"]
-        poses.append(wfc)
-        times.append((f["camera_timestamp_micros"] - origin).double() * 1e-6)
-        d = resize_nearest(f["depth_dense"], size_hw)
-        depth.append(d)
-        conf.append(resize_nearest(f["depth_dense_confidence"], size_hw))
-        sem.append(resize_nearest(_semantic_map(f, semantic), size_hw))
-        k = resize_intrinsics(f["intrinsics"].double(), (h_in, w_in), size_hw)
-        if j < moving_frames:
-            m, v = _moving_pixels(f, d, k, wfc)
-        else:
-            m, v = torch.full(d.shape, -1.0), torch.zeros(*d.shape, 3)
-        moving.append(m)
-        vel.append(v)
+@dataclass(frozen=True)
+class _FrameViews:
+    """One frame's views at the model's size, as a clip stacks them (see :class:`ViewSet`), with
+    what the clip takes from its first frame. Kept by :class:`Stage1Clips` between clips."""
+
+    images: Tensor  # [V, 3, H, W]
+    world_from_camera: Tensor  # [V, 4, 4] float64
+    capture_micros: Tensor  # [V] int64 camera capture times
+    depth: Tensor
+    depth_confidence: Tensor
+    semantic: Tensor
+    moving: Tensor  # -1 everywhere unless the frame was prepared as a context frame
+    box_velocity: Tensor
+    frame_timestamp_micros: int
+    intrinsics: Tensor  # [V, 3, 3] float64 at the model's size
+    camera_names: list[str]
+
+    def nbytes(self) -> int:
+        return tensor_bytes(getattr(self, f.name) for f in fields(self))
+
+
+def _frame_views(
+    f: dict[str, Any], size_hw: tuple[int, int], semantic: SemanticTarget, context: bool
+) -> _FrameViews:
+    """The views of the loaded cache frame ``f`` at ``size_hw``; what moves is found only for a
+    ``context`` frame (the losses use it nowhere else), a target's is marked unknown (-1)."""
+    h_in, w_in = f["images"].shape[-2:]
+    wfc = f["camera_world_from_ego"] @ f["ego_from_camera"]
+    d = resize_nearest(f["depth_dense"], size_hw)
+    k = resize_intrinsics(f["intrinsics"].double(), (h_in, w_in), size_hw)
+    if context:
+        m, v = _moving_pixels(f, d, k, wfc)
+    else:
+        m, v = torch.full(d.shape, -1.0), torch.zeros(*d.shape, 3)
+    return _FrameViews(
+        images=resize_images(f["images"], size_hw),
+        world_from_camera=wfc,
+        capture_micros=f["camera_timestamp_micros"],
+        depth=d,
+        depth_confidence=resize_nearest(f["depth_dense_confidence"], size_hw),
+        semantic=resize_nearest(_semantic_map(f, semantic), size_hw),
+        moving=m,
+        box_velocity=v,
+        frame_timestamp_micros=int(f["frame_timestamp_micros"]),
+        intrinsics=k,
+        camera_names=list(f["camera_names"]),
+    )
+
+
+def _views(frames: list[_FrameViews], origin: int) -> ViewSet:
+    """The frames' views stacked, times in seconds after ``origin`` (microseconds)."""
+
+    def stack(name: str) -> Tensor:
+        return torch.stack([getattr(f, name) for f in frames])
+
     return ViewSet(
-        images=torch.stack(images),
-        world_from_camera=torch.stack(poses),
-        time_s=torch.stack(times),
-        depth=torch.stack(depth),
-        depth_confidence=torch.stack(conf),
-        semantic=torch.stack(sem),
-        moving=torch.stack(moving),
-        box_velocity=torch.stack(vel),
+        images=stack("images"),
+        world_from_camera=stack("world_from_camera"),
+        time_s=(stack("capture_micros") - origin).double() * 1e-6,
+        depth=stack("depth"),
+        depth_confidence=stack("depth_confidence"),
+        semantic=stack("semantic"),
+        moving=stack("moving"),
+        box_velocity=stack("box_velocity"),
     )
 
 
@@ -201,6 +230,7 @@ class Stage1Clips:
         frames: int = 1,
         semantic: SemanticTarget = "auto",
         check_crc: bool = True,
+        cache_mb: float = 0.0,
     ):
         fields_ = ["images", "cameras", "depth", "pseudo", "boxes"] + (
             ["truth"] if semantic != "pseudo" else []
@@ -221,6 +251,8 @@ class Stage1Clips:
         self._refuse_empty_depth(check_crc)
         self.scenes = {s: list(self.reader.frames_of(s)) for s in self.reader.scene_ids()}
         self._windows = [(s, i) for s, rows in self.scenes.items() for i in range(len(rows) - frames + 1)]
+        #: Prepared frames kept between clips (``cache_mb``): (scene, index, as context) -> views.
+        self.prepared: BoundedCache[_FrameViews] = BoundedCache(int(cache_mb * 2**20), _FrameViews.nbytes)
         if not self._windows:
             raise ValueError(f"{cache_dir}: no scene has the {frames} frames one clip needs")
 
@@ -263,19 +295,28 @@ class Stage1Clips:
         context_idx = list(range(start, start + self.frames))
         last = context_idx[-1]
         target_idx = context_idx + [min(max(last + o, 0), n - 1) for o in target_offsets]
-        loaded = {i: self._frame(scene_id, i) for i in sorted(set(target_idx))}
-        origin = int(loaded[start]["frame_timestamp_micros"])
-        first = loaded[start]
-        k = resize_intrinsics(first["intrinsics"].double(), tuple(first["images"].shape[-2:]), self.size_hw)
-        targets = _views([loaded[i] for i in target_idx], self.size_hw, self.semantic, origin, self.frames)
+        loaded: dict[int, dict[str, Any]] = {}
+
+        def views(i: int, context: bool) -> _FrameViews:
+            def make() -> _FrameViews:
+                if i not in loaded:
+                    loaded[i] = self._frame(scene_id, i)
+                return _frame_views(loaded[i], self.size_hw, self.semantic, context)
+
+            return make() if keep_frames else self.prepared.get_or_make((scene_id, i, context), make)
+
+        prepared = [views(i, j < self.frames) for j, i in enumerate(target_idx)]
+        first = prepared[0]
+        origin = first.frame_timestamp_micros
+        targets = _views(prepared, origin)
         context = ViewSet(**{f.name: getattr(targets, f.name)[: self.frames] for f in fields(ViewSet)})
         return Clip(
             scene_id=scene_id,
             frame_indices=context_idx,
             target_indices=target_idx,
             time_origin_micros=origin,
-            intrinsics=k.float(),
-            camera_names=list(first["camera_names"]),
+            intrinsics=first.intrinsics.float(),
+            camera_names=list(first.camera_names),
             context=context,
             targets=targets,
             frames=loaded if keep_frames else None,
