@@ -230,7 +230,10 @@ def main() -> None:
     vae_wall = timings["vae"][0]
     budget_s = 60.0 * args.budget_min
     if args.stage1_steps is not None:
-        plan = f"Stage 1 steps fixed at {args.stage1_steps} (`--stage1-steps`)."
+        plan = (
+            f"Stage 1 steps planned at {args.stage1_steps} (`--stage1-steps`), the run ending at the budget "
+            "if it gets there first."
+        )
         s1_steps = args.stage1_steps
     else:
         s1_steps, per_step, startup = budget_steps(
@@ -249,7 +252,7 @@ def main() -> None:
         )
     if not (args.reuse and (s1_run / "model.safetensors").exists() and "stage1" in timings):
         print(plan, flush=True)
-        limit = None if args.stage1_steps is not None else budget_s - vae_wall
+        limit = budget_s - vae_wall  # the budget holds with fixed steps too
         timings["stage1"] = _train_stage1(
             train_cache, vae_run, s1_run, s1_steps, SPEED_RUNS[full_backend][1], limit
         )
