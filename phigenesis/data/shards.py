@@ -390,6 +390,7 @@ class _HashingSink:
     def __init__(self, fd: int):
         self.fd = fd
         self._file_crc32c = 0
+        self._combine = load_crc32c_combine()
         #: The last row taken, until it is added to the file's CRC-32C.
         self._unhashed: _RowBytes | None = None
         #: Bytes passed on to the file so far.
@@ -418,8 +419,9 @@ class _HashingSink:
             self._small = bytearray()
 
     def take(self) -> _RowBytes:
-        """What was written since the last call, after writing it to the file and adding it to
-        the file's CRC-32C."""
+        """What was written since the last call, after writing it to the file. It joins the file's
+        CRC-32C through :meth:`add_checksummed`, or by being read at the next :meth:`take` or
+        :attr:`file_crc32c`."""
         self._hash_unhashed()
         self._seal_small()
         row = _RowBytes(self.flushed, self._pieces)
@@ -443,9 +445,9 @@ class _HashingSink:
         whole row is."""
         if row is not self._unhashed:
             raise ValueError("add_checksummed: not the row last taken, or already hashed")
-        combine = load_crc32c_combine()
+        combine = self._combine
         crc = None if combine is None else _crc_from_parts(row, parts, combine)
-        if crc is None:
+        if combine is None or crc is None:
             self._hash_unhashed()
         else:
             self._file_crc32c = combine(self._file_crc32c, crc, row.size)
@@ -514,6 +516,19 @@ def _crc_from_parts(
 _Indexed = tuple[list[int], list[tuple[int, int, int]]]
 
 
+def _indexed(
+    start: int, size: int, body_start: int, ranges: list[tuple[int, int]], crc: Callable[[int, int], int]
+) -> _Indexed:
+    """The row index entry of a row of ``size`` bytes at file offset ``start`` whose body starts at
+    ``body_start`` and whose columns span ``ranges`` (row offsets), with ``crc(lo, hi)`` the CRC-32C
+    of its bytes ``[lo, hi)``; and those spans with their CRCs."""
+    spans = [(0, body_start), *ranges]
+    crcs = [crc(lo, hi) for lo, hi in spans]
+    return [start + size, start + body_start, *crcs], [
+        (lo, hi, c) for (lo, hi), c in zip(spans, crcs, strict=True)
+    ]
+
+
 def _row_entry(buffer: pa.Buffer, start: int, schema: pa.Schema, where: str) -> _Indexed:
     """The row index entry ``[end, body_start, metadata_crc, crc of each column...]`` (CRC-32C) of
     one record batch, from the bytes the IPC writer wrote for it (``buffer``, starting at file
@@ -535,11 +550,7 @@ def _row_entry(buffer: pa.Buffer, start: int, schema: pa.Schema, where: str) -> 
     body_start = min((lo for lo, hi in ranges if hi > lo), default=end)
     if not all(0 <= lo <= hi <= end for lo, hi in ranges if hi > lo):
         raise CacheError(f"{where}: a row's buffers lie outside its record batch; cannot index it")
-    spans = [(0, body_start), *ranges]
-    crcs = [_crc_range(SHARD_CHECKSUM, buffer, lo, hi) for lo, hi in spans]
-    return [start + end, start + body_start, *crcs], [
-        (lo, hi, c) for (lo, hi), c in zip(spans, crcs, strict=True)
-    ]
+    return _indexed(start, end, body_start, ranges, lambda lo, hi: _crc_range(SHARD_CHECKSUM, buffer, lo, hi))
 
 
 def _row_entry_from_layout(row: _RowBytes, counts: list[int], where: str) -> _Indexed:
@@ -557,11 +568,7 @@ def _row_entry_from_layout(row: _RowBytes, counts: list[int], where: str) -> _In
         raise LayoutUnknown(f"the message ends at {body + layout.body_length}, the row at {row.size}")
     ranges = [(body + lo, body + hi) for lo, hi in column_body_ranges(layout, counts)]
     body_start = min((lo for lo, hi in ranges if hi > lo), default=row.size)
-    spans = [(0, body_start), *ranges]
-    crcs = [row.crc(lo, hi) for lo, hi in spans]
-    return [row.start + row.size, row.start + body_start, *crcs], [
-        (lo, hi, c) for (lo, hi), c in zip(spans, crcs, strict=True)
-    ]
+    return _indexed(row.start, row.size, body_start, ranges, row.crc)
 
 
 class ShardWriter:

@@ -489,8 +489,8 @@ def _train(
         shards,
         model.config.image_size,
         model.config.frames,
-        cfg.semantic_target,
-        cache_mb=cfg.cache_mb / 3,  # type: ignore[arg-type]
+        cfg.semantic_target,  # type: ignore[arg-type]
+        cache_mb=cfg.cache_mb / 3,
     )
     features = VaeFeatureCache(model, cache_bytes - cache_bytes // 3)
     optimizer = torch.optim.AdamW(model.trainable_parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
