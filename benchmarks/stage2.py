@@ -20,7 +20,10 @@ Usage (from the repository root, on a quiet machine)::
    shifted trajectories, rollout frames ``--rollout-frames``; FID/KID with ``--fid-model``).
    Rows: ``no geometry`` (uncertainty ``none``: the condition is always zero), ``coverage`` (the
    render trusted wherever it covers: the "no SF" row), ``SF random``, ``SF entropy``, ``SF
-   localization potential`` and ``truth geometry`` (localization potential on the truth's render).
+   localization potential`` (``lp_trust: stable``, the config's), the same with ``u localised``
+   (the reading before 2026-12-05) and ``truth geometry`` (localization potential on the truth's
+   render). Each (geometry, ``lp_trust``) has its own latent cache, made only when a run still to
+   be trained needs it.
    ``render only`` is the history's Stage 1 render scored at the same cameras (no diffusion).
    Sampling uses render anchoring and pasting (``--anchor``, ``--anchor-until``, ``--paste``; the
    defaults are ``GenerateOptions``'); ``--no-anchor-rows`` also scores every geometry row with
@@ -53,13 +56,15 @@ from phigenesis.infer.generate import GenerateOptions
 from phigenesis.train.runner import read_metrics
 
 BIN = Path(sys.executable).parent
-#: (row name, uncertainty, geometry) of the trained rows.
+#: (row name, uncertainty, geometry) of the trained rows; ``kind@trust`` names the localization
+#: potential's mapping when it is not ``configs/stage2/tiny.yaml``'s (``stable``).
 ROWS = (
     ("no geometry", "none", "stage1"),
     ("coverage (no SF)", "coverage", "stage1"),
     ("SF random", "random", "stage1"),
     ("SF entropy", "entropy", "stage1"),
     ("SF localization potential", "localization_potential", "stage1"),
+    ("SF localization potential, u localised", "localization_potential@localised", "stage1"),
     ("truth geometry (LP)", "localization_potential", "truth"),
 )
 SECTIONS_SHOWN = ("+5", "+10", "shift_1m", "shift_2m", "shift_4m")
@@ -118,6 +123,17 @@ def _in_pairs(jobs: list[list[str]]) -> list[tuple[float, float]]:
             raise subprocess.CalledProcessError(proc.returncode, cmd)
         results[i] = (time.perf_counter() - t0, usage.ru_maxrss / 2**20)
     return [results[i] for i in range(len(jobs))]
+
+
+def _kind(kind: str, base: dict[str, object]) -> tuple[str, str]:
+    """(uncertainty, lp_trust) of a row's kind (``kind`` or ``kind@trust``)."""
+    uncertainty, _, trust = kind.partition("@")
+    return uncertainty, trust or str(base.get("lp_trust", "stable"))
+
+
+def _latents(work: Path, geometry: str, trust: str) -> Path:
+    """The latent cache of a geometry and localization-potential mapping."""
+    return work / (f"latents-{geometry}" if trust == "stable" else f"latents-{geometry}-{trust}")
 
 
 def _cache(path: Path, scenes: int, seed: int, frames: int) -> None:
@@ -235,30 +251,46 @@ def main() -> None:
 
     model = load_stage1(stage1 / "model.safetensors")
     precompute_s: dict[str, float] = {}
-    for geometry in sorted({g for _, _, g in rows}):
-        cfg = Stage2TrainConfig(**{**base, "geometry": geometry})
+    # Only the caches a run still to be trained reads (a reused run's cache may be gone).
+    needed = {
+        (g, _kind(k, base)[1])
+        for _, k, g in rows
+        for seed in args.seeds
+        if not (work / "runs" / f"{k.replace('@', '-')}-{g}-s{seed}" / "model.safetensors").exists()
+    }
+    for geometry, trust in sorted(needed):
+        cfg = Stage2TrainConfig(**{**base, "geometry": geometry, "lp_trust": trust})
         t0 = time.perf_counter()
         precompute_stage2(
             train_cache,
-            work / f"latents-{geometry}",
+            _latents(work, geometry, trust),
             model,
             cfg.data_config(),
             stage1_checkpoint=cfg.stage1_checkpoint,
         )
-        precompute_s[geometry] = time.perf_counter() - t0
+        precompute_s[geometry if trust == "stable" else f"{geometry}, {trust}"] = time.perf_counter() - t0
     del model
 
     runs: dict[tuple[str, int], Path] = {}
     train_jobs, eval_jobs = [], []
     for name, kind, geometry in rows:
+        uncertainty, trust = _kind(kind, base)
         for seed in args.seeds:
-            tag = f"{kind}-{geometry}-s{seed}"
+            tag = f"{kind.replace('@', '-')}-{geometry}-s{seed}"
             out = work / "runs" / tag
             runs[(name, seed)] = out
             cfg_path = work / "runs" / f"{tag}.yaml"
             cfg_path.parent.mkdir(parents=True, exist_ok=True)
             cfg_path.write_text(
-                yaml.safe_dump({**base, "uncertainty": kind, "geometry": geometry, "seed": seed})
+                yaml.safe_dump(
+                    {
+                        **base,
+                        "uncertainty": uncertainty,
+                        "lp_trust": trust,
+                        "geometry": geometry,
+                        "seed": seed,
+                    }
+                )
             )
             if not (out / "model.safetensors").exists():
                 shutil.rmtree(out, ignore_errors=True)
@@ -271,7 +303,7 @@ def main() -> None:
                         "--config",
                         str(cfg_path),
                         "--latents",
-                        str(work / f"latents-{geometry}"),
+                        str(_latents(work, geometry, trust)),
                         "--out",
                         str(out),
                         "--no-progress",

@@ -168,6 +168,52 @@ def test_a_rerun_of_the_precompute_skips_finished_scenes_and_other_inputs_are_re
         )
 
 
+def test_the_latent_caches_localization_potential_follows_lp_trust_and_is_part_of_its_fingerprint(
+    cache: Path, stage1_checkpoint: Path, latents: Path, tmp_path: Path
+) -> None:
+    model = load_stage1(stage1_checkpoint)
+    other = tmp_path / "localised"
+    cfg = Stage2DataConfig(stride=3, lp_trust="localised")
+    precompute_stage2(cache, other, model, cfg, stage1_checkpoint=str(stage1_checkpoint))
+    assert json.loads((latents / "manifest.json").read_text())["arguments"]["lp_trust"] == "stable"
+    assert json.loads((other / "manifest.json").read_text())["arguments"]["lp_trust"] == "localised"
+    stable, localised = Stage2Latents(latents), Stage2Latents(other)
+    assert len(stable) == len(localised) == 3
+    for i in range(3):
+        a, b = stable[i], localised[i]
+        for kind in ("coverage", "random", "entropy"):
+            assert torch.equal(a.u[kind], b.u[kind]), kind
+        # Per covered pixel the two readings are complements, and pooling to the latent grid averages.
+        torch.testing.assert_close(
+            a.u["localization_potential"] + b.u["localization_potential"], a.u["coverage"], rtol=0, atol=1e-5
+        )
+        assert not torch.equal(a.u["localization_potential"], b.u["localization_potential"])
+    with pytest.raises(ValueError, match="other inputs"):
+        precompute_stage2(
+            cache, other, model, Stage2DataConfig(stride=3), stage1_checkpoint=str(stage1_checkpoint)
+        )
+    with pytest.raises(ValueError, match="lp_trust"):
+        Stage2DataConfig(lp_trust="sure")  # type: ignore[arg-type]
+
+
+def test_generation_uses_the_lp_trust_its_checkpoint_was_trained_with(
+    stage2_checkpoint: Path, cache: Path
+) -> None:
+    from phigenesis.errors import CheckpointError
+    from phigenesis.infer.generate import GenerateOptions, Stage2Runner, trained_lp_trust
+
+    runner = Stage2Runner(stage2_checkpoint, cache)
+    assert runner.lp_trust == "stable"
+    assert runner.resolve(None).lp_trust == "stable"
+    assert runner.resolve(GenerateOptions(lp_trust="localised")).lp_trust == "localised"
+    # Checkpoints trained before the choice existed used the localised reading.
+    assert trained_lp_trust({"window_frames": 5}, "old.safetensors") == "localised"
+    with pytest.raises(CheckpointError, match=r"old\.safetensors.*lp_trust"):
+        trained_lp_trust({"lp_trust": "sure"}, "old.safetensors")
+    with pytest.raises(ValueError, match="lp_trust"):
+        GenerateOptions(lp_trust="sure")
+
+
 def test_a_crafted_latent_row_with_nan_is_refused_naming_the_shard_and_column(
     cache: Path, latents: Path, tmp_path: Path
 ) -> None:
@@ -407,6 +453,8 @@ def test_a_generated_cache_passes_verify_and_the_loader_reads_its_rendered_depth
     left = recorded["world_from_ego"][:3, 1]
     assert torch.allclose(moved.double(), 2.0 * left.double().expand(5, 3), atol=1e-6)
     assert json.loads((out / "generate.json").read_text())["windows"] == 2
+    # The cache records the mapping the rollout used: the checkpoint's, as options left it open.
+    assert json.loads((out / "manifest.json").read_text())["arguments"]["lp_trust"] == "stable"
 
 
 def test_a_200_frame_rollout_keeps_its_buffer_bounded_and_finite(
@@ -542,6 +590,9 @@ def test_generation_refuses_bad_inputs_naming_what_is_wrong(
         return capsys.readouterr().err
 
     assert "not a Stage 2 denoiser" in run(ckpt=stage1_checkpoint)
+    with pytest.raises(SystemExit):
+        run("--lp-trust", "sure")
+    assert "--lp-trust: invalid choice" in capsys.readouterr().err
     assert "'nope' is not in" in run("--scene", "nope")
     assert "runs past the end of scene" in run("--frames", "40")
     nan = _straight_trajectory(cache, 5, tmp_path / "nan.json")

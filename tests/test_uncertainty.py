@@ -323,35 +323,54 @@ def test_coverage_map_is_one_where_rendered_and_zero_in_holes():
     assert coverage_map(alpha, hole_alpha=0.0).tolist() == [[1.0, 1.0, 1.0, 1.0, 1.0, 0.0]]
 
 
-def test_lp_to_u_is_one_minus_exp_of_pixels_moved_per_depth_bin():
+def test_lp_to_u_is_exp_of_pixels_moved_per_depth_bin_stable_or_one_minus_it_localised():
     bins = DepthBins(0.5, 120.0, 64)
-    depth = torch.tensor([[2.0, 10.0, 10.0, 10.0, 80.0]], dtype=torch.float64)
+    depth = torch.tensor([[2.0, 10.0, 10.0, 10.0, 80.0, 10.0]], dtype=torch.float64)
+    alpha = torch.tensor([[1.0, 1.0, 1.0, 1.0, 1.0, 0.2]], dtype=torch.float64)  # the last is a hole
     width = depth_bin_width_m(depth, bins.step)
     # The bin's width is its edges' distance: a bin centred at d spans d e^(-step/2) .. d e^(step/2).
     np.testing.assert_allclose(
         width.numpy(), (depth * (math.exp(bins.step / 2) - math.exp(-bins.step / 2))).numpy()
     )
-    lp = torch.tensor([[0.0, 1.0, 3.0, 1e9, 0.0]], dtype=torch.float64) / width  # 0, 1, 3, 1e9 px per bin
-    u = localization_potential_to_u(lp, depth, torch.ones_like(depth), log_depth_step=bins.step, scale_px=1.0)
-    np.testing.assert_allclose(u.numpy()[0], [0.0, 1 - math.exp(-1), 1 - math.exp(-3), 1.0, 0.0], rtol=1e-12)
-    wide = localization_potential_to_u(
-        lp, depth, torch.ones_like(depth), log_depth_step=bins.step, scale_px=3.0
+    # 0, 1, 3, 1e9, 0 px per bin, and a hole.
+    lp = torch.tensor([[0.0, 1.0, 3.0, 1e9, 0.0, 1.0]], dtype=torch.float64) / width
+    kwargs = {"log_depth_step": bins.step, "scale_px": 1.0}
+    stable = localization_potential_to_u(lp, depth, alpha, **kwargs)
+    np.testing.assert_allclose(
+        stable.numpy()[0], [1.0, math.exp(-1), math.exp(-3), 0.0, 1.0, 0.0], rtol=1e-12, atol=1e-300
     )
-    np.testing.assert_allclose(wide[0, 2].item(), 1 - math.exp(-1), rtol=1e-12)
+    assert torch.equal(stable, localization_potential_to_u(lp, depth, alpha, **kwargs, trust="stable"))
+    localised = localization_potential_to_u(lp, depth, alpha, **kwargs, trust="localised")
+    np.testing.assert_allclose(
+        localised.numpy()[0], [0.0, 1 - math.exp(-1), 1 - math.exp(-3), 1.0, 0.0, 0.0], rtol=1e-12
+    )
+    # Covered pixels: the two readings are each other's complement.
+    np.testing.assert_allclose((stable + localised)[0, :5].numpy(), 1.0, rtol=1e-12)
+    wide = localization_potential_to_u(lp, depth, alpha, log_depth_step=bins.step, scale_px=3.0)
+    np.testing.assert_allclose(wide[0, 2].item(), math.exp(-1), rtol=1e-12)
+    with pytest.raises(ValueError, match="trust"):
+        localization_potential_to_u(lp, depth, alpha, trust="sure")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="lp_trust"):
+        UncertaintyConfig(lp_trust="sure")  # type: ignore[arg-type]
 
 
-def test_lateral_pair_u_follows_disparity_times_the_bins_relative_width():
+@pytest.mark.parametrize("trust", ["stable", "localised"])
+def test_lateral_pair_u_follows_disparity_times_the_bins_relative_width(trust):
     f, b = 200.0, 1.5
     alpha = torch.ones(1, H, W)
     us = []
     for d in (5.0, 10.0, 40.0):
         lp = lateral_lp(f, f, d, (b, 0.0, 0.0))
         depth = torch.full((1, H, W), d, dtype=torch.float64)
-        u = localization_potential_to_u(lp, depth, alpha)
+        u = localization_potential_to_u(lp, depth, alpha, trust=trust)
         moved_px = f * b / d * 2 * math.sinh(DEFAULT_LOG_DEPTH_STEP / 2)
-        np.testing.assert_allclose(u[0, CY, CX].item(), 1 - math.exp(-moved_px), rtol=1e-9)
+        want = math.exp(-moved_px) if trust == "stable" else 1 - math.exp(-moved_px)
+        np.testing.assert_allclose(u[0, CY, CX].item(), want, rtol=1e-9)
         us.append(u[0, CY, CX].item())
-    assert us[0] > us[1] > us[2] > 0  # farther points are less well localised
+    if trust == "stable":
+        assert 0 < us[0] < us[1] < us[2] < 1  # a far point's render barely moves with its depth error
+    else:
+        assert us[0] > us[1] > us[2] > 0  # farther points are less well localised
 
 
 def hard_inputs():
@@ -492,6 +511,18 @@ def test_uncertainty_map_dispatches_each_kind_to_its_function():
         history=history,
     )
     assert torch.equal(got, localization_potential_to_u(lp, depth, alpha, scale_px=0.5))
+    localised = uncertainty_map(
+        "localization_potential",
+        alpha,
+        config=UncertaintyConfig(num_bins=8, patch_px=2, scale_px=0.5, lp_trust="localised"),
+        depth_m=depth,
+        intrinsics=k,
+        world_from_camera=targets,
+        history=history,
+    )
+    assert torch.equal(
+        localised, localization_potential_to_u(lp, depth, alpha, scale_px=0.5, trust="localised")
+    )
 
 
 def test_uncertainty_map_names_what_a_kind_is_missing():

@@ -89,8 +89,9 @@ def unit_interval(value: str) -> float:
 
 def add_anchor_options(parser: argparse.ArgumentParser) -> None:
     """Stage 2 sampling's render anchoring and pasting (``GenerateOptions.anchor``, ``anchor_until``
-    and ``paste``)."""
+    and ``paste``) and the localization potential's mapping (``lp_trust``)."""
     from phigenesis.infer.generate import GenerateOptions
+    from phigenesis.infer.uncertainty import LP_TRUSTS
 
     defaults = GenerateOptions()
     parser.add_argument(
@@ -112,6 +113,12 @@ def add_anchor_options(parser: argparse.ArgumentParser) -> None:
         default=defaults.paste,
         help="render pasting: move each decoded pixel paste x u of the way to the render; 0 keeps the "
         f"VAE's decoding as it is (default {defaults.paste:g})",
+    )
+    parser.add_argument(
+        "--lp-trust",
+        choices=LP_TRUSTS,
+        help="the localization potential's u: stable (trust what a depth error barely moves) or "
+        "localised (trust what the history localises well); default: the one the model was trained with",
     )
 
 

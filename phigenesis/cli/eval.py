@@ -109,6 +109,7 @@ def _stage2(args: argparse.Namespace) -> int:
         anchor=args.anchor,
         anchor_until=args.anchor_until,
         paste=args.paste,
+        lp_trust=args.lp_trust,
         seed=args.seed,
     )
     report = evaluate_stage2(

@@ -69,6 +69,7 @@ def _generate(args: argparse.Namespace) -> int:
         anchor=args.anchor,
         anchor_until=args.anchor_until,
         paste=args.paste,
+        lp_trust=args.lp_trust,
         geometry=args.geometry,
         max_gaussians=args.max_gaussians,
         seed=args.seed,

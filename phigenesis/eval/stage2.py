@@ -157,6 +157,7 @@ def evaluate_stage2(
     t0 = time.perf_counter()
     options = options or GenerateOptions()
     runner = Stage2Runner(checkpoint, shards, stage1)
+    options = runner.resolve(options)
     t_h, window = runner.history_frames, runner.window
     manifest = runner.data.reader.manifest
     truth = None

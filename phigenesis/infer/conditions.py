@@ -27,7 +27,13 @@ from torch import Tensor
 
 from phigenesis.data.taxonomy import SKY
 from phigenesis.infer.render import SKY_ALPHA, Views, lift_views
-from phigenesis.infer.uncertainty import HistoryViews, UncertaintyConfig, UncertaintyKind, uncertainty_map
+from phigenesis.infer.uncertainty import (
+    HistoryViews,
+    LpTrust,
+    UncertaintyConfig,
+    UncertaintyKind,
+    uncertainty_map,
+)
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.stage1 import Stage1Model
 from phigenesis.train.stage1_data import Clip
@@ -249,14 +255,16 @@ def uncertainty_maps(
     generator: torch.Generator,
     patch_px: int,
     kinds: tuple[str, ...] = UNCERTAINTY_KINDS,
+    lp_trust: LpTrust = "stable",
 ) -> dict[str, Tensor]:
     """Stereo Forcing's maps u [F, V, H, W] (1 = trust the render, 0 in holes) of each of ``kinds``
     for a condition ``render`` at the ``targets`` cameras, at image resolution
     (:func:`~phigenesis.infer.uncertainty.uncertainty_map`): the localization potential against the
     ``history`` cameras with their rendered depth ``history_depth`` [F_h, V, H, W] (occlusion),
-    the entropy of a depth distribution of ``num_bins`` bins (only where the render has one)."""
+    the entropy of a depth distribution of ``num_bins`` bins (only where the render has one);
+    ``lp_trust`` says which points the localization potential's u trusts (:data:`LpTrust`)."""
     render_alpha, render_depth, render_entropy = render.alpha, render.depth, render.entropy
-    cfg = UncertaintyConfig(patch_px=patch_px, num_bins=max(num_bins, 2))
+    cfg = UncertaintyConfig(patch_px=patch_px, num_bins=max(num_bins, 2), lp_trust=lp_trust)
     f, v = targets.frames, targets.views
     hv = HistoryViews(
         intrinsics=history.intrinsics.expand(history.frames, v, 3, 3).flatten(0, 1).double(),

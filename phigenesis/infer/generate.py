@@ -40,6 +40,7 @@ calibrations at the model's size, poses, the generated Gaussians' rendered depth
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -84,6 +85,7 @@ from phigenesis.infer.conditions import (
 )
 from phigenesis.infer.flow import Anchor, FixedFrames, euler_sample
 from phigenesis.infer.stereo_forcing import pool_to_latent, stereo_forcing
+from phigenesis.infer.uncertainty import LEGACY_LP_TRUST, LP_TRUSTS, LpTrust
 from phigenesis.models.dit import MultiViewDiT
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.stage1 import Stage1Model
@@ -113,6 +115,7 @@ class GenerateOptions:
     """How a rollout samples (the CLI's options)."""
 
     uncertainty: str = "localization_potential"  # SF's map: an uncertainty kind or "none"
+    lp_trust: LpTrust | None = None  # localization potential's mapping; None: as the model was trained
     omega: float = 1.0  # guidance scale: v(z) + omega [v(z | SF) - v(z)]
     steps: int = 10  # Euler steps per window
     shift: float = 1.0  # time shift of the sampling grid
@@ -130,6 +133,8 @@ class GenerateOptions:
             raise ValueError(
                 f"uncertainty must be one of {(*UNCERTAINTY_KINDS, 'none')}, got {self.uncertainty!r}"
             )
+        if self.lp_trust is not None and self.lp_trust not in LP_TRUSTS:
+            raise ValueError(f"lp_trust must be one of {LP_TRUSTS} or None, got {self.lp_trust!r}")
         if not math.isfinite(self.omega):
             raise ValueError(f"omega must be finite, got {self.omega}")
         if self.steps < 1:
@@ -285,7 +290,10 @@ def _condition(
         return render, torch.zeros(f, v, *targets.size_hw), torch.zeros(1, v, c + 1, *z_render.shape[3:])
     hist_depth = render_condition(buffer_scene, history).depth
     bins = int(stage1.config.adapter_config.depth_bins)
-    maps = uncertainty_maps(render, targets, history, hist_depth, bins, generator, 8, (denoiser_kind,))
+    lp_trust: LpTrust = options.lp_trust or "stable"
+    maps = uncertainty_maps(
+        render, targets, history, hist_depth, bins, generator, 8, (denoiser_kind,), lp_trust
+    )
     if denoiser_kind not in maps:
         raise ValueError(f"uncertainty {denoiser_kind!r}: the history's Gaussians carry no depth entropy")
     u = maps[denoiser_kind]
@@ -576,6 +584,18 @@ def trained_uncertainty(ckpt: str | os.PathLike[str]) -> str:
     return str(_stage2_checkpoint(ckpt)[1].get("uncertainty", "localization_potential"))
 
 
+def trained_lp_trust(train: dict[str, Any], where: str) -> LpTrust:
+    """The localization potential's mapping the Stage 2 checkpoint ``where``, with training config
+    ``train``, was trained with: its ``lp_trust``, or the one there was before the choice existed
+    (:data:`LEGACY_LP_TRUST`); CheckpointError for another value."""
+    from phigenesis.errors import CheckpointError
+
+    value = train.get("lp_trust", LEGACY_LP_TRUST)
+    if value not in LP_TRUSTS:
+        raise CheckpointError(f"{where}: its training config has lp_trust {value!r}, not one of {LP_TRUSTS}")
+    return value
+
+
 class Stage2Runner:
     """A trained Stage 2 model with its Stage 1 model over a frame cache: rolls scenes out.
 
@@ -601,7 +621,16 @@ class Stage2Runner:
         self.stage1 = load_stage1(stage1_path)
         self.window = int(self.train["window_frames"])
         self.history_frames = int(self.train["history_frames"])
+        self.lp_trust = trained_lp_trust(self.train, self.ckpt)
         self.data = Stage1Clips(shards, self.stage1.config.image_size, self.history_frames, "auto")
+
+    def resolve(self, options: GenerateOptions | None) -> GenerateOptions:
+        """``options`` (default: :class:`GenerateOptions`) with what they leave to the model filled
+        in from its training config: the localization potential's mapping."""
+        options = options or GenerateOptions()
+        if options.lp_trust is None:
+            options = dataclasses.replace(options, lp_trust=self.lp_trust)
+        return options
 
     def check(self, scene: str, start: int, frames: int, trajectory: str) -> None:
         """Raises ValueError naming what is wrong with a rollout request."""
@@ -634,7 +663,7 @@ class Stage2Runner:
         progress: bool = False,
     ) -> tuple[Rollout, Any]:
         """(the rollout, the history clip) of ``frames`` frames of ``scene`` from ``start`` on."""
-        options = options or GenerateOptions()
+        options = self.resolve(options)
         self.check(scene, start, frames, trajectory)
         t_h = self.history_frames
         clip = self.data.clip(scene, start - t_h, [], keep_frames=True)
@@ -692,6 +721,7 @@ def generate(
             f"{out}: exists and is not an empty folder; choose a new folder for the generated cache"
         )
     runner = Stage2Runner(ckpt, shards, stage1)
+    options = runner.resolve(options)
     result, clip = runner.run(scene, start, frames, trajectory, options, progress)
     stage1_path, window = runner.stage1_path, runner.window
     ego_from_camera = clip.frames[start - 1]["ego_from_camera"]

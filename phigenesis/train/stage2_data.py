@@ -65,6 +65,7 @@ from phigenesis.infer.conditions import (
     uncertainty_maps,
 )
 from phigenesis.infer.stereo_forcing import pool_to_latent
+from phigenesis.infer.uncertainty import LP_TRUSTS, LpTrust
 from phigenesis.models.stage1 import Stage1Model
 from phigenesis.train.stage1_data import Clip, Stage1Clips
 
@@ -84,6 +85,7 @@ class Stage2DataConfig:
     geometry: GeometrySource = "stage1"  # where the history's Gaussians come from
     random_patch_px: int = 8  # side of the random map's patches, pixels
     seed: int = 0  # seeds the random maps (per window: seed, scene, start)
+    lp_trust: LpTrust = "stable"  # which points the localization potential's u trusts
 
     def __post_init__(self) -> None:
         for name in ("history_frames", "window_frames", "stride", "random_patch_px"):
@@ -93,6 +95,8 @@ class Stage2DataConfig:
             raise ValueError(
                 f"Stage2DataConfig.geometry must be one of {GEOMETRY_SOURCES}, got {self.geometry!r}"
             )
+        if self.lp_trust not in LP_TRUSTS:
+            raise ValueError(f"Stage2DataConfig.lp_trust must be one of {LP_TRUSTS}, got {self.lp_trust!r}")
 
 
 @dataclass
@@ -160,7 +164,9 @@ def window_sample(
         z_render = _encode(model, cond.rgb.permute(0, 1, 4, 2, 3))
     generator = torch.Generator().manual_seed(hash_text(f"{cfg.seed}/{scene_id}/{start}"))
     bins = int(model.config.adapter_config.depth_bins)
-    maps = uncertainty_maps(cond, targets, history, hist_render.depth, bins, generator, cfg.random_patch_px)
+    maps = uncertainty_maps(
+        cond, targets, history, hist_render.depth, bins, generator, cfg.random_patch_px, lp_trust=cfg.lp_trust
+    )
     latent_hw = tuple(z_target.shape[-2:])
     tc = int(model.vae.config.temporal_compression)
     u = {k: pool_to_latent(m.permute(1, 0, 2, 3), latent_hw, tc) for k, m in maps.items()}  # [V, T_z, h, w]
