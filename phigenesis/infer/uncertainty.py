@@ -66,14 +66,15 @@ width. Two readings of ``m`` turn it into trust, :data:`LpTrust`:
 - ``"localised"``, ``u = 1 - exp(-m / scale_px)``: trust the points the history's views localise
   well (Park et al.'s reading: a wide baseline pins the depth down), 0 where the history cannot
   see a depth error at all (no baseline, ``m = 0``). This was the only mapping before
-  2026-12-05; Stage 2 checkpoints and configs that do not name one use it.
+  2026-12-05: a Stage 2 checkpoint whose training config names none was trained with it.
 
 Why ``"stable"`` is the default: our Stage 1 predicts depth from each view alone (no stereo
 across the history), so how well the history *could* localise a point says little about how
 right its depth is, while how far a depth error moves the render says directly how wrong the
 render can be. On held-out scenes, pasting the render by u over the same generated frames scored
-0.1-0.2 dB above ``coverage`` with ``"stable"`` and 0.2-0.7 dB below it with ``"localised"``
-(docs/ARCHITECTURE.md). Holes, unknown depth (0, NaN, inf) give 0 either way.
+0.1-0.2 dB above ``coverage`` with ``"stable"``, and with ``"localised"`` level at +5 frames and
+0.2-0.7 dB below at 1-4 m shifts (docs/ARCHITECTURE.md); trained, ``"stable"`` beats both.
+Holes, unknown depth (0, NaN, inf) give 0 either way.
 
 Memory and speed: :func:`localization_potential` works in float64 one history camera at a time,
 vectorised over target views and pixels, with about twenty float64 values per target pixel alive
