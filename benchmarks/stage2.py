@@ -131,6 +131,11 @@ def _kind(kind: str, base: dict[str, object]) -> tuple[str, str]:
     return uncertainty, trust or str(base.get("lp_trust", "stable"))
 
 
+def _tag(kind: str, geometry: str, seed: int) -> str:
+    """The run folder's name of a row's kind, geometry and seed."""
+    return f"{kind.replace('@', '-')}-{geometry}-s{seed}"
+
+
 def _latents(work: Path, geometry: str, trust: str) -> Path:
     """The latent cache of a geometry and localization-potential mapping."""
     return work / (f"latents-{geometry}" if trust == "stable" else f"latents-{geometry}-{trust}")
@@ -256,7 +261,7 @@ def main() -> None:
         (g, _kind(k, base)[1])
         for _, k, g in rows
         for seed in args.seeds
-        if not (work / "runs" / f"{k.replace('@', '-')}-{g}-s{seed}" / "model.safetensors").exists()
+        if not (work / "runs" / _tag(k, g, seed) / "model.safetensors").exists()
     }
     for geometry, trust in sorted(needed):
         cfg = Stage2TrainConfig(**{**base, "geometry": geometry, "lp_trust": trust})
@@ -276,7 +281,7 @@ def main() -> None:
     for name, kind, geometry in rows:
         uncertainty, trust = _kind(kind, base)
         for seed in args.seeds:
-            tag = f"{kind.replace('@', '-')}-{geometry}-s{seed}"
+            tag = _tag(kind, geometry, seed)
             out = work / "runs" / tag
             runs[(name, seed)] = out
             cfg_path = work / "runs" / f"{tag}.yaml"

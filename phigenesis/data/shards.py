@@ -446,12 +446,11 @@ class _HashingSink:
         if row is not self._unhashed:
             raise ValueError("add_checksummed: not the row last taken, or already hashed")
         combine = self._combine
-        crc = None if combine is None else _crc_from_parts(row, parts, combine)
-        if combine is None or crc is None:
-            self._hash_unhashed()
-        else:
+        if combine is not None and (crc := _crc_from_parts(row, parts, combine)) is not None:
             self._file_crc32c = combine(self._file_crc32c, crc, row.size)
             self._unhashed = None
+        else:
+            self._hash_unhashed()
 
     def _hash_unhashed(self) -> None:
         if self._unhashed is not None:

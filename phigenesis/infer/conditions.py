@@ -28,6 +28,7 @@ from torch import Tensor
 from phigenesis.data.taxonomy import SKY
 from phigenesis.infer.render import SKY_ALPHA, Views, lift_views
 from phigenesis.infer.uncertainty import (
+    DEFAULT_LP_TRUST,
     HistoryViews,
     LpTrust,
     UncertaintyConfig,
@@ -255,7 +256,7 @@ def uncertainty_maps(
     generator: torch.Generator,
     patch_px: int,
     kinds: tuple[str, ...] = UNCERTAINTY_KINDS,
-    lp_trust: LpTrust = "stable",
+    lp_trust: LpTrust = DEFAULT_LP_TRUST,
 ) -> dict[str, Tensor]:
     """Stereo Forcing's maps u [F, V, H, W] (1 = trust the render, 0 in holes) of each of ``kinds``
     for a condition ``render`` at the ``targets`` cameras, at image resolution

@@ -85,7 +85,7 @@ from phigenesis.infer.conditions import (
 )
 from phigenesis.infer.flow import Anchor, FixedFrames, euler_sample
 from phigenesis.infer.stereo_forcing import pool_to_latent, stereo_forcing
-from phigenesis.infer.uncertainty import LEGACY_LP_TRUST, LP_TRUSTS, LpTrust
+from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LEGACY_LP_TRUST, LpTrust, check_lp_trust
 from phigenesis.models.dit import MultiViewDiT
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.stage1 import Stage1Model
@@ -133,8 +133,8 @@ class GenerateOptions:
             raise ValueError(
                 f"uncertainty must be one of {(*UNCERTAINTY_KINDS, 'none')}, got {self.uncertainty!r}"
             )
-        if self.lp_trust is not None and self.lp_trust not in LP_TRUSTS:
-            raise ValueError(f"lp_trust must be one of {LP_TRUSTS} or None, got {self.lp_trust!r}")
+        if self.lp_trust is not None:
+            check_lp_trust(self.lp_trust, "lp_trust (or None: as trained)")
         if not math.isfinite(self.omega):
             raise ValueError(f"omega must be finite, got {self.omega}")
         if self.steps < 1:
@@ -290,7 +290,7 @@ def _condition(
         return render, torch.zeros(f, v, *targets.size_hw), torch.zeros(1, v, c + 1, *z_render.shape[3:])
     hist_depth = render_condition(buffer_scene, history).depth
     bins = int(stage1.config.adapter_config.depth_bins)
-    lp_trust: LpTrust = options.lp_trust or "stable"
+    lp_trust: LpTrust = options.lp_trust or DEFAULT_LP_TRUST
     maps = uncertainty_maps(
         render, targets, history, hist_depth, bins, generator, 8, (denoiser_kind,), lp_trust
     )
@@ -590,10 +590,12 @@ def trained_lp_trust(train: dict[str, Any], where: str) -> LpTrust:
     (:data:`LEGACY_LP_TRUST`); CheckpointError for another value."""
     from phigenesis.errors import CheckpointError
 
-    value = train.get("lp_trust", LEGACY_LP_TRUST)
-    if value not in LP_TRUSTS:
-        raise CheckpointError(f"{where}: its training config has lp_trust {value!r}, not one of {LP_TRUSTS}")
-    return value
+    try:
+        return check_lp_trust(
+            train.get("lp_trust", LEGACY_LP_TRUST), f"{where}: its training config's lp_trust"
+        )
+    except ValueError as e:
+        raise CheckpointError(str(e)) from None
 
 
 class Stage2Runner:

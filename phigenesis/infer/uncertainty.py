@@ -101,6 +101,8 @@ UncertaintyKind = Literal["random", "entropy", "localization_potential", "covera
 #: depth error barely moves, ``"localised"`` the points the history localises well.
 LpTrust = Literal["stable", "localised"]
 LP_TRUSTS: tuple[str, ...] = get_args(LpTrust)
+#: The mapping Stage 2 uses unless told otherwise.
+DEFAULT_LP_TRUST: LpTrust = "stable"
 #: The mapping of Stage 2 checkpoints, configs and latent caches that name none (made before the
 #: choice existed).
 LEGACY_LP_TRUST: LpTrust = "localised"
@@ -124,6 +126,13 @@ RIGID_TOLERANCE = 1e-6
 
 # --------------------------------------------------------------------------------------------
 # Checks
+
+
+def check_lp_trust(value: object, what: str) -> LpTrust:
+    """``value`` as an :data:`LpTrust`, or ValueError naming ``what`` (e.g. the config field)."""
+    if value not in LP_TRUSTS:
+        raise ValueError(f"{what} must be one of {LP_TRUSTS}, got {value!r}")
+    return value  # type: ignore[return-value]
 
 
 def _covered(alpha: Tensor, hole_alpha: float) -> Tensor:
@@ -393,7 +402,7 @@ def localization_potential_to_u(
     log_depth_step: float = DEFAULT_LOG_DEPTH_STEP,
     scale_px: float = DEFAULT_SCALE_PX,
     hole_alpha: float = HOLE_ALPHA,
-    trust: LpTrust = "stable",
+    trust: LpTrust = DEFAULT_LP_TRUST,
 ) -> Tensor:
     """Trust from localization potential: ``m = LP * delta_d(d)`` pixels moved per depth bin, then
     ``u = exp(-m / scale_px)`` (``trust="stable"``) or ``u = 1 - exp(-m / scale_px)``
@@ -421,8 +430,7 @@ def localization_potential_to_u(
         raise ValueError(f"localization_potential_to_u: log_depth_step must be > 0, got {log_depth_step}")
     if not (scale_px > 0 and math.isfinite(scale_px)):
         raise ValueError(f"localization_potential_to_u: scale_px must be > 0, got {scale_px}")
-    if trust not in LP_TRUSTS:
-        raise ValueError(f"localization_potential_to_u: trust must be one of {LP_TRUSTS}, got {trust!r}")
+    check_lp_trust(trust, "localization_potential_to_u: trust")
     lp = lp_px_per_m.double()
     if torch.isnan(lp).any() or (lp < 0).any():
         raise ValueError("localization_potential_to_u: LP must be >= 0 and not NaN")
@@ -449,7 +457,7 @@ class UncertaintyConfig:
     log_depth_step: float = DEFAULT_LOG_DEPTH_STEP  # localization potential: bin width, natural log depth
     scale_px: float = DEFAULT_SCALE_PX  # localization potential: pixels per bin at which u = 1/e (stable)
     occlusion_tolerance: float = OCCLUSION_TOLERANCE  # localization potential: relative depth margin
-    lp_trust: LpTrust = "stable"  # localization potential: which points u trusts (module docstring)
+    lp_trust: LpTrust = DEFAULT_LP_TRUST  # localization potential: which points u trusts (module docstring)
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.hole_alpha <= 1.0:
@@ -462,8 +470,7 @@ class UncertaintyConfig:
             raise ValueError(
                 "UncertaintyConfig: need log_depth_step > 0, scale_px > 0, occlusion_tolerance >= 0"
             )
-        if self.lp_trust not in LP_TRUSTS:
-            raise ValueError(f"UncertaintyConfig: lp_trust must be one of {LP_TRUSTS}, got {self.lp_trust!r}")
+        check_lp_trust(self.lp_trust, "UncertaintyConfig: lp_trust")
 
 
 @dataclass(frozen=True)

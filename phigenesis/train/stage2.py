@@ -48,7 +48,7 @@ from tqdm import tqdm
 from phigenesis.infer.conditions import TargetCameras, sequence_plucker
 from phigenesis.infer.flow import flow_loss, interpolate, sample_time
 from phigenesis.infer.stereo_forcing import drop_condition, stereo_forcing
-from phigenesis.infer.uncertainty import LpTrust
+from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LpTrust
 from phigenesis.models import create_model
 from phigenesis.models.dit import MultiViewDiT
 from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
@@ -90,7 +90,7 @@ class Stage2TrainConfig:
     stride: int = 5  # frames between window starts in the latent cache
     geometry: Literal["stage1", "cache", "truth"] = "stage1"  # where the history's Gaussians come from
     uncertainty: ConditionKind = "localization_potential"  # SF's map; none: no geometric condition
-    lp_trust: LpTrust = "stable"  # localization potential: u trusts pixels a depth error barely moves
+    lp_trust: LpTrust = DEFAULT_LP_TRUST  # localization potential: u trusts pixels a depth error barely moves
     condition_dropout: float = 0.1  # probability of dropping the whole condition (guidance)
     history_noise: float = 0.1  # history frames' flow time is uniform in [0, this]
     time_shift: float = 1.0  # resolution shift of the logit-normal training times (1: none)

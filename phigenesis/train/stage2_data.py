@@ -65,7 +65,7 @@ from phigenesis.infer.conditions import (
     uncertainty_maps,
 )
 from phigenesis.infer.stereo_forcing import pool_to_latent
-from phigenesis.infer.uncertainty import LP_TRUSTS, LpTrust
+from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LpTrust, check_lp_trust
 from phigenesis.models.stage1 import Stage1Model
 from phigenesis.train.stage1_data import Clip, Stage1Clips
 
@@ -85,7 +85,7 @@ class Stage2DataConfig:
     geometry: GeometrySource = "stage1"  # where the history's Gaussians come from
     random_patch_px: int = 8  # side of the random map's patches, pixels
     seed: int = 0  # seeds the random maps (per window: seed, scene, start)
-    lp_trust: LpTrust = "stable"  # which points the localization potential's u trusts
+    lp_trust: LpTrust = DEFAULT_LP_TRUST  # which points the localization potential's u trusts
 
     def __post_init__(self) -> None:
         for name in ("history_frames", "window_frames", "stride", "random_patch_px"):
@@ -95,8 +95,7 @@ class Stage2DataConfig:
             raise ValueError(
                 f"Stage2DataConfig.geometry must be one of {GEOMETRY_SOURCES}, got {self.geometry!r}"
             )
-        if self.lp_trust not in LP_TRUSTS:
-            raise ValueError(f"Stage2DataConfig.lp_trust must be one of {LP_TRUSTS}, got {self.lp_trust!r}")
+        check_lp_trust(self.lp_trust, "Stage2DataConfig.lp_trust")
 
 
 @dataclass
