@@ -24,7 +24,7 @@ from phigenesis.data.taxonomy import SKY
 from phigenesis.export.ply import scene_from_ply
 from phigenesis.export.stage1 import export_ply, predict_frame
 from phigenesis.models import create_model, list_models
-from phigenesis.models.adapter import GROUND_MIN_DOWN, column_base, ground_log_depth
+from phigenesis.models.adapter import GROUND_MIN_DOWN, AdapterConfig, column_base, ground_log_depth
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.losses import edge_aware_smoothness
 from phigenesis.models.stage1 import (
@@ -605,6 +605,27 @@ def test_column_base_carries_the_ground_prior_up_to_what_stands_on_it():
     np.testing.assert_allclose(half[:, 0].numpy(), expected[::-1], rtol=1e-6)
 
 
+def test_column_base_from_the_bottom_row_bounds_what_runs_off_the_image():
+    """With ``floor="bottom_row"`` a pixel with no ground below it takes the bottom row's prior (the
+    nearest ground the column shows), where ``"far"`` gave it the farthest; above the first ground
+    pixel both agree, and an unknown floor is refused."""
+    # Column 0: a car from the bottom row up to row 2, ground above it (rows 1), sky; column 1: all
+    # ground; column 2: nothing is ground.
+    prior = torch.tensor([[4.6, 0.9, 4.6], [1.5, 1.0, 1.5], [0.6, 0.6, 0.6], [0.4, 0.4, 0.4]])
+    gate = torch.tensor([[0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    bottom = column_base(prior, gate, "bottom_row")
+    far = column_base(prior, gate, "far")
+    cap = -math.log(GROUND_MIN_DOWN)
+    assert bottom[:, 0].tolist() == pytest.approx([1.5, 1.5, 0.4, 0.4])  # the car: its bottom row's prior
+    assert far[:, 0].tolist() == pytest.approx([1.5, 1.5, cap, cap])
+    assert torch.equal(bottom[:, 1], prior[:, 1]) and torch.equal(far[:, 1], prior[:, 1])
+    assert bottom[:, 2].tolist() == pytest.approx([0.4] * 4)
+    with pytest.raises(ValueError, match="floor must be one of"):
+        column_base(prior, gate, "top")
+    with pytest.raises(ValueError, match="column_floor must be one of"):
+        AdapterConfig(ground_feature=True, column_base=True, column_floor="top")
+
+
 def test_column_base_model_outputs_the_gate_and_trains_it(tiny_cache):
     adapter = {"width": 16, "depth_bins": 16, "ground_feature": True, "column_base": True}
     cfg = tiny_train_config(
@@ -626,7 +647,7 @@ def test_prior_gain_pulls_the_bins_to_the_ground_priors_depth():
     """With the bin logits flat and a gain of 1, the bins are a Gaussian one bin wide around the depth
     the prior gives (base + log height): the expected log depth lands on it; over flat logits even the
     untrained gain puts it there."""
-    from phigenesis.models.adapter import PRIOR_GAIN_OFFSET, AdapterConfig, RangeViewAdapter
+    from phigenesis.models.adapter import PRIOR_GAIN_OFFSET, RangeViewAdapter
 
     cfg = AdapterConfig(width=16, depth_bins=64, ground_feature=True, column_base=True)
     adapter = RangeViewAdapter(cfg)
@@ -655,8 +676,8 @@ def test_checkpoint_made_before_the_ground_prior_loads_as_it_was(tmp_path):
     with safe_open(str(path), "pt") as f:
         header, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118
     config = json.loads(header["config"])
-    for key in ("ground_feature", "column_base"):
-        del config["adapter"][key]
+    for key in ("ground_feature", "column_base", "column_floor"):
+        config["adapter"].pop(key, None)
     header["config"] = json.dumps(config)
     save_file(tensors, str(tmp_path / "old.safetensors"), metadata=header)
     loaded = load_stage1(tmp_path / "old.safetensors")
@@ -669,6 +690,44 @@ def test_checkpoint_made_before_the_ground_prior_loads_as_it_was(tmp_path):
     save_file(tensors, str(tmp_path / "claims.safetensors"), metadata=header)
     with pytest.raises(CheckpointError, match=r"claims\.safetensors: weights do not fit .*adapter\."):
         load_stage1(tmp_path / "claims.safetensors")
+
+
+def test_checkpoint_made_before_the_column_floor_loads_as_it_was(tmp_path):
+    """A checkpoint whose adapter has ``column_base`` but no ``column_floor`` (written before the
+    choice) rebuilds with the floor it was trained with, "far", and renders as it did; the
+    registered configs start from the bottom row."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    assert create_model("stage1_tiny").config.adapter_config.column_floor == "bottom_row"
+    torch.manual_seed(0)
+    adapter = {
+        "width": 16,
+        "depth_bins": 16,
+        "ground_feature": True,
+        "column_base": True,
+        "column_floor": "far",
+    }
+    old = create_model("stage1_tiny", image_size=list(SIZE), adapter=adapter)
+    torch.nn.init.normal_(old.adapter.head[-1].weight, std=0.05)  # the floor must matter to the output
+    path = save_checkpoint(tmp_path / "new.safetensors", old)
+    with safe_open(str(path), "pt") as f:
+        header, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118
+    config = json.loads(header["config"])
+    del config["adapter"]["column_floor"]
+    header["config"] = json.dumps(config)
+    save_file(tensors, str(tmp_path / "old.safetensors"), metadata=header)
+    loaded = load_stage1(tmp_path / "old.safetensors")
+    assert loaded.config.adapter_config.column_floor == "far"
+    images, k, poses, times = _inputs(loaded)
+    with torch.no_grad():
+        want = old.eval()(images, k, poses, times).means
+        assert torch.equal(loaded(images, k, poses, times).means, want)
+        bottom = create_model(
+            "stage1_tiny", image_size=list(SIZE), adapter=adapter | {"column_floor": "bottom_row"}
+        )
+        bottom.load_state_dict(old.state_dict())
+        assert not torch.equal(bottom.eval()(images, k, poses, times).means, want)
 
 
 def test_the_clip_and_vae_feature_caches_change_no_result(tiny_cache, tmp_path):

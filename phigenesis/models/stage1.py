@@ -383,7 +383,13 @@ CONFIGS = {
     # up the columns, single frames at 48 x 72.
     "stage1_tiny": Stage1Config(
         vae_name="vae_tiny",
-        adapter={"width": 32, "depth_bins": 64, "ground_feature": True, "column_base": True},
+        adapter={
+            "width": 32,
+            "depth_bins": 64,
+            "ground_feature": True,
+            "column_base": True,
+            "column_floor": "bottom_row",
+        },
         image_size=(48, 72),
         frames=1,
     ),
@@ -397,6 +403,7 @@ CONFIGS = {
             "depth_bins": 200,
             "ground_feature": True,
             "column_base": True,
+            "column_floor": "bottom_row",
         },
         image_size=(160, 240),
         frames=5,
