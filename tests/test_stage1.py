@@ -695,7 +695,7 @@ def test_checkpoint_made_before_the_ground_prior_loads_as_it_was(tmp_path):
 def test_checkpoint_made_before_the_column_floor_loads_as_it_was(tmp_path):
     """A checkpoint whose adapter has ``column_base`` but no ``column_floor`` (written before the
     choice) rebuilds with the floor it was trained with, "far", and renders as it did; the
-    registered configs start from the bottom row."""
+    registered configs start from the bottom row; an unknown floor fails naming the file and field."""
     from safetensors import safe_open
     from safetensors.torch import save_file
 
@@ -728,6 +728,11 @@ def test_checkpoint_made_before_the_column_floor_loads_as_it_was(tmp_path):
         )
         bottom.load_state_dict(old.state_dict())
         assert not torch.equal(bottom.eval()(images, k, poses, times).means, want)
+    config["adapter"]["column_floor"] = "sideways"
+    header["config"] = json.dumps(config)
+    save_file(tensors, str(tmp_path / "bad.safetensors"), metadata=header)
+    with pytest.raises(CheckpointError, match=r"bad\.safetensors: .*column_floor must be one of"):
+        load_stage1(tmp_path / "bad.safetensors")
 
 
 def test_the_clip_and_vae_feature_caches_change_no_result(tiny_cache, tmp_path):
