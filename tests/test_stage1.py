@@ -9,6 +9,8 @@ import math
 import os
 import subprocess
 import sys
+from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -467,30 +469,35 @@ def test_bins_head_depth_and_entropy_render():
         )
 
 
-def test_checkpoint_made_before_the_bins_head_still_loads(tmp_path):
+def _checkpoint_with_adapter(path: Path, out: Path, change: Callable[[dict], object]) -> Path:
+    """A copy of the checkpoint at ``path`` written to ``out``, its weights as they were and its stored
+    adapter config edited in place by ``change``: what an older, or a crafted, checkpoint holds."""
     from safetensors import safe_open
     from safetensors.torch import save_file
 
-    torch.manual_seed(0)
-    old = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16})
-    path = save_checkpoint(tmp_path / "new.safetensors", old)
     with safe_open(str(path), "pt") as f:
         header, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118
     config = json.loads(header["config"])
-    del config["adapter"]["depth_bins"]  # what a checkpoint written before the bins head holds
-    header["config"] = json.dumps(config)
-    save_file(tensors, str(tmp_path / "old.safetensors"), metadata=header)
-    loaded = load_stage1(tmp_path / "old.safetensors")
+    change(config["adapter"])
+    save_file(tensors, str(out), metadata=header | {"config": json.dumps(config)})
+    return out
+
+
+def test_checkpoint_made_before_the_bins_head_still_loads(tmp_path):
+    torch.manual_seed(0)
+    old = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16})
+    path = save_checkpoint(tmp_path / "new.safetensors", old)
+    # What a checkpoint written before the bins head holds: no depth_bins.
+    before = _checkpoint_with_adapter(path, tmp_path / "old.safetensors", lambda a: a.pop("depth_bins"))
+    loaded = load_stage1(before)
     assert loaded.config.adapter_config.depth_bins == 0
     images, k, poses, times = _inputs(loaded)
     with torch.no_grad():
         assert torch.equal(loaded(images, k, poses, times).means, old.eval()(images, k, poses, times).means)
     # A config that says bins with weights of the regression head: the error names the head.
-    config["adapter"]["depth_bins"] = 16
-    header["config"] = json.dumps(config)
-    save_file(tensors, str(tmp_path / "mixed.safetensors"), metadata=header)
+    mixed = _checkpoint_with_adapter(path, tmp_path / "mixed.safetensors", lambda a: a.update(depth_bins=16))
     with pytest.raises(CheckpointError, match=r"mixed\.safetensors: weights do not fit .*adapter\.head"):
-        load_stage1(tmp_path / "mixed.safetensors")
+        load_stage1(mixed)
 
 
 def test_losses_with_the_bins_head_and_several_targets(tiny_cache):
@@ -667,38 +674,30 @@ def test_checkpoint_made_before_the_ground_prior_loads_as_it_was(tmp_path):
     """A stage1_tiny checkpoint written before the ground prior has no ``ground_feature`` /
     ``column_base`` in its adapter config: it rebuilds without them; one whose config claims them
     over weights without them fails naming the tensors that do not fit."""
-    from safetensors import safe_open
-    from safetensors.torch import save_file
-
     torch.manual_seed(0)
     old = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16, "depth_bins": 16})
     path = save_checkpoint(tmp_path / "new.safetensors", old)
-    with safe_open(str(path), "pt") as f:
-        header, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118
-    config = json.loads(header["config"])
-    for key in ("ground_feature", "column_base", "column_floor"):
-        config["adapter"].pop(key, None)
-    header["config"] = json.dumps(config)
-    save_file(tensors, str(tmp_path / "old.safetensors"), metadata=header)
-    loaded = load_stage1(tmp_path / "old.safetensors")
+
+    def before_the_prior(adapter: dict) -> None:
+        for key in ("ground_feature", "column_base", "column_floor"):
+            adapter.pop(key, None)
+
+    loaded = load_stage1(_checkpoint_with_adapter(path, tmp_path / "old.safetensors", before_the_prior))
     assert not loaded.config.adapter_config.ground_feature
     images, k, poses, times = _inputs(loaded)
     with torch.no_grad():
         assert torch.equal(loaded(images, k, poses, times).means, old.eval()(images, k, poses, times).means)
-    config["adapter"] |= {"ground_feature": True, "column_base": True}
-    header["config"] = json.dumps(config)
-    save_file(tensors, str(tmp_path / "claims.safetensors"), metadata=header)
+    claims = _checkpoint_with_adapter(
+        path, tmp_path / "claims.safetensors", lambda a: a.update(ground_feature=True, column_base=True)
+    )
     with pytest.raises(CheckpointError, match=r"claims\.safetensors: weights do not fit .*adapter\."):
-        load_stage1(tmp_path / "claims.safetensors")
+        load_stage1(claims)
 
 
 def test_checkpoint_made_before_the_column_floor_loads_as_it_was(tmp_path):
     """A checkpoint whose adapter has ``column_base`` but no ``column_floor`` (written before the
     choice) rebuilds with the floor it was trained with, "far", and renders as it did; the
     registered configs start from the bottom row; an unknown floor fails naming the file and field."""
-    from safetensors import safe_open
-    from safetensors.torch import save_file
-
     assert create_model("stage1_tiny").config.adapter_config.column_floor == "bottom_row"
     torch.manual_seed(0)
     adapter = {
@@ -711,13 +710,8 @@ def test_checkpoint_made_before_the_column_floor_loads_as_it_was(tmp_path):
     old = create_model("stage1_tiny", image_size=list(SIZE), adapter=adapter)
     torch.nn.init.normal_(old.adapter.head[-1].weight, std=0.05)  # the floor must matter to the output
     path = save_checkpoint(tmp_path / "new.safetensors", old)
-    with safe_open(str(path), "pt") as f:
-        header, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118
-    config = json.loads(header["config"])
-    del config["adapter"]["column_floor"]
-    header["config"] = json.dumps(config)
-    save_file(tensors, str(tmp_path / "old.safetensors"), metadata=header)
-    loaded = load_stage1(tmp_path / "old.safetensors")
+    before = _checkpoint_with_adapter(path, tmp_path / "old.safetensors", lambda a: a.pop("column_floor"))
+    loaded = load_stage1(before)
     assert loaded.config.adapter_config.column_floor == "far"
     images, k, poses, times = _inputs(loaded)
     with torch.no_grad():
@@ -728,11 +722,11 @@ def test_checkpoint_made_before_the_column_floor_loads_as_it_was(tmp_path):
         )
         bottom.load_state_dict(old.state_dict())
         assert not torch.equal(bottom.eval()(images, k, poses, times).means, want)
-    config["adapter"]["column_floor"] = "sideways"
-    header["config"] = json.dumps(config)
-    save_file(tensors, str(tmp_path / "bad.safetensors"), metadata=header)
+    bad = _checkpoint_with_adapter(
+        path, tmp_path / "bad.safetensors", lambda a: a.update(column_floor="sideways")
+    )
     with pytest.raises(CheckpointError, match=r"bad\.safetensors: .*column_floor must be one of"):
-        load_stage1(tmp_path / "bad.safetensors")
+        load_stage1(bad)
 
 
 def test_the_clip_and_vae_feature_caches_change_no_result(tiny_cache, tmp_path):
