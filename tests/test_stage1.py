@@ -17,6 +17,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from torch import Tensor
 
 from phigenesis import geometry, prep
 from phigenesis.data.pipeline import PipelineSpec
@@ -483,17 +484,23 @@ def _checkpoint_with_adapter(path: Path, out: Path, change: Callable[[dict], obj
     return out
 
 
+def _loads_without(old: Stage1Model, path: Path, tmp_path: Path, field: str) -> Stage1Model:
+    """Loads ``old``'s checkpoint at ``path`` rewritten without the adapter config's ``field`` (what a
+    checkpoint written before the field holds) and checks it predicts the same Gaussian centres."""
+    loaded = load_stage1(_checkpoint_with_adapter(path, tmp_path / "old.safetensors", lambda a: a.pop(field)))
+    images, k, poses, times = _inputs(loaded)
+    with torch.no_grad():
+        assert torch.equal(loaded(images, k, poses, times).means, old.eval()(images, k, poses, times).means)
+    return loaded
+
+
 def test_checkpoint_made_before_the_bins_head_still_loads(tmp_path):
     torch.manual_seed(0)
     old = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16})
     path = save_checkpoint(tmp_path / "new.safetensors", old)
     # What a checkpoint written before the bins head holds: no depth_bins.
-    before = _checkpoint_with_adapter(path, tmp_path / "old.safetensors", lambda a: a.pop("depth_bins"))
-    loaded = load_stage1(before)
+    loaded = _loads_without(old, path, tmp_path, "depth_bins")
     assert loaded.config.adapter_config.depth_bins == 0
-    images, k, poses, times = _inputs(loaded)
-    with torch.no_grad():
-        assert torch.equal(loaded(images, k, poses, times).means, old.eval()(images, k, poses, times).means)
     # A config that says bins with weights of the regression head: the error names the head.
     mixed = _checkpoint_with_adapter(path, tmp_path / "mixed.safetensors", lambda a: a.update(depth_bins=16))
     with pytest.raises(CheckpointError, match=r"mixed\.safetensors: weights do not fit .*adapter\.head"):
@@ -727,6 +734,66 @@ def test_checkpoint_made_before_the_column_floor_loads_as_it_was(tmp_path):
     )
     with pytest.raises(CheckpointError, match=r"bad\.safetensors: .*column_floor must be one of"):
         load_stage1(bad)
+
+
+def _drop_group_norms(module: torch.nn.Module) -> None:
+    """Replaces every GroupNorm under ``module`` by the identity, in place."""
+    for name, child in module.named_children():
+        if isinstance(child, torch.nn.GroupNorm):
+            setattr(module, name, torch.nn.Identity())
+        else:
+            _drop_group_norms(child)
+
+
+def test_context_blocks_start_as_the_identity_and_widen_what_a_pixel_sees():
+    """Zero-initialised, the context blocks change nothing; trained (random weights), a pixel of the
+    fused map depends on coarse cells 25 columns away, which without them it cannot see (a 1x1
+    lateral and one 3x3 block per level reach about two coarse cells; the convolutions' reach is
+    measured with the GroupNorms taken out, whose statistics span the whole map)."""
+    from phigenesis.models.adapter import RangeViewAdapter
+
+    torch.manual_seed(0)
+    cfg = AdapterConfig(width=16, context_blocks=4)
+    adapter = RangeViewAdapter(cfg)
+    plain = RangeViewAdapter(dataclasses.replace(cfg, context_blocks=0))
+    plain.load_state_dict({k: v for k, v in adapter.state_dict().items() if not k.startswith("context.")})
+    feats = [torch.randn(1, c, 6 * 2**i, 40 * 2**i) for i, c in enumerate(cfg.feature_channels)]
+    with torch.no_grad():
+        assert torch.equal(adapter.fuse(feats), plain.fuse(feats))
+        for block in adapter.context:
+            torch.nn.init.normal_(block.body[-1].weight, std=0.1)
+
+    def reach(model: RangeViewAdapter) -> Tensor:
+        """|d (fused map's left column) / d coarse input| summed over channels and rows, per column."""
+        coarse = feats[0].clone().requires_grad_(True)
+        model.fuse([coarse, *feats[1:]])[..., 0].sum().backward()
+        return coarse.grad.abs().sum(dim=(0, 1, 2))
+
+    for model in (adapter, plain):  # GroupNorm's statistics tie every pixel to every other one
+        _drop_group_norms(model)
+    wide, narrow = reach(adapter), reach(plain)
+    assert float(wide[25]) > 0 and float(narrow[25]) == 0
+    assert float(narrow[:2].sum()) > 0 and float(narrow[3:].sum()) == 0
+    with pytest.raises(ValueError, match="context_blocks must be >= 0"):
+        AdapterConfig(context_blocks=-1)
+
+
+def test_checkpoint_made_before_the_context_blocks_loads_as_it_was(tmp_path):
+    """An adapter config without ``context_blocks`` (written before them) rebuilds without them and
+    predicts as it did; one whose config claims them over weights without them fails naming the
+    tensors."""
+    assert create_model("stage1_tiny").config.adapter_config.context_blocks == 4
+    torch.manual_seed(0)
+    old = create_model("stage1_tiny", image_size=list(SIZE), adapter={"width": 16, "depth_bins": 16})
+    torch.nn.init.normal_(old.adapter.head[-1].weight, std=0.05)
+    path = save_checkpoint(tmp_path / "new.safetensors", old)
+    loaded = _loads_without(old, path, tmp_path, "context_blocks")
+    assert loaded.config.adapter_config.context_blocks == 0
+    claims = _checkpoint_with_adapter(
+        path, tmp_path / "claims.safetensors", lambda a: a.update(context_blocks=2)
+    )
+    with pytest.raises(CheckpointError, match=r"claims\.safetensors: weights do not fit .*adapter\.context"):
+        load_stage1(claims)
 
 
 def test_the_clip_and_vae_feature_caches_change_no_result(tiny_cache, tmp_path):

@@ -70,6 +70,12 @@ PRIOR_GAIN_OFFSET = 1.0
 GROUND_MIN_DOWN = 0.01
 
 
+#: Dilations of the context blocks (``AdapterConfig.context_blocks``), repeated in this order. A block
+#: of dilation d sees 2 d cells further either way, so the four see 2 (1 + 2 + 4 + 8) = 30 cells of the
+#: coarsest map either way: at ``vae_tiny``'s 4x, the whole height of a 48-row view and more than a
+#: view's width on each side, across the range view's seams.
+CONTEXT_DILATIONS = (1, 2, 4, 8)
+
 #: Where :func:`column_base` starts below the bottom row: ``"far"``, the prior of the farthest ground
 #: (what checkpoints made before the choice used), or ``"bottom_row"``, the bottom row's own prior.
 COLUMN_FLOORS = ("far", "bottom_row")
@@ -138,6 +144,9 @@ class AdapterConfig:
         column_floor: what :func:`column_base` gives a pixel with no ground below it in its
             column: ``"far"`` (the farthest ground; checkpoints made before the choice lack the
             field and rebuild with it) or ``"bottom_row"`` (the bottom row's ground).
+        context_blocks: residual blocks of dilated 3x3 convolutions (:class:`ContextBlock`) on the
+            coarsest level before the top-down pass, which widen what each pixel's prediction sees
+            (0 in checkpoints made before them).
     """
 
     feature_channels: tuple[int, ...] = (64, 32, 16)
@@ -153,6 +162,7 @@ class AdapterConfig:
     ground_feature: bool = False
     column_base: bool = False
     column_floor: str = "far"
+    context_blocks: int = 0
 
     def __post_init__(self) -> None:
         if self.column_base and not self.ground_feature:
@@ -168,6 +178,8 @@ class AdapterConfig:
             raise ValueError(
                 f"AdapterConfig: width {self.width} does not divide by {self.norm_groups} groups"
             )
+        if self.context_blocks < 0:
+            raise ValueError(f"AdapterConfig: context_blocks must be >= 0, got {self.context_blocks}")
         if self.depth_bins < 0 or self.depth_bins == 1:
             raise ValueError(
                 f"AdapterConfig: depth_bins must be 0 (regression) or >= 2, got {self.depth_bins}"
@@ -193,6 +205,26 @@ class AdapterConfig:
 
 def _block(cin: int, cout: int, groups: int) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), nn.GroupNorm(groups, cout), nn.SiLU())
+
+
+class ContextBlock(nn.Module):
+    """``x + conv(SiLU(GroupNorm(conv(x))))``: two 3x3 convolutions of one dilation (``width`` ->
+    ``2 width`` -> ``width``), the second zero-initialised so the block starts as the identity and an
+    adapter with context blocks starts where one without them does."""
+
+    def __init__(self, width: int, dilation: int, groups: int):
+        super().__init__()
+        self.body = nn.Sequential(
+            nn.Conv2d(width, 2 * width, 3, padding=dilation, dilation=dilation),
+            nn.GroupNorm(groups, 2 * width),
+            nn.SiLU(),
+            nn.Conv2d(2 * width, width, 3, padding=dilation, dilation=dilation),
+        )
+        nn.init.zeros_(self.body[-1].weight)
+        nn.init.zeros_(self.body[-1].bias)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return x + self.body(x)
 
 
 @dataclass(frozen=True)
@@ -222,6 +254,12 @@ class RangeViewAdapter(nn.Module):
         self.config = c
         self.lateral = nn.ModuleList(nn.Conv2d(ch, c.width, 1) for ch in c.feature_channels)
         self.smooth = nn.ModuleList(_block(c.width, c.width, c.norm_groups) for _ in c.feature_channels)
+        self.context = nn.Sequential(
+            *(
+                ContextBlock(c.width, CONTEXT_DILATIONS[i % len(CONTEXT_DILATIONS)], c.norm_groups)
+                for i in range(c.context_blocks)
+            )
+        )
         # Finest level: fused features + input RGB (3) + camera-frame ray (3) [+ ground prior (1)]
         # [+ the prior carried up from the ground below (1), after a gate that finds the ground].
         inputs = c.width + 6 + int(c.ground_feature)
@@ -249,7 +287,9 @@ class RangeViewAdapter(nn.Module):
         fused = None
         for feat, lateral, smooth in zip(features, self.lateral, self.smooth, strict=True):
             x = lateral(feat)
-            if fused is not None:
+            if fused is None:
+                x = self.context(x)  # the coarsest level: where a wide view is cheap
+            else:
                 x = x + F.interpolate(fused, size=x.shape[-2:], mode="nearest")
             fused = smooth(x)
         assert fused is not None

@@ -379,8 +379,8 @@ class Stage1Model(nn.Module):
 
 
 CONFIGS = {
-    # CPU: vae_tiny (4x spatial, 4x temporal), 32-wide pyramid, 64 depth bins, the ground prior carried
-    # up the columns, single frames at 48 x 72.
+    # CPU: vae_tiny (4x spatial, 4x temporal), 32-wide pyramid with four context blocks on its coarsest
+    # level, 64 depth bins, the ground prior carried up the columns, single frames at 48 x 72.
     "stage1_tiny": Stage1Config(
         vae_name="vae_tiny",
         adapter={
@@ -389,12 +389,13 @@ CONFIGS = {
             "ground_feature": True,
             "column_base": True,
             "column_floor": "bottom_row",
+            "context_blocks": 4,
         },
         image_size=(48, 72),
         frames=1,
     ),
-    # GPUs: vae_base (8x spatial, 4x temporal), 128-wide pyramid, 200 depth bins (DrivingRecon's), the
-    # ground prior, 5-frame clips at 160 x 240 (STORM's size).
+    # GPUs: vae_base (8x spatial, 4x temporal), 128-wide pyramid with four context blocks, 200 depth bins
+    # (DrivingRecon's), the ground prior, 5-frame clips at 160 x 240 (STORM's size).
     "stage1_base": Stage1Config(
         vae_name="vae_base",
         adapter={
@@ -404,6 +405,7 @@ CONFIGS = {
             "ground_feature": True,
             "column_base": True,
             "column_floor": "bottom_row",
+            "context_blocks": 4,
         },
         image_size=(160, 240),
         frames=5,
