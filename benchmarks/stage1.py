@@ -540,7 +540,7 @@ def _wide_table(wide: dict[str, dict]) -> tuple[str, list[str], list[list[object
 
 def _goals_table(metrics: dict, wide: dict | None = None) -> tuple[str, list[str], list[list[object]], str]:
     """The issue's goals for Stage 1's geometry, met or missed (``wide``: the new model on the wider
-    held-out set, whose δ<1.25 is reported against the same goal)."""
+    held-out set, whose AbsRel and δ<1.25 are reported against the same goals)."""
     sections = metrics["sections"]
     rows: list[list[object]] = []
 
