@@ -9,9 +9,14 @@ one machine another's build. ``PHIGENESIS_NATIVE=0`` turns every native part off
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
 import platform
+from collections.abc import Iterator
 from pathlib import Path
+
+from phigenesis.data.cache_lock import NO_FLOCK
 
 
 def cache_root() -> Path:
@@ -36,3 +41,25 @@ def cpu_flags() -> str:
 def native_enabled() -> bool:
     """False when ``PHIGENESIS_NATIVE=0`` turns native code off."""
     return os.environ.get("PHIGENESIS_NATIVE", "1") != "0"
+
+
+@contextlib.contextmanager
+def build_lock(build_dir: Path) -> Iterator[bool]:
+    """Holds an exclusive ``flock`` on ``build_dir/.build.lock`` for a build (or a load) of what the
+    folder holds; yields whether the lock is held (False on a file system that cannot flock).
+
+    The kernel releases a flock when its holder exits, however it exits, so this lock never
+    outlives a killed build, unlike a lock *file* whose existence is the lock."""
+    build_dir.mkdir(parents=True, exist_ok=True)
+    fd = os.open(build_dir / ".build.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            held = True
+        except OSError as error:
+            if error.errno not in NO_FLOCK:
+                raise
+            held = False
+        yield held
+    finally:
+        os.close(fd)  # closing the descriptor releases the flock

@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 import torch
@@ -491,9 +492,9 @@ _FALLBACK = textwrap.dedent(
 )
 
 
-def test_fallback_where_the_extension_cannot_be_built(tmp_path):
-    """On a machine with no working compiler the suite's renders still pass through the PyTorch path,
-    and the build failure is one warning line."""
+def _run_without_a_compiler(tmp_path: Path) -> list[str]:
+    """The lines :data:`_FALLBACK` prints (logs included) in a fresh process whose compiler always
+    fails, with its native builds in ``tmp_path / "native"``."""
     repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = {**os.environ, "CXX": "/bin/false", "PHIGENESIS_NATIVE_DIR": str(tmp_path / "native")}
     env.pop("PHIGENESIS_RASTERIZER", None)
@@ -506,12 +507,104 @@ def test_fallback_where_the_extension_cannot_be_built(tmp_path):
     )
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()
-    warnings = [line for line in lines if line.startswith("WARNING")]
-    assert len(warnings) == 1, result.stdout
-    assert "native CPU rasterizer not available" in warnings[0] and "PyTorch tiled path" in warnings[0]
-    assert "full log:" in warnings[0] and any((tmp_path / "native").glob("*/build-error.log"))
-    chosen = [line for line in lines if "rasterize: backend" in line]
-    assert len(chosen) == 1 and "'torch'" in chosen[0], result.stdout
     diff = float(next(line for line in lines if line.startswith("MAXDIFF")).split()[1])
     assert diff < 1e-10
     assert any(line.startswith("CPU-REFUSED") and "not available" in line for line in lines)
+    chosen = [line for line in lines if "rasterize: backend" in line]
+    assert len(chosen) == 1 and "'torch'" in chosen[0], result.stdout
+    return lines
+
+
+def test_fallback_where_the_extension_cannot_be_built(tmp_path):
+    """On a machine with no working compiler the suite's renders still pass through the PyTorch path,
+    and the build failure is one warning line."""
+    lines = _run_without_a_compiler(tmp_path)
+    warnings = [line for line in lines if line.startswith("WARNING")]
+    assert len(warnings) == 1, lines
+    assert "native CPU rasterizer not available" in warnings[0] and "PyTorch tiled path" in warnings[0]
+    assert "full log:" in warnings[0] and any((tmp_path / "native").glob("*/build-error.log"))
+
+
+def test_a_build_killed_midway_does_not_hang_the_next_one(tmp_path, monkeypatch):
+    """PyTorch marks a build in progress with a ``lock`` file that a killed build leaves behind, and
+    waits for it to go: every later process hung. Under the flock the next process holds, that file
+    is a leftover: it is removed with a warning and the build runs (here it fails: no compiler)."""
+    monkeypatch.setenv("PHIGENESIS_NATIVE_DIR", str(tmp_path / "native"))
+    leftover = native.build_directory() / "lock"
+    leftover.parent.mkdir(parents=True)
+    leftover.touch()
+    lines = _run_without_a_compiler(tmp_path)  # a hang fails it by its timeout
+    warnings = [line for line in lines if line.startswith("WARNING")]
+    assert len(warnings) == 2, lines
+    assert str(leftover) in warnings[0] and "killed before it finished" in warnings[0]
+    assert "native CPU rasterizer not available" in warnings[1]
+    assert not leftover.exists()
+
+
+def test_every_checkout_builds_from_the_same_staged_sources(tmp_path, monkeypatch):
+    """Two checkouts of the same sources at different paths share one build folder and compile the
+    same staged copies (before, the second rewrote the folder's build.ninja and compiled again);
+    staging again writes nothing."""
+    staged = []
+    for checkout in ("a", "b"):
+        copies = []
+        for source in native.SOURCES:
+            copy = tmp_path / checkout / source.name
+            copy.parent.mkdir(exist_ok=True)
+            copy.write_bytes(source.read_bytes())
+            copies.append(copy)
+        monkeypatch.setattr(native, "SOURCES", tuple(copies))
+        build = native.build_directory()
+        staged.append((build, native.stage_sources(tmp_path / "build")))
+    (build_a, paths_a), (build_b, paths_b) = staged
+    assert build_a == build_b and paths_a == paths_b
+    assert [p.parent for p in paths_a] == [tmp_path / "build" / "src"] * 2
+    assert [p.read_bytes() for p in paths_a] == [s.read_bytes() for s in native.SOURCES]
+    before = [(p.stat().st_ino, p.stat().st_mtime_ns) for p in paths_a]
+    assert native.stage_sources(tmp_path / "build") == paths_a
+    assert [(p.stat().st_ino, p.stat().st_mtime_ns) for p in paths_a] == before
+
+
+_HOLD_BUILD_LOCK = textwrap.dedent(
+    """
+    import os, sys, time
+    from pathlib import Path
+    from phigenesis.native_cache import build_lock
+    with build_lock(Path(sys.argv[1])) as held:
+        print("HELD", held, flush=True)
+        if sys.argv[2] == "die":
+            os._exit(9)  # killed inside the build: no cleanup runs
+        time.sleep(60)
+    """
+)
+
+
+def test_the_build_lock_dies_with_its_holder(tmp_path):
+    """While a live process holds the build lock, no other can take it; once its holder is killed
+    mid-build it is free at once (a flock, not a file whose existence is the lock)."""
+    import fcntl
+
+    def try_take() -> bool:
+        fd = os.open(tmp_path / ".build.lock", os.O_RDWR)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            return False
+        finally:
+            os.close(fd)
+
+    live = subprocess.Popen(
+        [sys.executable, "-c", _HOLD_BUILD_LOCK, str(tmp_path), "live"], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert live.stdout.readline().strip() == "HELD True"
+        assert not try_take()
+    finally:
+        live.kill()
+        live.wait()
+    dead = subprocess.run(
+        [sys.executable, "-c", _HOLD_BUILD_LOCK, str(tmp_path), "die"], capture_output=True, text=True
+    )
+    assert dead.returncode == 9 and dead.stdout.strip() == "HELD True", dead.stderr
+    assert try_take()

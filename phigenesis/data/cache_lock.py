@@ -31,7 +31,7 @@ _HOLDER_WRITE_WAIT_S = 1.0
 #: How often to re-open a lock file that its releasing holder removed while we locked it.
 _REOPEN_ATTEMPTS = 100
 #: errno values of a file system that cannot flock (NFS without lockd, some FUSE mounts).
-_NO_FLOCK = frozenset({errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL})
+NO_FLOCK = frozenset({errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL})
 
 
 @dataclass(frozen=True)
@@ -149,7 +149,7 @@ class CacheLock:
         except BlockingIOError:
             raise self._held_error(self._wait_for_holder(fd)) from None
         except OSError as e:
-            if e.errno not in _NO_FLOCK:
+            if e.errno not in NO_FLOCK:
                 raise PrepError(f"{self.path}: cannot lock ({e.strerror or e})") from e
             holder = _read_holder(fd)
             if holder is not None and holder.is_running() is not False:

@@ -11,6 +11,15 @@ torch and Python versions and this CPU's instruction set, since it is built with
 so a shared home never hands one machine another's build. When the build fails (no compiler, no
 ninja, a read-only cache) the reason is one warning line and :func:`load_rasterizer` returns
 ``None``: the caller renders with the PyTorch path. ``PHIGENESIS_NATIVE=0`` skips the build.
+
+Two things about PyTorch's builder this module works around. It compiles the sources where they are,
+so a second checkout of the same sources (a clone, a worktree) rewrote the folder's ``build.ninja``
+and compiled again: the sources are staged into the build folder first (its name hashes them), so
+every checkout builds from the same paths and the first build serves them all. And it marks a build
+in progress by the existence of a ``lock`` file, which a build killed midway leaves behind: every
+later process then waited on it forever, silently. Builds and loads run under a ``flock``
+(:func:`~phigenesis.native_cache.build_lock`), which dies with its holder, and under it any ``lock``
+file is such a leftover: it is removed, with a warning.
 """
 
 from __future__ import annotations
@@ -25,7 +34,7 @@ from types import ModuleType
 
 import torch
 
-from phigenesis.native_cache import cache_root, cpu_flags, native_enabled
+from phigenesis.native_cache import build_lock, cache_root, cpu_flags, native_enabled
 
 logger = logging.getLogger(__name__)
 
@@ -52,6 +61,37 @@ def build_directory() -> Path:
     return cache_root() / f"rasterize_cpu-{digest.hexdigest()[:16]}"
 
 
+def stage_sources(build_dir: Path) -> list[Path]:
+    """Copies of :data:`SOURCES` in ``build_dir/src`` (written only where missing or different), the
+    paths the build compiles: the same for every checkout of the same sources."""
+    staged = build_dir / "src"
+    staged.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for source in SOURCES:
+        data, copy = source.read_bytes(), staged / source.name
+        if not copy.is_file() or copy.read_bytes() != data:
+            tmp = copy.with_name(f".{copy.name}.tmp")
+            tmp.write_bytes(data)
+            tmp.replace(copy)
+        paths.append(copy)
+    return paths
+
+
+def remove_stale_baton(build_dir: Path) -> bool:
+    """Removes PyTorch's build marker ``build_dir/lock``, which only a killed build leaves when the
+    caller holds :func:`~phigenesis.native_cache.build_lock`; True if there was one."""
+    baton = build_dir / "lock"
+    if not baton.exists():
+        return False
+    logger.warning(
+        "removing %s, left by a build of the native rasterizer that was killed before it finished "
+        "(PyTorch would wait on it forever); building again",
+        baton,
+    )
+    baton.unlink(missing_ok=True)
+    return True
+
+
 def _summary(error: BaseException) -> str:
     """The line of a build failure worth showing: the first compiler error, else the first line."""
     lines = [line.strip() for line in str(error).splitlines() if line.strip()]
@@ -75,19 +115,23 @@ def load_rasterizer() -> ModuleType | None:
         try:
             from torch.utils import cpp_extension
 
-            build_dir.mkdir(parents=True, exist_ok=True)
-            if not any(build_dir.glob("*.so")):
-                logger.info(
-                    "building the native CPU rasterizer (once per machine, about a minute) in %s", build_dir
+            with build_lock(build_dir) as held:
+                if held:
+                    remove_stale_baton(build_dir)
+                sources = stage_sources(build_dir)
+                if not any(build_dir.glob("*.so")):
+                    logger.info(
+                        "building the native CPU rasterizer (once per machine, about a minute) in %s",
+                        build_dir,
+                    )
+                _module = cpp_extension.load(
+                    name=f"phigenesis_{build_dir.name.replace('-', '_')}",
+                    sources=[str(source) for source in sources],
+                    extra_cflags=list(CFLAGS),
+                    extra_ldflags=list(LDFLAGS),
+                    build_directory=str(build_dir),
+                    verbose=False,
                 )
-            _module = cpp_extension.load(
-                name=f"phigenesis_{build_dir.name.replace('-', '_')}",
-                sources=[str(source) for source in SOURCES],
-                extra_cflags=list(CFLAGS),
-                extra_ldflags=list(LDFLAGS),
-                build_directory=str(build_dir),
-                verbose=False,
-            )
         except Exception as error:  # any build or load failure means the fallback, never a crash
             _failure = _summary(error)
             log = build_dir / "build-error.log"
@@ -109,4 +153,11 @@ def failure_reason() -> str | None:
     return _failure
 
 
-__all__ = ["build_directory", "cache_root", "failure_reason", "load_rasterizer"]
+__all__ = [
+    "build_directory",
+    "cache_root",
+    "failure_reason",
+    "load_rasterizer",
+    "remove_stale_baton",
+    "stage_sources",
+]
