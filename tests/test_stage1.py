@@ -791,6 +791,28 @@ def test_checkpoint_made_before_the_context_blocks_loads_as_it_was(tmp_path):
         load_stage1(claims)
 
 
+def test_checkpoint_made_before_the_head_kernel_loads_as_it_was(tmp_path):
+    """An adapter config without ``head_kernel`` (written when the head's last layer was always 3x3)
+    rebuilds with a 3x3 layer and predicts as it did; a config that claims a 1x1 layer over 3x3
+    weights fails naming the head; an even or zero kernel is refused."""
+    assert create_model("stage1_tiny").config.adapter_config.head_kernel == 3
+    torch.manual_seed(0)
+    adapter = {"width": 16, "depth_bins": 16, "head_kernel": 3}
+    old = create_model("stage1_tiny", image_size=list(SIZE), adapter=adapter)
+    torch.nn.init.normal_(old.adapter.head[-1].weight, std=0.05)
+    path = save_checkpoint(tmp_path / "new.safetensors", old)
+    loaded = _loads_without(old, path, tmp_path, "head_kernel")
+    assert loaded.adapter.head[-1].kernel_size == (3, 3)
+    claims = _checkpoint_with_adapter(
+        path, tmp_path / "claims.safetensors", lambda a: a.update(head_kernel=1)
+    )
+    with pytest.raises(CheckpointError, match=r"claims\.safetensors: weights do not fit .*adapter\.head"):
+        load_stage1(claims)
+    for bad in (0, 2):
+        with pytest.raises(ValueError, match="head_kernel must be odd and >= 1"):
+            AdapterConfig(head_kernel=bad)
+
+
 def test_the_clip_and_vae_feature_caches_change_no_result(tiny_cache, tmp_path):
     runs = {}
     for name, mb in (("plain", 0.0), ("cached", 64.0)):

@@ -147,6 +147,9 @@ class AdapterConfig:
         context_blocks: residual blocks of dilated 3x3 convolutions (:class:`ContextBlock`) on the
             coarsest level before the top-down pass, which widen what each pixel's prediction sees
             (0 in checkpoints made before them).
+        head_kernel: kernel size of the head's last convolution (odd): 3 in checkpoints made
+            before the choice, 1 in the registered configs (the outputs of a pixel read only its
+            own hidden features and priors; the block before it has the 3x3 context).
     """
 
     feature_channels: tuple[int, ...] = (64, 32, 16)
@@ -163,6 +166,7 @@ class AdapterConfig:
     column_base: bool = False
     column_floor: str = "far"
     context_blocks: int = 0
+    head_kernel: int = 3
 
     def __post_init__(self) -> None:
         if self.column_base and not self.ground_feature:
@@ -180,6 +184,8 @@ class AdapterConfig:
             )
         if self.context_blocks < 0:
             raise ValueError(f"AdapterConfig: context_blocks must be >= 0, got {self.context_blocks}")
+        if self.head_kernel < 1 or self.head_kernel % 2 == 0:
+            raise ValueError(f"AdapterConfig: head_kernel must be odd and >= 1, got {self.head_kernel}")
         if self.depth_bins < 0 or self.depth_bins == 1:
             raise ValueError(
                 f"AdapterConfig: depth_bins must be 0 (regression) or >= 2, got {self.depth_bins}"
@@ -272,7 +278,7 @@ class RangeViewAdapter(nn.Module):
         priors = int(c.ground_feature) + int(c.column_base)
         self.head = nn.Sequential(
             _block(inputs + int(c.column_base), c.width, c.norm_groups),
-            nn.Conv2d(c.width + priors, c.out_channels, 3, padding=1),
+            nn.Conv2d(c.width + priors, c.out_channels, c.head_kernel, padding=c.head_kernel // 2),
         )
         if c.prior_gain:  # log of the camera height that turns the ground prior into a depth
             self.log_height_m = nn.Parameter(torch.tensor(math.log(2.0)))
