@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import platform
 import sys
 import threading
@@ -70,7 +71,7 @@ def stage_sources(build_dir: Path) -> list[Path]:
     for source in SOURCES:
         data, copy = source.read_bytes(), staged / source.name
         if not copy.is_file() or copy.read_bytes() != data:
-            tmp = copy.with_name(f".{copy.name}.tmp")
+            tmp = copy.with_name(f".{copy.name}.{os.getpid()}.tmp")  # no flock: others may stage too
             tmp.write_bytes(data)
             tmp.replace(copy)
         paths.append(copy)
