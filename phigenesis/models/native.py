@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 import platform
 import sys
 import threading
@@ -35,6 +34,7 @@ from types import ModuleType
 
 import torch
 
+from phigenesis.data.shards import atomic_write_bytes
 from phigenesis.native_cache import build_lock, cache_root, cpu_flags, native_enabled
 
 logger = logging.getLogger(__name__)
@@ -71,26 +71,23 @@ def stage_sources(build_dir: Path) -> list[Path]:
     for source in SOURCES:
         data, copy = source.read_bytes(), staged / source.name
         if not copy.is_file() or copy.read_bytes() != data:
-            tmp = copy.with_name(f".{copy.name}.{os.getpid()}.tmp")  # no flock: others may stage too
-            tmp.write_bytes(data)
-            tmp.replace(copy)
+            atomic_write_bytes(copy, data)  # a unique temporary name: without flock others may stage too
         paths.append(copy)
     return paths
 
 
-def remove_stale_baton(build_dir: Path) -> bool:
+def remove_stale_baton(build_dir: Path) -> None:
     """Removes PyTorch's build marker ``build_dir/lock``, which only a killed build leaves when the
-    caller holds :func:`~phigenesis.native_cache.build_lock`; True if there was one."""
+    caller holds :func:`~phigenesis.native_cache.build_lock`."""
     baton = build_dir / "lock"
     if not baton.exists():
-        return False
+        return
     logger.warning(
         "removing %s, left by a build of the native rasterizer that was killed before it finished "
         "(PyTorch would wait on it forever); building again",
         baton,
     )
     baton.unlink(missing_ok=True)
-    return True
 
 
 def _summary(error: BaseException) -> str:
