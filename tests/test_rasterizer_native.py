@@ -240,6 +240,16 @@ def _assert_projections_match(ours, ref) -> None:
     for name in ("means2d", "conics", "depths"):
         a, b = getattr(ours, name), getattr(ref, name)
         assert a.shape == b.shape and a.dtype == b.dtype, name
+        if name == "means2d":
+            # u = f x / z + c: the depth's own allowed difference, relative to z, carries into u. It
+            # matters only for centres within millimetres of the camera plane (near = 0), where float32
+            # rounding of z alone moves u by pixels (-114,692 px at z = 0.7 mm came out 4.7 px apart).
+            z = ref.depths.abs().double()[..., None]
+            slack = b.abs().double() * tol["depths"] / z.clamp(min=1e-30)
+            near_plane = torch.isfinite(slack) & (slack > tol["means2d"])
+            a = torch.where(near_plane, b, a)  # those are checked here, the rest by assert_close
+            close = (ours.means2d.double() - b.double()).abs() <= tol["means2d"] + slack
+            assert bool(close[near_plane].all()), name
         torch.testing.assert_close(a, b, rtol=tol["rtol"], atol=tol[name], equal_nan=True, msg=name)
     assert ours.radii.shape == ref.radii.shape and ours.radii.dtype == ref.radii.dtype
     assert ours.valid.shape == ref.valid.shape and ours.valid.dtype == torch.bool
@@ -248,12 +258,18 @@ def _assert_projections_match(ours, ref) -> None:
         return
     # float32: a radius is ceil(extend sqrt(Sigma2d_ii + eps)); where that product lies within float32
     # rounding of an integer, a last-bit difference upstream (a BLAS that rounds the rotation otherwise)
-    # moves the ceil by one, and with it maybe the off-screen test. Allowed: differences of 1, in at
-    # most 1 in 10^4 of the (camera, Gaussian) pairs (none at all in small scenes).
+    # moves the ceil by one, and with it maybe the off-screen test. Radii of millions of pixels (a
+    # Gaussian across the camera plane) carry float32's relative rounding as well: the reference's
+    # matmuls block differently with the thread count, and 88,087,104 px came out 176 px apart (2e-6).
+    # Allowed: differences up to 1 + 1e-5 of the radius anywhere; the ceil may flip where its
+    # argument's rounding (~1e-6 of it) spans an integer, which is common above 10^4 px and rare
+    # below 10^3 px: there, flips in at most 1 in 10^4 of the (camera, Gaussian) pairs (none at all
+    # in small scenes).
     budget = ref.valid.numel() // 10_000
-    diff = (ours.radii - ref.radii).abs()
-    assert diff.max().item() <= 1 if diff.numel() else True
-    assert int(diff.ne(0).any(-1).sum()) <= budget
+    diff = (ours.radii - ref.radii).abs().double()
+    radius = ref.radii.abs().double()
+    assert bool((diff <= 1 + 1e-5 * radius).all())
+    assert int(((diff > 0) & (radius < 1e3)).any(-1).sum()) <= budget
     assert int(ours.valid.ne(ref.valid).sum()) <= budget
 
 
