@@ -421,6 +421,31 @@ def test_rendering_the_buffer_scene_shows_its_gaussians():
     assert float(later.alpha[0, 12, 20]) < float(later.alpha[0, 15, 20])
 
 
+def test_per_gaussian_values_render_as_their_blend_weighted_average():
+    """``render(values=...)`` gives ``sum_i w_i x_i / sum_i w_i`` per pixel (w_i the blend weights):
+    the window trust a rollout scales u by."""
+    k = torch.tensor([[[16.0, 0.0, 15.5], [0.0, 16.0, 11.5], [0.0, 0.0, 1.0]]])
+    # Two Gaussians on the optical axis, 3 m and 6 m away, the near one half transparent.
+    scene = make_scene(torch.tensor([[0.0, 0.0, 3.0], [0.0, 0.0, 6.0]]))
+    scene = GaussianScene(**{**scene.tensors(), "opacities": torch.tensor([0.5, 0.9])})
+    x = torch.tensor([1.0, 0.25])
+    out = scene.render(torch.eye(4)[None], k, 32, 24, 0.0, values=x, backend="torch")
+    near, far = (
+        scene.select(torch.tensor([i])).render(torch.eye(4)[None], k, 32, 24, 0.0, backend="torch")
+        for i in (0, 1)
+    )
+    w_near = near.alpha  # front to back: the near one's weight is its alpha,
+    w_far = (1 - near.alpha) * far.alpha  # the far one's what it lets through times its own
+    covered = out.alpha > 1e-3
+    expected = (w_near * 1.0 + w_far * 0.25) / (w_near + w_far)
+    torch.testing.assert_close(out.value[covered], expected[covered], rtol=1e-4, atol=1e-5)
+    assert float(out.value[0, 11, 15]) < 1.0 and float(out.value[0, 11, 15]) > 0.25  # a blend
+    assert torch.equal(out.value[~(out.alpha > 0)], torch.zeros_like(out.value[~(out.alpha > 0)]))
+    assert scene.render(torch.eye(4)[None], k, 32, 24, 0.0, backend="torch").value is None
+    with pytest.raises(ValueError, match="values of shape"):
+        scene.render(torch.eye(4)[None], k, 32, 24, 0.0, values=torch.ones(3))
+
+
 def test_adding_100k_gaussians_to_a_full_200k_buffer_takes_well_under_a_second():
     buffer = GaussianBuffer(voxel_m=0.2, max_gaussians=200_000)
     buffer.add(random_scene(200_000, seed=0), window=0, ego_position_world=[0.0, 0.0, 0.0])

@@ -574,6 +574,36 @@ def test_render_pasting_keeps_the_render_where_u_trusts_it_and_the_decoding_in_t
         gen.GenerateOptions(paste=-0.1)
 
 
+def test_a_rollout_can_trust_its_own_windows_less_and_keep_the_gaussians_trusted_pixels_showed(
+    cache: Path, stage2_checkpoint: Path, tmp_path: Path
+) -> None:
+    from phigenesis.infer import generate as gen
+
+    def run(name: str, **options: float) -> gen.Rollout:
+        opts = gen.GenerateOptions(steps=1, uncertainty="coverage", **options)  # type: ignore[arg-type]
+        out = tmp_path / name
+        return gen.generate(
+            stage2_checkpoint, cache, "synthetic-s7-0000", 2, 10, out, options=opts, progress=False
+        ).rollout
+
+    base, halved, kept = run("base"), run("half", generated_trust=0.5), run("kept", spawn_max_u=0.0)
+    # Window 0 sees only the recorded history's Gaussians: trust 1, the same u and frames.
+    assert torch.equal(halved.u[:5], base.u[:5]) and torch.equal(halved.images[:5], base.images[:5])
+    # Window 1 also sees window 0's generated Gaussians: u scaled by the blend of 1 and 0.5.
+    later, scaled = base.u[5:], halved.u[5:]
+    assert bool((scaled <= later + 1e-6).all()) and bool((scaled >= 0.5 * later - 1e-6).all())
+    assert bool((scaled < later - 0.1).any())
+    # Spawning only where u <= 0 (coverage: the holes) adds fewer Gaussians than spawning everywhere,
+    # and the written depth, rendered from the whole buffer, still covers what the render covered.
+    assert len(kept.windows[0]) < len(base.windows[0])
+    covered = base.u[:5] == 1
+    assert bool((kept.alpha[:5][covered] > 0.5).float().mean() > 0.95)
+    assert torch.isfinite(kept.images).all() and torch.isfinite(kept.depth).all()
+    for bad in ({"generated_trust": 1.5}, {"spawn_max_u": -0.1}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            gen.GenerateOptions(**bad)  # type: ignore[arg-type]
+
+
 def test_generation_refuses_bad_inputs_naming_what_is_wrong(
     cache: Path,
     stage1_checkpoint: Path,

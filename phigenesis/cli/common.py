@@ -89,7 +89,8 @@ def unit_interval(value: str) -> float:
 
 def add_anchor_options(parser: argparse.ArgumentParser) -> None:
     """Stage 2 sampling's render anchoring and pasting (``GenerateOptions.anchor``, ``anchor_until``
-    and ``paste``) and the localization potential's mapping (``lp_trust``)."""
+    and ``paste``), what a rollout trusts of its own output (``generated_trust``, ``spawn_max_u``) and
+    the localization potential's mapping (``lp_trust``)."""
     from phigenesis.infer.generate import GenerateOptions
     from phigenesis.infer.uncertainty import LP_TRUSTS
 
@@ -113,6 +114,21 @@ def add_anchor_options(parser: argparse.ArgumentParser) -> None:
         default=defaults.paste,
         help="render pasting: move each decoded pixel paste x u of the way to the render; 0 keeps the "
         f"VAE's decoding as it is (default {defaults.paste:g})",
+    )
+    parser.add_argument(
+        "--generated-trust",
+        type=unit_interval,
+        default=defaults.generated_trust,
+        help="multiply u by this where the render shows Gaussians of generated windows (the recorded "
+        f"history's keep 1), so a rollout trusts its own output less (default {defaults.generated_trust:g})",
+    )
+    parser.add_argument(
+        "--spawn-max-u",
+        type=unit_interval,
+        default=defaults.spawn_max_u,
+        help="a generated window adds static Gaussians only at pixels whose u is at most this; where u "
+        "trusted the render more, the buffer keeps the Gaussians the render came from (default "
+        f"{defaults.spawn_max_u:g}: every pixel)",
     )
     parser.add_argument(
         "--lp-trust",

@@ -69,6 +69,8 @@ def _generate(args: argparse.Namespace) -> int:
         anchor=args.anchor,
         anchor_until=args.anchor_until,
         paste=args.paste,
+        generated_trust=args.generated_trust,
+        spawn_max_u=args.spawn_max_u,
         lp_trust=args.lp_trust,
         geometry=args.geometry,
         max_gaussians=args.max_gaussians,

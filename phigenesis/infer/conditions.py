@@ -88,6 +88,7 @@ class ConditionRender:
     depth: Tensor  # [F, V, H, W] expected z-depth, metres, 0 where nothing
     entropy: Tensor | None  # [F, V, H, W] nats, when the Gaussians carry a depth entropy
     semantic: Tensor | None = None  # [F, V, H, W] uint8 argmax class, SKY where alpha < 0.5 (if asked)
+    trust: Tensor | None = None  # [F, V, H, W] the Gaussians' trust averaged as the depth is (if given)
 
 
 def context_cameras(clip: Clip) -> TargetCameras:
@@ -206,10 +207,11 @@ def history_scene(
 
 
 def render_condition(
-    scene: GaussianScene, cameras: TargetCameras, semantics: bool = False
+    scene: GaussianScene, cameras: TargetCameras, semantics: bool = False, trust: Tensor | None = None
 ) -> ConditionRender:
     """``scene`` rendered at every target camera at its own capture time (no background); with
-    ``semantics``, also the argmax class of every pixel (sky in holes)."""
+    ``semantics``, also the argmax class of every pixel (sky in holes); with ``trust`` (N,) in [0, 1]
+    per Gaussian, also its per-pixel average (0 in holes)."""
     f, v = cameras.frames, cameras.views
     h, w = cameras.size_hw
     with_entropy = scene.depth_entropy is not None
@@ -217,7 +219,12 @@ def render_condition(
         zeros = torch.zeros(f, v, h, w)
         sky = torch.full((f, v, h, w), SKY, dtype=torch.uint8) if semantics else None
         return ConditionRender(
-            torch.zeros(f, v, h, w, 3), zeros, zeros.clone(), zeros.clone() if with_entropy else None, sky
+            torch.zeros(f, v, h, w, 3),
+            zeros,
+            zeros.clone(),
+            zeros.clone() if with_entropy else None,
+            sky,
+            None if trust is None else zeros.clone(),
         )
     with torch.no_grad():
         out = scene.render(
@@ -228,6 +235,7 @@ def render_condition(
             cameras.time_s.flatten(0, 1),
             semantics=semantics,
             entropy=with_entropy,
+            values=trust,
         )
 
     def unflatten(x: Tensor) -> Tensor:
@@ -244,6 +252,7 @@ def render_condition(
         depth=unflatten(out.depth),
         entropy=None if out.depth_entropy is None else unflatten(out.depth_entropy),
         semantic=labels,
+        trust=None if out.value is None else unflatten(out.value),
     )
 
 

@@ -123,6 +123,7 @@ class GaussianScene:
         semantics: bool = False,
         motion: bool = False,
         entropy: bool = False,
+        values: Tensor | None = None,
         near: float = 0.2,
         backend: str = "auto",
     ) -> SceneRender:
@@ -135,6 +136,8 @@ class GaussianScene:
             semantics: also composite class probabilities (softmax of the logits).
             motion: also composite the velocities (a flow map, m/s, world frame).
             entropy: also render the depth entropy (needs ``depth_entropy``).
+            values: (N,) one number x_i per Gaussian (e.g. how far a rollout trusts it), rendered as
+                the depth is: ``sum w_i x_i / sum w_i`` over the blend weights w_i (``SceneRender.value``).
         """
         feats = [self.colors]
         if semantics:
@@ -145,6 +148,12 @@ class GaussianScene:
             if self.depth_entropy is None:
                 raise ValueError("GaussianScene.render(entropy=True): this scene has no depth_entropy")
             feats.append(self.depth_entropy[:, None])
+        if values is not None:
+            if tuple(values.shape) != (len(self),):
+                raise ValueError(
+                    f"GaussianScene.render: values of shape {tuple(values.shape)}, expected ({len(self)},)"
+                )
+            feats.append(values.to(self.colors.dtype)[:, None])
         features = torch.cat(feats, dim=-1)
         dtype = self.means.dtype
         times = torch.as_tensor(t_s, dtype=torch.float64).reshape(-1).expand(world_from_camera.shape[0])
@@ -168,7 +177,9 @@ class GaussianScene:
             near=near,
             backend=backend,  # type: ignore[arg-type]
         )
-        return SceneRender.split(out, self.num_classes if semantics else 0, motion, entropy)
+        return SceneRender.split(
+            out, self.num_classes if semantics else 0, motion, entropy, values is not None
+        )
 
 
 @dataclass(frozen=True)
@@ -183,17 +194,27 @@ class SceneRender:
     #: (C, H, W) depth entropy (nats) of what the pixel sees, ``sum w_i e_i / sum w_i`` as the depth
     #: is (not premultiplied; 0 where alpha is 0), if asked for.
     depth_entropy: Tensor | None = None
+    #: (C, H, W) the per-Gaussian ``values`` given to :meth:`GaussianScene.render`, averaged as the
+    #: depth is (0 where alpha is 0), if given.
+    value: Tensor | None = None
 
     @staticmethod
-    def split(out: RenderOutput, num_classes: int, motion: bool, entropy: bool = False) -> SceneRender:
+    def split(
+        out: RenderOutput, num_classes: int, motion: bool, entropy: bool = False, value: bool = False
+    ) -> SceneRender:
         f = out.features
         sem = f[..., 3 : 3 + num_classes] if num_classes else None
         end = 3 + num_classes + (3 if motion else 0)
         vel = f[..., 3 + num_classes : end] if motion else None
-        ent = None
-        if entropy:
-            covered = out.alpha > 0
-            ent = torch.where(covered, f[..., end] / out.alpha.clamp(min=1e-12), torch.zeros_like(out.alpha))
+        covered = out.alpha > 0
+
+        def normalised(channel: int) -> Tensor:
+            return torch.where(
+                covered, f[..., channel] / out.alpha.clamp(min=1e-12), torch.zeros_like(out.alpha)
+            )
+
+        ent = normalised(end) if entropy else None
+        val = normalised(end + int(entropy)) if value else None
         return SceneRender(
             rgb=f[..., :3],
             depth=out.depth,
@@ -201,4 +222,5 @@ class SceneRender:
             semantic_probs=sem,
             velocity=vel,
             depth_entropy=ent,
+            value=val,
         )

@@ -144,6 +144,12 @@ class Stage1Prediction:
     dynamic_prob: Tensor  # [B, T, V, H, W]
     time_s: Tensor  # [B, T, V]
 
+    def default_keep(self, b: int) -> Tensor:
+        """[T, V, H, W] bool: the pixels of clip ``b`` that spawn Gaussians by default (class not sky,
+        opacity at least 1/255)."""
+        p = self.pixels
+        return (p.semantic_logits[b].argmax(-1) != SKY) & (p.opacity[b] >= ALPHA_THRESHOLD)
+
     def scene(
         self,
         b: int,
@@ -162,7 +168,7 @@ class Stage1Prediction:
         p = self.pixels
         logits = p.semantic_logits[b]
         if keep is None:
-            keep = (logits.argmax(-1) != SKY) & (p.opacity[b] >= ALPHA_THRESHOLD)
+            keep = self.default_keep(b)
         prob = self.dynamic_prob[b]
         dynamic = prob > dynamic_threshold
         velocity = self.velocity[b] * (dynamic[..., None].to(prob.dtype) if hard else prob[..., None])
