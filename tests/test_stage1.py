@@ -300,6 +300,14 @@ def test_killed_run_resumes_to_the_same_loss_curve(tiny_cache, tmp_path):
     assert len(read_metrics(tmp_path / "cut")) == 3
     with pytest.raises(ValueError, match="holds a run already"):
         train_stage1(tiny_cache, tmp_path / "cut", cfg, progress=False)
+    # A run made before depth_confidence_floor existed resumes as the 0 it trained with.
+    recorded = tmp_path / "cut" / "config.yaml"
+    old_yaml = "".join(x for x in recorded.read_text().splitlines(True) if "depth_confidence_floor" not in x)
+    assert old_yaml != recorded.read_text()
+    recorded.write_text(old_yaml)
+    floored = tiny_train_config(steps=4, checkpoint_every=2, depth_confidence_floor=0.5)
+    with pytest.raises(ValueError, match=r"fields differ: \['depth_confidence_floor'\]"):
+        train_stage1(tiny_cache, tmp_path / "cut", floored, resume=True, progress=False)
     resumed = train_stage1(tiny_cache, tmp_path / "cut", cfg, resume=True, progress=False)
     a, b = read_metrics(tmp_path / "full"), read_metrics(tmp_path / "cut")
     assert [r["step"] for r in b] == [1, 2, 3, 4]
@@ -528,6 +536,43 @@ def test_losses_with_the_bins_head_and_several_targets(tiny_cache):
     assert 0 < float(terms["target_semantic"]) < 20
     with pytest.raises(ValueError, match="targets_per_clip"):
         tiny_train_config(targets_per_clip=3)  # target_offset 1: only 2 distinct frames
+
+
+def test_the_depth_confidence_floor_weighs_every_depth_term(tiny_cache):
+    """Floor 1 weighs every dense-depth target alike: the three depth terms equal those of the same
+    clips with every confidence set to 1, and differ from the cache's weighting (floor 0); the
+    other terms do not change. Values outside [0, 1] are refused."""
+    from phigenesis.train.stage1 import depth_target_weight
+
+    cfg = tiny_train_config(
+        model_overrides={"image_size": list(SIZE), "adapter": {"width": 16, "depth_bins": 16}},
+        targets_per_clip=2,
+    )
+    torch.manual_seed(0)
+    model = create_model(cfg.model, **cfg.model_overrides)
+    torch.nn.init.normal_(model.adapter.head[-1].weight, std=0.05)  # depths that vary per pixel
+    clips = _draw_clips(Stage1Clips(tiny_cache, SIZE, 1), cfg, 0, ProcessGroup(0, 1))
+
+    def sure(views):
+        return dataclasses.replace(views, depth_confidence=torch.ones_like(views.depth_confidence))
+
+    confidence = clips[0].context.depth_confidence[clips[0].context.depth > 0]
+    assert float(confidence.min()) < 0.5 < float(confidence.max())  # the cache's weights vary
+    uniform = [dataclasses.replace(c, context=sure(c.context), targets=sure(c.targets)) for c in clips]
+    with torch.no_grad():
+        as_is, floored, ones = (
+            stage1_losses(model, c, None, f)[0] for c, f in ((clips, 0.0), (clips, 1.0), (uniform, 0.0))
+        )
+    for name in ("depth", "pixel_depth", "depth_ce"):
+        assert float(floored[name]) == pytest.approx(float(ones[name]), rel=1e-6), name
+        assert float(floored[name]) != pytest.approx(float(as_is[name]), rel=1e-3), name
+    for name in ("rgb", "semantic", "target_semantic"):
+        assert float(floored[name]) == float(as_is[name]), name
+    weight = depth_target_weight(torch.tensor([0.0, 0.2, 1.0]), 0.5)
+    torch.testing.assert_close(weight, torch.tensor([0.5, 0.6, 1.0]))
+    for bad in (-0.1, 1.5, float("nan"), True, "0.5"):
+        with pytest.raises(ValueError, match="depth_confidence_floor must be a number in"):
+            tiny_train_config(depth_confidence_floor=bad)
 
 
 def test_time_limit_ends_the_run_with_its_weights(tiny_cache, tmp_path):
@@ -811,6 +856,61 @@ def test_checkpoint_made_before_the_head_kernel_loads_as_it_was(tmp_path):
     for bad in (0, 2):
         with pytest.raises(ValueError, match="head_kernel must be odd and >= 1"):
             AdapterConfig(head_kernel=bad)
+
+
+def test_a_split_head_reads_depth_from_a_pixels_own_features_and_keeps_the_output_order(tmp_path):
+    """With ``depth_head_kernel`` 1 and ``head_kernel`` 3 the depth outputs (residual, bin logits,
+    prior gain) come from a 1x1 layer of their own: the model predicts exactly what one 3x3 layer
+    predicts whose depth rows hold those 1x1 weights at the centre tap and zeros around it, so the
+    channels keep their order; zero-initialised, it starts where the unsplit head starts. A
+    checkpoint made before the field rebuilds unsplit; one claiming a split over unsplit weights
+    fails naming ``depth_out``."""
+    assert create_model("stage1_tiny").config.adapter_config.depth_head_kernel is None
+    torch.manual_seed(0)
+    adapter = {"width": 16, "depth_bins": 16, "ground_feature": True, "column_base": True}
+    split = create_model("stage1_tiny", image_size=list(SIZE), adapter={**adapter, "depth_head_kernel": 1})
+    plain = create_model("stage1_tiny", image_size=list(SIZE), adapter={**adapter, "depth_head_kernel": None})
+    c = split.config.adapter_config
+    assert c.split_head and not plain.config.adapter_config.split_head
+    assert split.adapter.depth_out.kernel_size == (1, 1) and split.adapter.head[-1].kernel_size == (3, 3)
+    images, k, poses, times = _inputs(split)
+    shared = {
+        k: v
+        for k, v in split.state_dict().items()
+        if not k.startswith(("adapter.head.1.", "adapter.depth_out."))
+    }
+    assert not plain.load_state_dict(shared, strict=False).unexpected_keys  # all but the last layers
+    with torch.no_grad():
+        assert torch.equal(split(images, k, poses, times).means, plain(images, k, poses, times).means)
+        torch.nn.init.normal_(split.adapter.head[-1].weight, std=0.05)
+        torch.nn.init.normal_(split.adapter.head[-1].bias, std=0.05)
+        torch.nn.init.normal_(split.adapter.depth_out.weight, std=0.05)
+        torch.nn.init.normal_(split.adapter.depth_out.bias, std=0.05)
+        last = plain.adapter.head[-1]
+        rest, depth = split.adapter.head[-1], split.adapter.depth_out
+        first_bin = c.out_channels - c.depth_channels + 1  # after the residual and the others
+        rows = torch.cat([torch.arange(1), torch.arange(first_bin, c.out_channels)])
+        others = torch.arange(1, first_bin)
+        last.weight.zero_()
+        last.weight[rows, :, 1, 1] = depth.weight[:, :, 0, 0]
+        last.weight[others] = rest.weight
+        last.bias[rows] = depth.bias
+        last.bias[others] = rest.bias
+        a, b = split(images, k, poses, times), plain(images, k, poses, times)
+        for name in ("depth", "opacity", "scale", "colour", "semantic_logits", "depth_logits"):
+            torch.testing.assert_close(getattr(a.pixels, name), getattr(b.pixels, name), rtol=1e-5, atol=1e-5)
+    path = save_checkpoint(tmp_path / "plain.safetensors", plain)
+    loaded = _loads_without(plain, path, tmp_path, "depth_head_kernel")
+    assert not loaded.config.adapter_config.split_head
+    claims = _checkpoint_with_adapter(
+        path, tmp_path / "claims.safetensors", lambda a: a.update(depth_head_kernel=1)
+    )
+    fits = r"claims\.safetensors: weights do not fit .*adapter\.depth_out"
+    with pytest.raises(CheckpointError, match=fits):
+        load_stage1(claims)
+    for bad in (0, 2):
+        with pytest.raises(ValueError, match="depth_head_kernel must be odd and >= 1"):
+            AdapterConfig(depth_head_kernel=bad)
 
 
 def test_the_clip_and_vae_feature_caches_change_no_result(tiny_cache, tmp_path):
