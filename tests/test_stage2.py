@@ -214,6 +214,39 @@ def test_generation_uses_the_lp_trust_its_checkpoint_was_trained_with(
         GenerateOptions(lp_trust="sure")
 
 
+def test_generation_samples_on_the_geometry_its_checkpoint_was_trained_on(
+    stage2_checkpoint: Path, cache: Path, tmp_path: Path
+) -> None:
+    """A model trained on the truth's renders (the benchmark's ceiling row) is sampled on them unless
+    told otherwise; until 2026-12-06 every evaluation sampled on Stage 1's."""
+    from safetensors.torch import load_file, save_file
+
+    from phigenesis.errors import CheckpointError
+    from phigenesis.infer.generate import GenerateOptions, Stage2Runner, trained_geometry
+    from phigenesis.train.checkpoint import read_safetensors_metadata
+
+    runner = Stage2Runner(stage2_checkpoint, cache)
+    assert runner.geometry == "stage1" and runner.resolve(None).geometry == "stage1"
+    # The same weights with a training config that says truth.
+    src = stage2_checkpoint / "model.safetensors" if stage2_checkpoint.is_dir() else stage2_checkpoint
+    meta = read_safetensors_metadata(src)
+    extra = json.loads(meta["meta"])
+    meta["meta"] = json.dumps({**extra, "train": {**extra["train"], "geometry": "truth"}})
+    truth_ckpt = tmp_path / "truth.safetensors"
+    save_file(load_file(str(src)), str(truth_ckpt), metadata=meta)
+    truth_runner = Stage2Runner(truth_ckpt, cache)
+    assert truth_runner.resolve(None).geometry == "truth"
+    assert truth_runner.resolve(GenerateOptions(geometry="stage1")).geometry == "stage1"
+    result, _ = truth_runner.run(sorted(truth_runner.data.scenes)[0], 1, 2, "recorded", None)
+    assert torch.isfinite(result.images).all()
+    # A config that predates the field was trained on Stage 1's renders; a crafted value is refused.
+    assert trained_geometry({"window_frames": 5}, "old.safetensors") == "stage1"
+    with pytest.raises(CheckpointError, match=r"old\.safetensors.*geometry.*'lidar'"):
+        trained_geometry({"geometry": "lidar"}, "old.safetensors")
+    with pytest.raises(ValueError, match="geometry"):
+        GenerateOptions(geometry="lidar")
+
+
 def test_a_crafted_latent_row_with_nan_is_refused_naming_the_shard_and_column(
     cache: Path, latents: Path, tmp_path: Path
 ) -> None:
@@ -623,6 +656,9 @@ def test_generation_refuses_bad_inputs_naming_what_is_wrong(
     with pytest.raises(SystemExit):
         run("--lp-trust", "sure")
     assert "--lp-trust: invalid choice" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        run("--geometry", "lidar")
+    assert "--geometry: invalid choice" in capsys.readouterr().err
     assert "'nope' is not in" in run("--scene", "nope")
     assert "runs past the end of scene" in run("--frames", "40")
     nan = _straight_trajectory(cache, 5, tmp_path / "nan.json")

@@ -89,9 +89,9 @@ def unit_interval(value: str) -> float:
 
 def add_anchor_options(parser: argparse.ArgumentParser) -> None:
     """Stage 2 sampling's render anchoring and pasting (``GenerateOptions.anchor``, ``anchor_until``
-    and ``paste``), what a rollout trusts of its own output (``generated_trust``, ``spawn_max_u``) and
-    the localization potential's mapping (``lp_trust``)."""
-    from phigenesis.infer.generate import GenerateOptions
+    and ``paste``), what a rollout trusts of its own output (``generated_trust``, ``spawn_max_u``),
+    the localization potential's mapping (``lp_trust``) and the history's geometry (``geometry``)."""
+    from phigenesis.infer.generate import GEOMETRY_SOURCES, GenerateOptions
     from phigenesis.infer.uncertainty import LP_TRUSTS
 
     defaults = GenerateOptions()
@@ -135,6 +135,12 @@ def add_anchor_options(parser: argparse.ArgumentParser) -> None:
         choices=LP_TRUSTS,
         help="the localization potential's u: stable (trust what a depth error barely moves) or "
         "localised (trust what the history localises well); default: the one the model was trained with",
+    )
+    parser.add_argument(
+        "--geometry",
+        choices=GEOMETRY_SOURCES,
+        help="the first window's history Gaussians: stage1 (the Stage 1 model's), cache (the cache's "
+        "dense depth lifted) or truth (the synthetic truth's); default: the one the model was trained on",
     )
 
 

@@ -112,6 +112,7 @@ def _stage2(args: argparse.Namespace) -> int:
         generated_trust=args.generated_trust,
         spawn_max_u=args.spawn_max_u,
         lp_trust=args.lp_trust,
+        geometry=args.geometry,
         seed=args.seed,
     )
     report = evaluate_stage2(

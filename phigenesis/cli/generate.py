@@ -10,7 +10,7 @@ from phigenesis.cli.common import Parser, add_anchor_options, positive, run
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from phigenesis.infer.conditions import GEOMETRY_SOURCES, UNCERTAINTY_KINDS
+    from phigenesis.infer.conditions import UNCERTAINTY_KINDS
 
     parser = Parser(prog="phigenesis-generate", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -43,9 +43,6 @@ def build_parser() -> argparse.ArgumentParser:
         "--history-level", type=float, default=0.02, help="noise level generated history is held at"
     )
     add_anchor_options(parser)
-    parser.add_argument(
-        "--geometry", choices=GEOMETRY_SOURCES, default="stage1", help="the first window's history Gaussians"
-    )
     parser.add_argument("--max-gaussians", type=positive, default=200_000, help="the Gaussian buffer's bound")
     parser.add_argument(
         "--stage1", help="Stage 1 checkpoint (default: the one the Stage 2 model was trained with)"

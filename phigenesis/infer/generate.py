@@ -130,7 +130,7 @@ class GenerateOptions:
     paste: float = 1.0  # render pasting: each decoded pixel moved paste * u of the way to the render
     generated_trust: float = 1.0  # u is scaled by this where the render shows generated windows' Gaussians
     spawn_max_u: float = 1.0  # a generated pixel adds static Gaussians only where u is at most this
-    geometry: str = "stage1"  # window 0's history Gaussians: stage1 | cache | truth
+    geometry: str | None = None  # window 0's history Gaussians: stage1 | cache | truth; None: as trained
     voxel_m: float = 0.2  # the buffer's de-duplication voxel
     max_gaussians: int = 200_000  # the buffer's bound
     seed: int = 0
@@ -158,8 +158,10 @@ class GenerateOptions:
             raise ValueError(f"generated_trust must be in [0, 1], got {self.generated_trust}")
         if not 0 <= self.spawn_max_u <= 1:
             raise ValueError(f"spawn_max_u must be in [0, 1], got {self.spawn_max_u}")
-        if self.geometry not in GEOMETRY_SOURCES:
-            raise ValueError(f"geometry must be one of {GEOMETRY_SOURCES}, got {self.geometry!r}")
+        if self.geometry is not None and self.geometry not in GEOMETRY_SOURCES:
+            raise ValueError(
+                f"geometry must be one of {GEOMETRY_SOURCES} (or None: as trained), got {self.geometry!r}"
+            )
 
 
 @dataclass
@@ -358,7 +360,8 @@ def rollout(
     progress: bool = False,
 ) -> Rollout:
     """Generates one frame per entry of ``trajectory`` after the recorded ``history_clip`` (a Stage
-    1 clip whose context is the history), window by window (see the module docstring)."""
+    1 clip whose context is the history), window by window (see the module docstring).
+    ``options.geometry`` None is ``stage1`` here (:meth:`Stage2Runner.resolve` fills in the trained one)."""
     denoiser.eval()
     stage1.eval()
     origin = int(history_clip.time_origin_micros)
@@ -369,7 +372,7 @@ def rollout(
     tc = int(stage1.vae.config.temporal_compression)
     generator = torch.Generator().manual_seed(int(options.seed))
     buffer = GaussianBuffer(voxel_m=options.voxel_m, max_gaussians=options.max_gaussians)
-    first = history_scene(options.geometry, history_clip, stage1, **(truth or {}))  # type: ignore[arg-type]
+    first = history_scene(options.geometry or "stage1", history_clip, stage1, **(truth or {}))  # type: ignore[arg-type]
     buffer.add(first, window=0)
     hist_cams = TargetCameras(ctx.world_from_camera, k, ctx.time_s, size)
     hist_images, level = ctx.images, 0.0
@@ -444,6 +447,10 @@ def rollout(
             z_gen = _encode(stage1, images)  # the Gaussians of the frames as they are kept
         spawn = u <= options.spawn_max_u if options.spawn_max_u < 1 else None
         scene = _window_scene(stage1, z_gen, cams, origin, spawn)
+        if first.depth_entropy is None:
+            # History lifted from the cache or the truth has no depth distributions: the buffer keeps
+            # one kind of Gaussian, so the generated windows' entropy is left out too.
+            scene = dataclasses.replace(scene, depth_entropy=None)
         ego = torch.as_tensor(padded[(w + 1) * window_frames - 1].world_from_ego[:3, 3]).float()
         buffer.add(scene.detach(), window=w + 1, ego_position_world=ego)
         # The generated scene's depth and classes: its own Gaussians, or, where trusted pixels kept
@@ -638,6 +645,20 @@ def trained_lp_trust(train: dict[str, Any], where: str) -> LpTrust:
         raise CheckpointError(str(e)) from None
 
 
+def trained_geometry(train: dict[str, Any], where: str) -> str:
+    """The geometry source the Stage 2 checkpoint ``where``, with training config ``train``, was
+    trained on (its condition renders): its ``geometry``, ``stage1`` when the config predates the
+    field; CheckpointError for another value."""
+    from phigenesis.errors import CheckpointError
+
+    geometry = train.get("geometry", "stage1")
+    if geometry not in GEOMETRY_SOURCES:
+        raise CheckpointError(
+            f"{where}: its training config's geometry must be one of {GEOMETRY_SOURCES}, got {geometry!r}"
+        )
+    return str(geometry)
+
+
 class Stage2Runner:
     """A trained Stage 2 model with its Stage 1 model over a frame cache: rolls scenes out.
 
@@ -664,14 +685,18 @@ class Stage2Runner:
         self.window = int(self.train["window_frames"])
         self.history_frames = int(self.train["history_frames"])
         self.lp_trust = trained_lp_trust(self.train, self.ckpt)
+        self.geometry = trained_geometry(self.train, self.ckpt)
         self.data = Stage1Clips(shards, self.stage1.config.image_size, self.history_frames, "auto")
 
     def resolve(self, options: GenerateOptions | None) -> GenerateOptions:
         """``options`` (default: :class:`GenerateOptions`) with what they leave to the model filled
-        in from its training config: the localization potential's mapping."""
+        in from its training config: the localization potential's mapping and the history's geometry
+        source (a model trained on the truth's renders is sampled on them unless told otherwise)."""
         options = options or GenerateOptions()
         if options.lp_trust is None:
             options = dataclasses.replace(options, lp_trust=self.lp_trust)
+        if options.geometry is None:
+            options = dataclasses.replace(options, geometry=self.geometry)
         return options
 
     def check(self, scene: str, start: int, frames: int, trajectory: str) -> None:
