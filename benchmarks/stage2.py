@@ -186,6 +186,11 @@ def main() -> None:
     )
     ap.add_argument("--sample-steps", type=int, default=10)
     ap.add_argument("--fid-model", type=Path, help="local TorchScript Inception (default_1.pt) for FID/KID")
+    ap.add_argument(
+        "--fid-frames",
+        type=int,
+        help="generated frames ending at each rollout frame that its FID/KID pools (default: one window's)",
+    )
     ap.add_argument("--rows", nargs="*", help="only these rows (by uncertainty name), for a partial run")
     defaults = GenerateOptions()
     ap.add_argument("--anchor", type=float, default=defaults.anchor, help="render anchoring's strength")
@@ -385,6 +390,8 @@ def _intro(args: argparse.Namespace) -> str:
     cfg = yaml.safe_load((REPO_ROOT / "configs" / "stage2" / "tiny.yaml").read_text())
     latents = "latents standardised per channel (`latent_norm`)" if cfg.get("latent_norm") else "raw latents"
     longest = max([*args.rollout_frames, *args.long_rollout_frames], default=0)
+    fid_frames = args.fid_frames or 5  # the evaluator's default: one window of stage2_tiny's 5 frames
+    fid_images = fid_frames * 5 * args.eval_scenes
     return (
         f"Written by `benchmarks/stage2.py`. Data: {args.train_scenes} synthetic training scenes "
         f"(seed 1000) x {args.train_frames} frames and {args.eval_scenes} held-out scenes (seed 100) x "
@@ -401,12 +408,12 @@ def _intro(args: argparse.Namespace) -> str:
         "one rollout per scene through the Gaussian "
         f"buffer to frame {max(args.rollout_frames, default=0)} for every seed and to frame {longest} for "
         f"seed(s) {', '.join(map(str, args.long_rollout_seeds)) or 'none'} (the columns past "
-        f"{max(args.rollout_frames, default=0)} are those seeds'). FID/KID at rollout frame k over the 5 "
-        "frames ending there (Inception `default_1.pt`, 50 generated against 50 true images: the FID is "
-        "dominated by its small-sample bias and does not compare with the paper's; KID is the better-behaved "
-        "of the two here). `VAE reconstruction of the truth`: the true window encoded and decoded by the "
-        "frozen VAE, the ceiling of any generated row; `render only`: the history's Stage 1 render at the "
-        "same cameras, no diffusion."
+        f"{max(args.rollout_frames, default=0)} are those seeds'). FID/KID at rollout frame k over the "
+        f"{fid_frames} frames ending there (Inception `default_1.pt`, {fid_images} generated against as "
+        "many true images, 5 views per scene: the FID is dominated by its small-sample bias and does not "
+        "compare with the paper's; KID is the better-behaved of the two here). `VAE reconstruction of the "
+        "truth`: the true windows encoded and decoded by the frozen VAE, the ceiling of any generated row; "
+        "`render only`: the history's Stage 1 render at the same cameras, no diffusion."
     )
 
 
@@ -491,6 +498,8 @@ def _eval_cmd(
         cmd += ["--picture", str(run / "eval.png")]
     if args.fid_model is not None:
         cmd += ["--fid-model", str(args.fid_model)]
+    if args.fid_frames is not None:
+        cmd += ["--fid-frames", str(args.fid_frames)]
     return cmd
 
 

@@ -725,7 +725,23 @@ def test_the_stage2_evaluation_scores_rollouts_against_the_truth(
     assert ceiling["psnr_db"] == pytest.approx(float(psnr(recon, truth).mean()), abs=1e-4)
     assert ceiling["images"] == 5 and "abs_rel" not in ceiling
     assert report["sections"]["shift_1m"]["vae_reconstruction"]["images"] == 25
-    # Rollout frame 6 sits in its second window (generated frames 5 .. 9): one frame per view, and
-    # its FID over the frames of that window that end at 6 (one, x 5 views).
+    # Rollout frame 6 sits in its second window (generated frames 5 .. 9): one frame per view; its FID
+    # pools the five frames ending at 6, as the generated one does (frames 1 .. 4 reconstructed as
+    # the first window, 5 as the second), x 5 views.
     rollout_ceiling = report["sections"]["rollout_6"]["vae_reconstruction"]
-    assert rollout_ceiling["images"] == 5 and rollout_ceiling["fid_images"] == 5
+    assert rollout_ceiling["images"] == 5 and rollout_ceiling["fid_images"] == 25
+    # --fid-frames: the FID of rollout frame 6 over the two frames ending there, for both renderers.
+    short = evaluate_stage2(
+        stage2_checkpoint,
+        cache,
+        options=options,
+        offsets=(),
+        shifts_m=(),
+        rollout_frames=(6,),
+        fid_model=fid_model,
+        fid_frames=2,
+    )["sections"]["rollout_6"]
+    assert short["generated"]["fid_images"] == 10 and short["vae_reconstruction"]["fid_images"] == 10
+    assert short["generated"]["psnr_db"] == pytest.approx(rollout["psnr_db"], abs=1e-6)
+    with pytest.raises(ValueError, match="fid_frames"):
+        evaluate_stage2(stage2_checkpoint, cache, options=options, rollout_frames=(6,), fid_frames=0)

@@ -75,6 +75,11 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0, help="seed of the noise")
     add_anchor_options(d)
     d.add_argument("--fid-model", help="local TorchScript Inception (default_1.pt) for FID/KID")
+    d.add_argument(
+        "--fid-frames",
+        type=positive,
+        help="generated frames ending at each rollout frame that its FID/KID pools (default: one window's)",
+    )
     d.add_argument("--picture", help="write a PNG of the first clip here")
     d.add_argument("--threads", type=positive, help="torch CPU threads")
     return parser
@@ -128,6 +133,7 @@ def _stage2(args: argparse.Namespace) -> int:
         out_json=args.out,
         picture=args.picture,
         threads=args.threads,
+        fid_frames=args.fid_frames,
     )
     print(format_stage2_table(report))
     if args.out:
