@@ -390,7 +390,7 @@ def _intro(args: argparse.Namespace) -> str:
     cfg = yaml.safe_load((REPO_ROOT / "configs" / "stage2" / "tiny.yaml").read_text())
     latents = "latents standardised per channel (`latent_norm`)" if cfg.get("latent_norm") else "raw latents"
     longest = max([*args.rollout_frames, *args.long_rollout_frames], default=0)
-    fid_frames = args.fid_frames or 5  # the evaluator's default: one window of stage2_tiny's 5 frames
+    fid_frames = args.fid_frames or int(cfg["window_frames"])  # the evaluator's default: one window
     fid_images = fid_frames * 5 * args.eval_scenes
     return (
         f"Written by `benchmarks/stage2.py`. Data: {args.train_scenes} synthetic training scenes "
