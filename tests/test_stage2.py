@@ -637,6 +637,36 @@ def test_a_rollout_can_trust_its_own_windows_less_and_keep_the_gaussians_trusted
             gen.GenerateOptions(**bad)  # type: ignore[arg-type]
 
 
+def test_a_rollout_can_lift_only_the_newest_frame_of_each_window_into_its_buffer(
+    cache: Path, stage2_checkpoint: Path, tmp_path: Path
+) -> None:
+    from phigenesis.infer import generate as gen
+
+    def run(name: str, lift_frames: int | None) -> gen.Rollout:  # None: the history's 1 frame
+        opts = gen.GenerateOptions(steps=1, uncertainty="coverage", lift_frames=lift_frames)
+        out = tmp_path / name
+        return gen.generate(
+            stage2_checkpoint, cache, "synthetic-s7-0000", 2, 10, out, options=opts, progress=False
+        ).rollout
+
+    every, newest = run("every", 5), run("newest", None)
+    # Window 0 stands on the recorded history alone: the same frames either way.
+    assert torch.equal(newest.images[:5], every.images[:5])
+    for w in range(2):
+        last = newest.time_s[5 * w + 4]  # [V] capture times of the window's newest frame, s
+        times = newest.windows[w].time_s.double()  # the static ones keep the time they were seen at
+        assert len(times) > 0
+        assert float((times[:, None] - last[None]).abs().min(dim=1).values.max()) < 1e-4
+    # Lifting every frame adds Gaussians seen at all five frames' times, five times as many or so.
+    seen = every.windows[0].time_s.double()
+    frame_of = (seen[:, None] - every.time_s[:5, 0][None]).abs().argmin(dim=1)
+    assert len(frame_of.unique()) == 5
+    assert len(every.windows[0]) > 3 * len(newest.windows[0])
+    assert torch.isfinite(newest.images).all() and torch.isfinite(newest.depth).all()
+    with pytest.raises(ValueError, match="lift_frames"):
+        gen.GenerateOptions(lift_frames=0)
+
+
 def test_generation_refuses_bad_inputs_naming_what_is_wrong(
     cache: Path,
     stage1_checkpoint: Path,

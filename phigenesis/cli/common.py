@@ -89,7 +89,8 @@ def unit_interval(value: str) -> float:
 
 def add_anchor_options(parser: argparse.ArgumentParser) -> None:
     """Stage 2 sampling's render anchoring and pasting (``GenerateOptions.anchor``, ``anchor_until``
-    and ``paste``), what a rollout trusts of its own output (``generated_trust``, ``spawn_max_u``),
+    and ``paste``), what a rollout trusts and keeps of its own output (``generated_trust``, ``spawn_max_u``,
+    ``lift_frames``),
     the localization potential's mapping (``lp_trust``) and the history's geometry (``geometry``)."""
     from phigenesis.infer.generate import GEOMETRY_SOURCES, GenerateOptions
     from phigenesis.infer.uncertainty import LP_TRUSTS
@@ -129,6 +130,15 @@ def add_anchor_options(parser: argparse.ArgumentParser) -> None:
         help="a generated window adds static Gaussians only at pixels whose u is at most this; where u "
         "trusted the render more, the buffer keeps the Gaussians the render came from (default "
         f"{defaults.spawn_max_u:g}: every pixel)",
+    )
+    parser.add_argument(
+        "--lift-frames",
+        type=positive,
+        default=defaults.lift_frames,
+        metavar="N",
+        help="the newest N frames of each generated window whose Gaussians join the buffer (default: as "
+        "many as the model's history frames, the frames the next window takes as its history); every "
+        "frame lifted adds its own copy of each surface it shows, at its own depth error",
     )
     parser.add_argument(
         "--lp-trust",

@@ -116,6 +116,7 @@ def _stage2(args: argparse.Namespace) -> int:
         paste=args.paste,
         generated_trust=args.generated_trust,
         spawn_max_u=args.spawn_max_u,
+        lift_frames=args.lift_frames,
         lp_trust=args.lp_trust,
         geometry=args.geometry,
         seed=args.seed,

@@ -68,6 +68,7 @@ def _generate(args: argparse.Namespace) -> int:
         paste=args.paste,
         generated_trust=args.generated_trust,
         spawn_max_u=args.spawn_max_u,
+        lift_frames=args.lift_frames,
         lp_trust=args.lp_trust,
         geometry=args.geometry,
         max_gaussians=args.max_gaussians,

@@ -25,7 +25,11 @@ A rollout generates ``frames`` frames of a scene from frame ``start`` on, window
    than what it encodes, so a generated copy of the render falls below the render itself), and the
    frames are encoded again;
 5. the Stage 1 adapter (:meth:`~phigenesis.models.stage1.Stage1Model.forward_latents`) turns the
-   window's latents into its Gaussians, which join the buffer and condition the next window. With
+   window's latents into its Gaussians (its written depth and classes); those of its newest
+   ``lift_frames`` frames (by default as many as the history frames the model was trained with, the
+   frames the next window takes as its history) join the buffer and condition the next window: each
+   frame lifted adds its own copy of every surface it shows, at its own depth error, and five copies
+   render as streaks from the next window's cameras (docs/ARCHITECTURE.md). With
    ``spawn_max_u < 1`` only pixels whose u is at most that (and moving things) add Gaussians: where
    the frame kept the render, the buffer keeps the Gaussians it came from rather than a copy of them
    lifted again through the VAE and Stage 1 (each such copy adds their errors).
@@ -130,6 +134,7 @@ class GenerateOptions:
     paste: float = 1.0  # render pasting: each decoded pixel moved paste * u of the way to the render
     generated_trust: float = 1.0  # u is scaled by this where the render shows generated windows' Gaussians
     spawn_max_u: float = 1.0  # a generated pixel adds static Gaussians only where u is at most this
+    lift_frames: int | None = None  # a window's newest frames that join the buffer; None: the history's count
     geometry: str | None = None  # window 0's history Gaussians: stage1 | cache | truth; None: as trained
     voxel_m: float = 0.2  # the buffer's de-duplication voxel
     max_gaussians: int = 200_000  # the buffer's bound
@@ -158,6 +163,11 @@ class GenerateOptions:
             raise ValueError(f"generated_trust must be in [0, 1], got {self.generated_trust}")
         if not 0 <= self.spawn_max_u <= 1:
             raise ValueError(f"spawn_max_u must be in [0, 1], got {self.spawn_max_u}")
+        if self.lift_frames is not None and self.lift_frames < 1:
+            raise ValueError(
+                f"lift_frames must be at least 1 or None (as many as the model's history frames), "
+                f"got {self.lift_frames}"
+            )
         if self.geometry is not None and self.geometry not in GEOMETRY_SOURCES:
             raise ValueError(
                 f"geometry must be one of {GEOMETRY_SOURCES} (or None: as trained), got {self.geometry!r}"
@@ -178,7 +188,7 @@ class Rollout:
     world_from_camera: Tensor  # [N, V, 4, 4]
     time_s: Tensor  # [N, V] seconds after time_origin_micros
     time_origin_micros: int
-    windows: list[GaussianScene] = field(default_factory=list)
+    windows: list[GaussianScene] = field(default_factory=list)  # what each window added to the buffer
     buffer_sizes: list[int] = field(default_factory=list)
     seconds_per_window: list[float] = field(default_factory=list)
 
@@ -322,9 +332,16 @@ def _condition(
 
 
 def _window_scene(
-    stage1: Stage1Model, z: Tensor, cams: TargetCameras, origin: int, spawn: Tensor | None = None
-) -> GaussianScene:
-    """The Gaussians Stage 1 builds from generated latents [1, V, C, T_z, h, w] at ``cams``.
+    stage1: Stage1Model,
+    z: Tensor,
+    cams: TargetCameras,
+    origin: int,
+    spawn: Tensor | None,
+    lift_frames: int,
+) -> tuple[GaussianScene, GaussianScene]:
+    """The Gaussians Stage 1 builds from generated latents [1, V, C, T_z, h, w] at ``cams``: those of
+    every frame (what the window shows: its written depth and classes) and the part that joins the
+    buffer, the newest ``lift_frames`` frames' (the same scene when that is every frame).
 
     ``spawn`` [F, V, H, W] bool: the pixels whose static Gaussians may enter (moving ones always do,
     since the buffer keeps moving Gaussians of the newest window only); None: every pixel."""
@@ -335,7 +352,13 @@ def _window_scene(
     keep = None
     if spawn is not None:
         keep = pred.default_keep(0) & (spawn | (pred.dynamic_prob[0] > threshold))
-    return pred.scene(0, keep=keep, dynamic_threshold=threshold, time_origin_micros=origin)
+    scene = pred.scene(0, keep=keep, dynamic_threshold=threshold, time_origin_micros=origin)
+    if lift_frames >= cams.frames:
+        return scene, scene
+    newest = torch.zeros(cams.frames, dtype=torch.bool)
+    newest[-lift_frames:] = True
+    keep = (pred.default_keep(0) if keep is None else keep) & newest[:, None, None, None]
+    return scene, pred.scene(0, keep=keep, dynamic_threshold=threshold, time_origin_micros=origin)
 
 
 def generated_trust(windows: Tensor, options: GenerateOptions) -> Tensor | None:
@@ -446,7 +469,7 @@ def rollout(
             images = torch.lerp(images, full, (options.paste * u)[:, :, None].to(images.dtype))
             z_gen = _encode(stage1, images)  # the Gaussians of the frames as they are kept
         spawn = u <= options.spawn_max_u if options.spawn_max_u < 1 else None
-        scene = _window_scene(stage1, z_gen, cams, origin, spawn)
+        shown, scene = _window_scene(stage1, z_gen, cams, origin, spawn, options.lift_frames or t_h)
         if first.depth_entropy is None:
             # History lifted from the cache or the truth has no depth distributions: the buffer keeps
             # one kind of Gaussian, so the generated windows' entropy is left out too.
@@ -456,7 +479,7 @@ def rollout(
         # The generated scene's depth and classes: its own Gaussians, or, where trusted pixels kept
         # the buffer's instead (spawn), everything the buffer now holds. (The whole buffer for every
         # window was measured: AbsRel a little lower, delta < 1.25 and RMSE a little worse.)
-        own = render_condition(scene.detach() if spawn is None else buffer.scene(), cams, semantics=True)
+        own = render_condition(shown.detach() if spawn is None else buffer.scene(), cams, semantics=True)
         result.windows.append(scene.detach())
         result.buffer_sizes.append(len(buffer))
         out["images"].append(images.permute(0, 1, 3, 4, 2))
