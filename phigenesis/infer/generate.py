@@ -44,7 +44,8 @@ The output folder holds a cache in the project's schema (one scene, the generate
 calibrations at the model's size, poses, the generated Gaussians' rendered depth (dense origin
 ``rendered``) and class labels (pseudo source ``rendered``)), so ``phigenesis-prep verify``,
 ``preview`` and the loader work on it; ``strip.png`` (generated frames, views side by side);
-``gaussians/window-KKK.ply`` (each window's Gaussians); ``generate.json`` (what made it, timings).
+``gaussians/window-KKK.ply`` (the Gaussians each window added to the buffer); ``generate.json`` (what
+made it, timings).
 """
 
 from __future__ import annotations
