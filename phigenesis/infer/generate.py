@@ -350,15 +350,13 @@ def _window_scene(
         z, cams.intrinsics[None], cams.world_from_camera[None].float(), cams.time_s[None].float()
     )
     threshold = stage1.config.dynamic_threshold
-    keep = None
+    keep = pred.default_keep(0)  # [F, V, H, W]
     if spawn is not None:
-        keep = pred.default_keep(0) & (spawn | (pred.dynamic_prob[0] > threshold))
+        keep = keep & (spawn | (pred.dynamic_prob[0] > threshold))
     scene = pred.scene(0, keep=keep, dynamic_threshold=threshold, time_origin_micros=origin)
     if lift_frames >= cams.frames:
         return scene, scene
-    newest = torch.zeros(cams.frames, dtype=torch.bool)
-    newest[-lift_frames:] = True
-    keep = (pred.default_keep(0) if keep is None else keep) & newest[:, None, None, None]
+    keep[: cams.frames - lift_frames] = False  # the older frames stay out of the buffer
     return scene, pred.scene(0, keep=keep, dynamic_threshold=threshold, time_origin_micros=origin)
 
 
