@@ -94,8 +94,8 @@ class Bounds:
         high = "]" if self.lt is None else ")"
         lo = self.gt if self.gt is not None else self.ge
         hi = self.lt if self.lt is not None else self.le
-        lo_text = "-inf" if lo is None else f"{lo:g}"
-        hi_text = "inf" if hi is None else f"{hi:g}"
+        lo_text = "-inf" if lo is None else _number_text(lo)
+        hi_text = "inf" if hi is None else _number_text(hi)
         if lo is None:
             low = "("
         if hi is None:
@@ -104,6 +104,13 @@ class Bounds:
 
     def is_bounded(self) -> bool:
         return any(v is not None for v in (self.ge, self.gt, self.le, self.lt))
+
+
+def _number_text(x: float) -> str:
+    """A bound as a user would write it: integers in full (``1000000000``), other numbers short."""
+    if isinstance(x, int) or (float(x).is_integer() and abs(x) < 1e15):
+        return str(int(x))
+    return f"{x:g}"
 
 
 def option(

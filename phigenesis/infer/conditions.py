@@ -43,6 +43,8 @@ GeometrySource = Literal["stage1", "cache", "truth"]
 GEOMETRY_SOURCES: tuple[str, ...] = get_args(GeometrySource)
 #: Every uncertainty kind, in the order latent caches store them.
 UNCERTAINTY_KINDS: tuple[UncertaintyKind, ...] = ("coverage", "random", "entropy", "localization_potential")
+#: Stereo Forcing's map of a Stage 2 model or rollout: an uncertainty kind, or "none" (no geometry).
+ConditionKind = Literal["localization_potential", "entropy", "random", "coverage", "none"]
 
 
 @dataclass(frozen=True)

@@ -83,8 +83,9 @@ from phigenesis.data.shards import MANIFEST_NAME, Manifest, SceneEntry, ShardWri
 from phigenesis.infer.buffer import GaussianBuffer
 from phigenesis.infer.conditions import (
     GEOMETRY_SOURCES,
-    UNCERTAINTY_KINDS,
+    ConditionKind,
     ConditionRender,
+    GeometrySource,
     TargetCameras,
     history_scene,
     render_condition,
@@ -99,9 +100,13 @@ from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LEGACY_LP_TRUST, LpTr
 from phigenesis.models.dit import MultiViewDiT
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.stage1 import Stage1Model
+from phigenesis.options import check_options, option
 
 log = logging.getLogger(__name__)
 
+#: The largest guidance scale a rollout takes (guided samplers use about 1-10; 1e30 overflows the
+#: guided velocity in float32).
+MAX_OMEGA = 100.0
 #: A rendered pixel below this alpha is a hole (no depth, no label) in the generated cache.
 HOLE_ALPHA = 0.5
 #: Rig shift trajectories: ``shift:2m``, ``shift:-1.5m``.
@@ -124,55 +129,45 @@ class TrajectoryFrame:
 class GenerateOptions:
     """How a rollout samples (the CLI's options)."""
 
-    uncertainty: str = "localization_potential"  # SF's map: an uncertainty kind or "none"
-    lp_trust: LpTrust | None = None  # localization potential's mapping; None: as the model was trained
-    omega: float = 1.0  # guidance scale: v(z) + omega [v(z | SF) - v(z)]
-    steps: int = 10  # Euler steps per window
-    shift: float = 1.0  # time shift of the sampling grid
-    history_level: float = 0.02  # flow time generated history is held at (recorded history: 0)
-    anchor: float = 1.0  # render anchoring: each latent cell pulled anchor * u of the way to the render
-    anchor_until: float = 0.1  # the anchor acts at flow times >= this (the rest is the network's)
-    paste: float = 1.0  # render pasting: each decoded pixel moved paste * u of the way to the render
-    generated_trust: float = 1.0  # u is scaled by this where the render shows generated windows' Gaussians
-    spawn_max_u: float = 1.0  # a generated pixel adds static Gaussians only where u is at most this
-    lift_frames: int | None = None  # a window's newest frames that join the buffer; None: the history's count
-    geometry: str | None = None  # window 0's history Gaussians: stage1 | cache | truth; None: as trained
-    voxel_m: float = 0.2  # the buffer's de-duplication voxel
-    max_gaussians: int = 200_000  # the buffer's bound
-    seed: int = 0
+    uncertainty: ConditionKind = option(
+        "localization_potential", help="SF's map: an uncertainty kind or none"
+    )
+    lp_trust: LpTrust | None = option(
+        None, help="localization potential's mapping; None: as the model was trained"
+    )
+    omega: float = option(1.0, ge=0, le=MAX_OMEGA, help="guidance scale: v(z) + omega [v(z | SF) - v(z)]")
+    steps: int = option(10, ge=1, le=10_000, help="Euler steps per window")
+    shift: float = option(1.0, gt=0, le=100, help="time shift of the sampling grid")
+    history_level: float = option(
+        0.02, ge=0, lt=1, help="flow time generated history is held at (recorded history: 0)"
+    )
+    anchor: float = option(
+        1.0, ge=0, le=1, help="render anchoring: each latent cell pulled anchor * u of the way to the render"
+    )
+    anchor_until: float = option(
+        0.1, ge=0, lt=1, help="the anchor acts at flow times >= this (the rest is the network's)"
+    )
+    paste: float = option(
+        1.0, ge=0, le=1, help="render pasting: each decoded pixel moved paste * u of the way to the render"
+    )
+    generated_trust: float = option(
+        1.0, ge=0, le=1, help="u is scaled by this where the render shows generated windows' Gaussians"
+    )
+    spawn_max_u: float = option(
+        1.0, ge=0, le=1, help="a generated pixel adds static Gaussians only where u is at most this"
+    )
+    lift_frames: int | None = option(
+        None, ge=1, le=1024, help="a window's newest frames that join the buffer; None: the history's count"
+    )
+    geometry: GeometrySource | None = option(
+        None, help="window 0's history Gaussians: stage1 | cache | truth; None: as trained"
+    )
+    voxel_m: float = option(0.2, gt=0, le=100, help="the buffer's de-duplication voxel (metres)")
+    max_gaussians: int = option(200_000, ge=1, le=100_000_000, help="the buffer's bound")
+    seed: int = option(0, ge=0, le=2**32 - 1)
 
     def __post_init__(self) -> None:
-        if self.uncertainty not in (*UNCERTAINTY_KINDS, "none"):
-            raise ValueError(
-                f"uncertainty must be one of {(*UNCERTAINTY_KINDS, 'none')}, got {self.uncertainty!r}"
-            )
-        if self.lp_trust is not None:
-            check_lp_trust(self.lp_trust, "lp_trust (or None: as trained)")
-        if not math.isfinite(self.omega):
-            raise ValueError(f"omega must be finite, got {self.omega}")
-        if self.steps < 1:
-            raise ValueError(f"steps must be at least 1, got {self.steps}")
-        if not 0 <= self.history_level < 1:
-            raise ValueError(f"history_level must be in [0, 1), got {self.history_level}")
-        if not 0 <= self.anchor <= 1:
-            raise ValueError(f"anchor must be in [0, 1], got {self.anchor}")
-        if not 0 <= self.anchor_until < 1:
-            raise ValueError(f"anchor_until must be in [0, 1), got {self.anchor_until}")
-        if not 0 <= self.paste <= 1:
-            raise ValueError(f"paste must be in [0, 1], got {self.paste}")
-        if not 0 <= self.generated_trust <= 1:
-            raise ValueError(f"generated_trust must be in [0, 1], got {self.generated_trust}")
-        if not 0 <= self.spawn_max_u <= 1:
-            raise ValueError(f"spawn_max_u must be in [0, 1], got {self.spawn_max_u}")
-        if self.lift_frames is not None and self.lift_frames < 1:
-            raise ValueError(
-                f"lift_frames must be at least 1 or None (as many as the model's history frames), "
-                f"got {self.lift_frames}"
-            )
-        if self.geometry is not None and self.geometry not in GEOMETRY_SOURCES:
-            raise ValueError(
-                f"geometry must be one of {GEOMETRY_SOURCES} (or None: as trained), got {self.geometry!r}"
-            )
+        check_options(self, "GenerateOptions")
 
 
 @dataclass

@@ -34,6 +34,7 @@ import os
 import re
 import shutil
 import signal
+import stat
 import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -47,6 +48,7 @@ import yaml
 from torch import nn
 
 from phigenesis.errors import CheckpointError
+from phigenesis.options import ConfigError
 from phigenesis.train.checkpoint import (
     FORMAT,
     TrainingState,
@@ -109,6 +111,76 @@ def cosine_lr(
     span = max(total_steps - warmup_steps, 1)
     progress = min(max(step - warmup_steps, 0) / span, 1.0)
     return peak * (final_ratio + (1.0 - final_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress)))
+
+
+#: Upper bounds shared by the trainers' declared options (phigenesis.options): generous, but a value
+#: past them is a typo or an attack, not a training run.
+MAX_STEPS = 10**9
+MAX_BATCH = 65_536
+#: AdamW's learning rate: past 1 every run diverges in its first steps.
+MAX_LR = 1.0
+#: AdamW's decoupled weight decay (each step multiplies weights by 1 - lr * weight_decay).
+MAX_WEIGHT_DECAY = 1.0
+MAX_GRAD_CLIP = 1e6
+MAX_LOSS_WEIGHT = 1e4
+#: Seeds combine as (seed * 1_000_003 + step) * 131 + rank (:func:`step_generator`), which must fit
+#: torch's 64-bit seed.
+MAX_SEED = 2**32 - 1
+MAX_THREADS = 1024
+#: The longest side of an image a trainer resizes to (pixels).
+MAX_IMAGE_SIDE = 16_384
+MAX_CACHE_MB = 1e7
+
+
+def check_model_name(name: str, family: str, label: str) -> None:
+    """Raises :class:`~phigenesis.options.ConfigError` unless ``name`` is a registered model of
+    ``family`` (``"stage1"``, ``"dit"``, ``"vae"``, ``"segformer"``), naming the known ones."""
+    from phigenesis.models import list_models
+
+    known = list_models(family)
+    if name not in known:
+        raise ConfigError(f"{label}: model = {name!r}: must be one of {known}")
+
+
+def create_overridden(name: str, overrides: dict[str, Any], label: str) -> nn.Module:
+    """The registered model ``name`` with its config fields replaced by ``overrides`` (a training
+    config's ``model_overrides``); an unknown field or a value outside its range raises
+    :class:`~phigenesis.options.ConfigError` naming ``label``."""
+    from phigenesis.models import create_model
+
+    try:
+        return create_model(name, **overrides)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"{label}: model_overrides {overrides}: {' '.join(str(e).split())}") from None
+
+
+#: The largest training config file read (a config is a few hundred bytes).
+MAX_CONFIG_BYTES = 1 << 20
+
+
+def read_config_file(path: Path) -> dict[str, Any]:
+    """The mapping of options in a YAML config file (an empty file: none). A missing file, one that
+    is not a regular file or is over 1 MiB, invalid YAML and a YAML value other than a mapping raise
+    :class:`~phigenesis.options.ConfigError` naming the file."""
+    try:
+        info = path.stat()
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read the config ({e.strerror or e})") from None
+    if not stat.S_ISREG(info.st_mode):
+        raise ConfigError(f"{path}: not a regular file")
+    if info.st_size > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{path}: {info.st_size} bytes; a config is at most {MAX_CONFIG_BYTES} bytes")
+    try:
+        values = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
+        raise ConfigError(f"{path}: cannot read the config ({' '.join(str(e).split())})") from None
+    if values is None:
+        return {}
+    if not isinstance(values, dict):
+        raise ConfigError(
+            f"{path}: a config is a mapping of options (key: value), not a YAML {type(values).__name__}"
+        )
+    return values
 
 
 def step_generator(seed: int, step: int, rank: int = 0) -> torch.Generator:

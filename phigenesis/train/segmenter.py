@@ -42,9 +42,21 @@ from phigenesis.data import taxonomy as tx
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheReader
 from phigenesis.models import create_model
+from phigenesis.options import check_options, option
 from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
 from phigenesis.train.metrics import confusion_matrix, segmentation_scores
-from phigenesis.train.runner import write_text_atomic
+from phigenesis.train.runner import (
+    MAX_BATCH,
+    MAX_GRAD_CLIP,
+    MAX_IMAGE_SIDE,
+    MAX_LR,
+    MAX_SEED,
+    MAX_STEPS,
+    MAX_THREADS,
+    MAX_WEIGHT_DECAY,
+    check_model_name,
+    write_text_atomic,
+)
 
 log = logging.getLogger("phigenesis.train")
 
@@ -82,35 +94,29 @@ class SegmenterTrainConfig:
             fine-tuned on Cityscapes for ``segformer_b0``.
     """
 
-    model: str = "segformer_tiny"
-    steps: int | None = None
-    epochs: float = 10.0
-    batch_size: int = 8
-    lr: float = 2e-3
-    weight_decay: float = 1e-2
-    warmup_steps: int = 50
-    grad_clip: float = 1.0
-    val_fraction: float = 0.2
-    labels: LabelKind = "auto"
-    image_height: int | None = None
-    crop: tuple[int, int] | None = None
-    flip: bool = True
-    eval_every: int = 250
-    seed: int = 0
-    threads: int | None = None
-    device: str = "cpu"
-    init: str | None = None
-    pretrained: str | None = None
+    model: str = option("segformer_tiny")
+    steps: int | None = option(None, ge=1, le=MAX_STEPS)
+    epochs: float = option(10.0, gt=0, le=1e6)
+    batch_size: int = option(8, ge=1, le=MAX_BATCH)
+    lr: float = option(2e-3, gt=0, le=MAX_LR)
+    weight_decay: float = option(1e-2, ge=0, le=MAX_WEIGHT_DECAY)
+    warmup_steps: int = option(50, ge=0, le=MAX_STEPS)
+    grad_clip: float = option(1.0, gt=0, le=MAX_GRAD_CLIP)
+    val_fraction: float = option(0.2, ge=0, lt=1)
+    labels: LabelKind = option("auto")
+    image_height: int | None = option(None, ge=1, le=MAX_IMAGE_SIDE)
+    crop: tuple[int, int] | None = option(None, ge=1, le=MAX_IMAGE_SIDE)
+    flip: bool = option(True)
+    eval_every: int = option(250, ge=1, le=MAX_STEPS)
+    seed: int = option(0, ge=0, le=MAX_SEED)
+    threads: int | None = option(None, ge=1, le=MAX_THREADS)
+    device: str = option("cpu")
+    init: str | None = option(None)
+    pretrained: str | None = option(None)
 
     def __post_init__(self) -> None:
-        if self.labels not in ("auto", "truth", "labels"):
-            raise ValueError(f"labels must be auto, truth or labels, got {self.labels!r}")
-        if self.steps is not None and self.steps < 1:
-            raise ValueError(f"steps must be at least 1, got {self.steps}")
-        if not 0.0 <= self.val_fraction < 1.0:
-            raise ValueError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
-        if self.crop is not None:
-            object.__setattr__(self, "crop", (int(self.crop[0]), int(self.crop[1])))
+        check_options(self, "SegmenterTrainConfig")
+        check_model_name(self.model, "segformer", "SegmenterTrainConfig")
 
 
 @dataclass(frozen=True)

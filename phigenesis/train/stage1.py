@@ -36,9 +36,9 @@ import json
 import logging
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
@@ -47,20 +47,32 @@ from torch import Tensor
 from tqdm import tqdm
 
 from phigenesis.data.taxonomy import GROUND_IDS, IGNORE_ID, SKY
-from phigenesis.models import create_model
 from phigenesis.models.depth_bins import DepthBins
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.losses import edge_aware_smoothness, log_depth_loss, photometric_loss, semantic_loss
 from phigenesis.models.stage1 import Stage1Model, Stage1Prediction
+from phigenesis.options import ConfigError, check_options, from_mapping, option
 from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from phigenesis.train.memory_cache import BoundedCache, tensor_bytes
 from phigenesis.train.runner import (
+    MAX_BATCH,
+    MAX_CACHE_MB,
+    MAX_GRAD_CLIP,
+    MAX_LOSS_WEIGHT,
+    MAX_LR,
+    MAX_SEED,
+    MAX_STEPS,
+    MAX_THREADS,
+    MAX_WEIGHT_DECAY,
     MetricsLog,
     ProcessGroup,
+    check_model_name,
     checkpoint_to_resume,
     cosine_lr,
+    create_overridden,
     load_training_state,
     process_group,
+    read_config_file,
     read_run_config,
     restore_optimizer,
     run_evidence,
@@ -87,6 +99,7 @@ LOSS_NAMES = (
     "ground",
 )
 LOG_COLUMNS = ("loss", *LOSS_NAMES, "lr", "grad_norm", "gaussians", "seconds")
+SemanticTarget = Literal["auto", "pseudo", "truth"]
 
 
 @dataclass(frozen=True)
@@ -120,21 +133,21 @@ class Stage1TrainConfig:
             The results are the same with any value; 0 keeps nothing.
     """
 
-    model: str = "stage1_tiny"
-    model_overrides: dict = field(default_factory=dict)
-    vae_checkpoint: str | None = None
-    steps: int = 1000
-    batch_size: int = 1
-    lr: float = 2e-3
-    weight_decay: float = 0.01
-    warmup_steps: int = 50
-    final_lr_ratio: float = 0.05
-    grad_clip: float = 1.0
-    target_offset: int = 3
-    targets_per_clip: int = 1
-    semantic_target: str = "auto"
-    weights: dict = field(
-        default_factory=lambda: {
+    model: str = option("stage1_tiny")
+    model_overrides: dict[str, Any] = option(factory=dict)
+    vae_checkpoint: str | None = option(None)
+    steps: int = option(1000, ge=1, le=MAX_STEPS)
+    batch_size: int = option(1, ge=1, le=MAX_BATCH)
+    lr: float = option(2e-3, gt=0, le=MAX_LR)
+    weight_decay: float = option(0.01, ge=0, le=MAX_WEIGHT_DECAY)
+    warmup_steps: int = option(50, ge=0, le=MAX_STEPS)
+    final_lr_ratio: float = option(0.05, ge=0, le=1)
+    grad_clip: float = option(1.0, gt=0, le=MAX_GRAD_CLIP)
+    target_offset: int = option(3, ge=0, le=1000)
+    targets_per_clip: int = option(1, ge=0, le=2000)
+    semantic_target: SemanticTarget = option("auto")
+    weights: dict[str, float] = option(
+        factory=lambda: {
             "rgb": 1.0,
             "depth": 0.5,
             "pixel_depth": 0.5,
@@ -146,55 +159,42 @@ class Stage1TrainConfig:
             "velocity": 0.05,
             "motion": 0.005,
             "opacity": 0.1,
-        }
+        },
+        ge=0,
+        le=MAX_LOSS_WEIGHT,
+        keys=LOSS_NAMES,
     )
-    checkpoint_every: int = 100
-    log_every: int = 10
-    seed: int = 0
-    threads: int | None = None
-    cache_mb: float = 1024.0
-    depth_confidence_floor: float = 0.0
+    checkpoint_every: int = option(100, ge=1, le=MAX_STEPS)
+    log_every: int = option(10, ge=1, le=MAX_STEPS)
+    seed: int = option(0, ge=0, le=MAX_SEED)
+    threads: int | None = option(None, ge=1, le=MAX_THREADS)
+    cache_mb: float = option(1024.0, ge=0, le=MAX_CACHE_MB)
+    depth_confidence_floor: float = option(0.0, ge=0, le=1)
 
     def __post_init__(self) -> None:
-        unknown = set(self.weights) - set(LOSS_NAMES)
-        if unknown:
-            raise ValueError(f"Stage1TrainConfig: unknown loss weights {sorted(unknown)}; known {LOSS_NAMES}")
-        object.__setattr__(self, "weights", {k: float(self.weights.get(k, 0.0)) for k in LOSS_NAMES})
-        if self.steps < 1 or self.batch_size < 1:
-            raise ValueError("Stage1TrainConfig: steps and batch_size must be positive")
-        if self.targets_per_clip < 0 or (
-            self.target_offset and self.targets_per_clip > 2 * self.target_offset
-        ):
-            raise ValueError(
-                f"Stage1TrainConfig: targets_per_clip {self.targets_per_clip} must be between 0 and "
+        check_options(self, "Stage1TrainConfig")
+        object.__setattr__(self, "weights", {k: self.weights.get(k, 0.0) for k in LOSS_NAMES})
+        check_model_name(self.model, "stage1", "Stage1TrainConfig")
+        if self.target_offset and self.targets_per_clip > 2 * self.target_offset:
+            raise ConfigError(
+                f"Stage1TrainConfig: targets_per_clip = {self.targets_per_clip}: must be at most "
                 f"2 x target_offset ({2 * self.target_offset}): each target is a distinct frame"
-            )
-        if self.semantic_target not in ("auto", "pseudo", "truth"):
-            raise ValueError(f"Stage1TrainConfig: semantic_target {self.semantic_target!r}")
-        floor = self.depth_confidence_floor
-        if not (isinstance(floor, int | float) and not isinstance(floor, bool) and 0 <= floor <= 1):
-            raise ValueError(
-                f"Stage1TrainConfig: depth_confidence_floor must be a number in [0, 1], got {floor!r}"
-            )
-        if not (isinstance(self.cache_mb, int | float) and 0 <= self.cache_mb < float("inf")):
-            raise ValueError(
-                f"Stage1TrainConfig: cache_mb must be a finite number >= 0, got {self.cache_mb!r}"
             )
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], **overrides: Any) -> Stage1TrainConfig:
-        """The config in a YAML file (unknown keys are an error), with ``overrides`` applied."""
+        """The config in a YAML file, with ``overrides`` (the command line's, None: not given)
+        applied. Unknown keys, values outside their type or range, and a file that names no
+        ``vae_checkpoint`` when no override gives one raise :class:`ConfigError` naming the file."""
         path = Path(path)
-        try:
-            values = yaml.safe_load(path.read_text()) or {}
-        except (OSError, yaml.YAMLError) as e:
-            raise ValueError(f"{path}: cannot read the training config: {e}") from e
-        known = {f.name for f in dataclasses.fields(cls)}
-        bad = sorted(set(values) - known)
-        if bad:
-            raise ValueError(f"{path}: unknown config keys {bad}; known: {sorted(known)}")
-        values.update({k: v for k, v in overrides.items() if v is not None})
-        return cls(**values)
+        values = read_config_file(path)
+        given = {k: v for k, v in overrides.items() if v is not None}
+        if not values.get("vae_checkpoint") and not given.get("vae_checkpoint"):
+            raise ConfigError(
+                f"{path}: vae_checkpoint is missing: Stage 1 trains on a frozen, trained VAE "
+                "(phigenesis-train vae); name its checkpoint here or pass --vae"
+            )
+        return from_mapping(cls, values, str(path), **given)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -214,7 +214,7 @@ class Stage1Run:
 
 def build_model(config: Stage1TrainConfig) -> Stage1Model:
     """The Stage 1 model of a config, with its trained VAE loaded and frozen."""
-    model = create_model(config.model, **config.model_overrides)
+    model = create_overridden(config.model, config.model_overrides, "Stage1TrainConfig")
     assert isinstance(model, Stage1Model)
     if config.vae_checkpoint:
         vae = load_checkpoint(config.vae_checkpoint).model

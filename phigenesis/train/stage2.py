@@ -38,25 +38,35 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import torch
 import yaml
 from torch import Tensor
 from tqdm import tqdm
 
-from phigenesis.infer.conditions import TargetCameras, sequence_plucker
+from phigenesis.infer.conditions import ConditionKind, GeometrySource, TargetCameras, sequence_plucker
 from phigenesis.infer.flow import flow_loss, interpolate, sample_time
 from phigenesis.infer.stereo_forcing import drop_condition, stereo_forcing
 from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LpTrust
-from phigenesis.models import create_model
 from phigenesis.models.dit import MultiViewDiT
+from phigenesis.options import check_options, from_mapping, option
 from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from phigenesis.train.runner import (
+    MAX_BATCH,
+    MAX_GRAD_CLIP,
+    MAX_LR,
+    MAX_SEED,
+    MAX_STEPS,
+    MAX_THREADS,
+    MAX_WEIGHT_DECAY,
     MetricsLog,
     ProcessGroup,
+    check_model_name,
+    create_overridden,
     load_training_state,
     process_group,
+    read_config_file,
     restore_optimizer,
     save_training_state,
     step_generator,
@@ -64,6 +74,7 @@ from phigenesis.train.runner import (
 )
 from phigenesis.train.stage1 import check_run_folder, load_stage1
 from phigenesis.train.stage2_data import (
+    MAX_WINDOW_FRAMES,
     UNCERTAINTY_KINDS,
     Stage2DataConfig,
     Stage2Latents,
@@ -73,7 +84,6 @@ from phigenesis.train.stage2_data import (
 
 log = logging.getLogger(__name__)
 
-ConditionKind = Literal["localization_potential", "entropy", "random", "coverage", "none"]
 CONDITION_KINDS: tuple[str, ...] = (*UNCERTAINTY_KINDS, "none")
 LOG_COLUMNS = ("loss", "lr", "grad_norm", "t_mean", "dropped", "seconds")
 
@@ -82,49 +92,64 @@ LOG_COLUMNS = ("loss", "lr", "grad_norm", "t_mean", "dropped", "seconds")
 class Stage2TrainConfig:
     """Options of :func:`train_stage2` (configs/stage2/tiny.yaml, paper.yaml)."""
 
-    model: str = "stage2_tiny"  # registered denoiser variant (phigenesis.models.list_models("dit"))
-    model_overrides: dict[str, Any] = dataclasses.field(default_factory=dict)
-    stage1_checkpoint: str = "runs/stage1-tiny/model.safetensors"  # its VAE encodes; --stage1 overrides
-    history_frames: int = 1  # frames of history per window
-    window_frames: int = 5  # frames generated per window (1 + k x the VAE's temporal compression)
-    stride: int = 5  # frames between window starts in the latent cache
-    geometry: Literal["stage1", "cache", "truth"] = "stage1"  # where the history's Gaussians come from
-    uncertainty: ConditionKind = "localization_potential"  # SF's map; none: no geometric condition
-    lp_trust: LpTrust = DEFAULT_LP_TRUST  # localization potential: u trusts pixels a depth error barely moves
-    condition_dropout: float = 0.1  # probability of dropping the whole condition (guidance)
-    history_noise: float = 0.1  # history frames' flow time is uniform in [0, this]
-    time_shift: float = 1.0  # resolution shift of the logit-normal training times (1: none)
-    latent_norm: bool = False  # flow on per-channel standardised latents (stats of the latent cache)
-    steps: int = 2000
-    batch_size: int = 4  # windows per step, over all processes
-    lr: float = 1e-3
-    weight_decay: float = 5e-5
-    warmup_steps: int = 50
-    restart_steps: int = 0  # cosine annealing restarts every this many steps (0: one cosine)
-    final_lr_ratio: float = 0.1
-    grad_clip: float = 1.0
-    checkpoint_every: int = 250
-    log_every: int = 10
-    seed: int = 0  # seeds the initialisation and every step's draws
-    data_seed: int = 0  # seeds the latent cache's random maps (runs of several seeds share one cache)
-    threads: int | None = None
+    model: str = option(
+        "stage2_tiny", help="registered denoiser variant (phigenesis.models.list_models('dit'))"
+    )
+    model_overrides: dict[str, Any] = option(factory=dict, help="fields of the variant's config replaced")
+    stage1_checkpoint: str = option(
+        "runs/stage1-tiny/model.safetensors", help="the Stage 1 model whose VAE encodes; --stage1 overrides"
+    )
+    history_frames: int = option(1, ge=1, le=MAX_WINDOW_FRAMES, help="frames of history per window")
+    window_frames: int = option(
+        5,
+        ge=1,
+        le=MAX_WINDOW_FRAMES,
+        help="frames generated per window (1 + k x the VAE's temporal compression)",
+    )
+    stride: int = option(
+        5, ge=1, le=MAX_WINDOW_FRAMES, help="frames between window starts in the latent cache"
+    )
+    geometry: GeometrySource = option("stage1", help="where the history's Gaussians come from")
+    uncertainty: ConditionKind = option(
+        "localization_potential", help="Stereo Forcing's map; none: no geometric condition"
+    )
+    lp_trust: LpTrust = option(
+        DEFAULT_LP_TRUST, help="localization potential: u trusts pixels a depth error barely moves"
+    )
+    condition_dropout: float = option(
+        0.1, ge=0, le=1, help="probability of dropping the whole condition (guidance)"
+    )
+    history_noise: float = option(0.1, ge=0, lt=1, help="history frames' flow time is uniform in [0, this]")
+    time_shift: float = option(
+        1.0, gt=0, le=100, help="resolution shift of the logit-normal training times (1: none)"
+    )
+    latent_norm: bool = option(
+        False, help="flow on per-channel standardised latents (stats of the latent cache)"
+    )
+    steps: int = option(2000, ge=1, le=MAX_STEPS)
+    batch_size: int = option(4, ge=1, le=MAX_BATCH, help="windows per step, over all processes")
+    lr: float = option(1e-3, gt=0, le=MAX_LR)
+    weight_decay: float = option(5e-5, ge=0, le=MAX_WEIGHT_DECAY)
+    warmup_steps: int = option(50, ge=0, le=MAX_STEPS)
+    restart_steps: int = option(
+        0, ge=0, le=MAX_STEPS, help="cosine annealing restarts every this many steps (0: one cosine)"
+    )
+    final_lr_ratio: float = option(0.1, ge=0, le=1)
+    grad_clip: float = option(1.0, gt=0, le=MAX_GRAD_CLIP)
+    checkpoint_every: int = option(250, ge=1, le=MAX_STEPS)
+    log_every: int = option(10, ge=1, le=MAX_STEPS)
+    seed: int = option(0, ge=0, le=MAX_SEED, help="seeds the initialisation and every step's draws")
+    data_seed: int = option(
+        0,
+        ge=0,
+        le=MAX_SEED,
+        help="seeds the latent cache's random maps (runs of several seeds share one cache)",
+    )
+    threads: int | None = option(None, ge=1, le=MAX_THREADS)
 
     def __post_init__(self) -> None:
-        if self.uncertainty not in CONDITION_KINDS:
-            raise ValueError(
-                f"Stage2TrainConfig: uncertainty must be one of {CONDITION_KINDS}, got {self.uncertainty!r}"
-            )
-        if not 0.0 <= self.condition_dropout <= 1.0:
-            raise ValueError(
-                f"Stage2TrainConfig: condition_dropout must be in [0, 1], got {self.condition_dropout}"
-            )
-        if not 0.0 <= self.history_noise < 1.0:
-            raise ValueError(f"Stage2TrainConfig: history_noise must be in [0, 1), got {self.history_noise}")
-        for name in ("steps", "batch_size", "checkpoint_every", "log_every"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"Stage2TrainConfig: {name} must be at least 1, got {getattr(self, name)}")
-        if self.time_shift <= 0 or not math.isfinite(self.time_shift):
-            raise ValueError(f"Stage2TrainConfig: time_shift must be positive, got {self.time_shift}")
+        check_options(self, "Stage2TrainConfig")
+        check_model_name(self.model, "dit", "Stage2TrainConfig")
         self.data_config()  # checks the data fields
 
     def data_config(self) -> Stage2DataConfig:
@@ -139,23 +164,12 @@ class Stage2TrainConfig:
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], **overrides: Any) -> Stage2TrainConfig:
-        """The config in a YAML file (unknown keys are an error), with ``overrides`` applied."""
+        """The config in a YAML file with ``overrides`` (the command line's; None: not given)
+        applied; unknown keys and values outside their type or range raise
+        :class:`~phigenesis.options.ConfigError` naming the file, the key and the range."""
         path = Path(path)
-        try:
-            values = yaml.safe_load(path.read_text()) or {}
-        except (OSError, yaml.YAMLError) as e:
-            raise ValueError(f"{path}: cannot read the training config: {e}") from e
-        if not isinstance(values, dict):
-            raise ValueError(f"{path}: the training config must be a mapping, got {type(values).__name__}")
-        known = {f.name for f in dataclasses.fields(cls)}
-        bad = sorted(set(values) - known)
-        if bad:
-            raise ValueError(f"{path}: unknown config keys {bad}; known: {sorted(known)}")
-        values.update({k: v for k, v in overrides.items() if v is not None})
-        try:
-            return cls(**values)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"{path}: {e}") from e
+        given = {k: v for k, v in overrides.items() if v is not None}
+        return from_mapping(cls, read_config_file(path), str(path), **given)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -311,7 +325,7 @@ def build_denoiser(
     overrides = {"latent_channels": latent_channels, **cfg.model_overrides}
     if latent_stats is not None:
         overrides |= {"latent_mean": latent_stats[0], "latent_std": latent_stats[1]}
-    model = create_model(cfg.model, **overrides)
+    model = create_overridden(cfg.model, overrides, "Stage2TrainConfig")
     if not isinstance(model, MultiViewDiT):
         raise ValueError(f"Stage2TrainConfig.model {cfg.model!r} is not a Stage 2 denoiser (stage2_*)")
     return model

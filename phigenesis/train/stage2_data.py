@@ -54,7 +54,6 @@ from phigenesis.data.shards import (
     remove_unfinished_shards,
 )
 from phigenesis.infer.conditions import (
-    GEOMETRY_SOURCES,
     UNCERTAINTY_KINDS,
     GeometrySource,
     context_cameras,
@@ -65,8 +64,9 @@ from phigenesis.infer.conditions import (
     uncertainty_maps,
 )
 from phigenesis.infer.stereo_forcing import pool_to_latent
-from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LpTrust, check_lp_trust
+from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LpTrust
 from phigenesis.models.stage1 import Stage1Model
+from phigenesis.options import check_options, option
 from phigenesis.train.stage1_data import Clip, Stage1Clips
 
 log = logging.getLogger(__name__)
@@ -75,27 +75,36 @@ log = logging.getLogger(__name__)
 LATENT_SOURCE = "stage2-latents"
 
 
+#: The most frames a window (history or generated) or a stride may span.
+MAX_WINDOW_FRAMES = 1024
+
+
 @dataclass(frozen=True)
 class Stage2DataConfig:
     """What a latent cache holds (every field is part of its fingerprint)."""
 
-    history_frames: int = 1  # frames of history per window (a multiple of the Stage 1 model's frames)
-    window_frames: int = 5  # frames to generate per window: 1 + k x the VAE's temporal compression
-    stride: int = 5  # frames between the starts of consecutive windows of a scene
-    geometry: GeometrySource = "stage1"  # where the history's Gaussians come from
-    random_patch_px: int = 8  # side of the random map's patches, pixels
-    seed: int = 0  # seeds the random maps (per window: seed, scene, start)
-    lp_trust: LpTrust = DEFAULT_LP_TRUST  # which points the localization potential's u trusts
+    history_frames: int = option(
+        1,
+        ge=1,
+        le=MAX_WINDOW_FRAMES,
+        help="frames of history per window (a multiple of the Stage 1 model's frames)",
+    )
+    window_frames: int = option(
+        5,
+        ge=1,
+        le=MAX_WINDOW_FRAMES,
+        help="frames to generate per window: 1 + k x the VAE's temporal compression",
+    )
+    stride: int = option(
+        5, ge=1, le=MAX_WINDOW_FRAMES, help="frames between the starts of consecutive windows"
+    )
+    geometry: GeometrySource = option("stage1", help="where the history's Gaussians come from")
+    random_patch_px: int = option(8, ge=1, le=4096, help="side of the random map's patches, pixels")
+    seed: int = option(0, ge=0, le=2**32 - 1, help="seeds the random maps (per window: seed, scene, start)")
+    lp_trust: LpTrust = option(DEFAULT_LP_TRUST, help="which points the localization potential's u trusts")
 
     def __post_init__(self) -> None:
-        for name in ("history_frames", "window_frames", "stride", "random_patch_px"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"Stage2DataConfig.{name} must be at least 1, got {getattr(self, name)}")
-        if self.geometry not in GEOMETRY_SOURCES:
-            raise ValueError(
-                f"Stage2DataConfig.geometry must be one of {GEOMETRY_SOURCES}, got {self.geometry!r}"
-            )
-        check_lp_trust(self.lp_trust, "Stage2DataConfig.lp_trust")
+        check_options(self, "Stage2DataConfig")
 
 
 @dataclass

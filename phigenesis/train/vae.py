@@ -49,10 +49,21 @@ from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheReader
 from phigenesis.models import create_model
 from phigenesis.models.vae import VideoVAE, vae_loss
+from phigenesis.options import check_options, option
 from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
 from phigenesis.train.runner import (
+    MAX_BATCH,
+    MAX_GRAD_CLIP,
+    MAX_IMAGE_SIDE,
+    MAX_LOSS_WEIGHT,
+    MAX_LR,
+    MAX_SEED,
+    MAX_STEPS,
+    MAX_THREADS,
+    MAX_WEIGHT_DECAY,
     MetricsLog,
     ProcessGroup,
+    check_model_name,
     checkpoint_to_resume,
     cosine_lr,
     latest_checkpoint,
@@ -106,39 +117,31 @@ class VAETrainConfig:
         image_cache_bytes: memory for decoded, resized images kept between steps.
     """
 
-    model: str = "vae_tiny"
-    frames: int = 5
-    size: tuple[int, int] = (48, 72)
-    steps: int = 2000
-    batch_size: int = 8
-    lr: float = 1e-3
-    weight_decay: float = 0.0
-    warmup_steps: int | None = None
-    grad_clip: float = 1.0
-    kl_weight: float = 1e-6
-    reconstruction: Literal["l1", "l2"] = "l1"
-    flip: bool = True
-    val_fraction: float = 0.2
-    val_clips: int = 32
-    checkpoint_every: int = 500
-    log_every: int = 10
-    seed: int = 0
-    threads: int | None = None
-    device: str = "cpu"
-    init: str | None = None
-    image_cache_bytes: int = 1 << 30
+    model: str = option("vae_tiny")
+    frames: int = option(5, ge=1, le=1024)
+    size: tuple[int, int] = option((48, 72), ge=1, le=MAX_IMAGE_SIDE)
+    steps: int = option(2000, ge=1, le=MAX_STEPS)
+    batch_size: int = option(8, ge=1, le=MAX_BATCH)
+    lr: float = option(1e-3, gt=0, le=MAX_LR)
+    weight_decay: float = option(0.0, ge=0, le=MAX_WEIGHT_DECAY)
+    warmup_steps: int | None = option(None, ge=0, le=MAX_STEPS)
+    grad_clip: float = option(1.0, gt=0, le=MAX_GRAD_CLIP)
+    kl_weight: float = option(1e-6, ge=0, le=MAX_LOSS_WEIGHT)
+    reconstruction: Literal["l1", "l2"] = option("l1")
+    flip: bool = option(True)
+    val_fraction: float = option(0.2, ge=0, lt=1)
+    val_clips: int = option(32, ge=1, le=1_000_000)
+    checkpoint_every: int = option(500, ge=1, le=MAX_STEPS)
+    log_every: int = option(10, ge=1, le=MAX_STEPS)
+    seed: int = option(0, ge=0, le=MAX_SEED)
+    threads: int | None = option(None, ge=1, le=MAX_THREADS)
+    device: str = option("cpu")
+    init: str | None = option(None)
+    image_cache_bytes: int = option(1 << 30, ge=0, le=1 << 50)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "size", (int(self.size[0]), int(self.size[1])))
-        for name in ("frames", "steps", "batch_size", "val_clips", "checkpoint_every", "log_every"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
-        if not 0.0 <= self.val_fraction < 1.0:
-            raise ValueError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
-        if self.reconstruction not in ("l1", "l2"):
-            raise ValueError(f"reconstruction must be l1 or l2, got {self.reconstruction!r}")
-        if min(self.size) < 1:
-            raise ValueError(f"size must be positive, got {self.size}")
+        check_options(self, "VAETrainConfig")
+        check_model_name(self.model, "vae", "VAETrainConfig")
 
     @property
     def warmup(self) -> int:
