@@ -408,7 +408,7 @@ def test_the_cli_trains_from_a_config_file_and_reports_bad_configs(
     bad.write_text("uncertainty: depth\n")
     argv[argv.index(str(config))] = str(bad)
     assert train_main(argv) == 2
-    assert "uncertainty must be one of" in capsys.readouterr().err
+    assert "bad.yaml: Stage2TrainConfig: uncertainty = 'depth': must be one of" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------------------------
@@ -554,7 +554,7 @@ def test_render_anchoring_pulls_the_targets_to_the_render_over_the_sky_where_u_t
     trusted = (u[:, :, :, t_h:] == 1).expand_as(z_full)
     assert bool(trusted.any()) and torch.equal(z[:, :, :, t_h:][trusted], anchor.z0[:, :, :, t_h:][trusted])
     assert torch.isfinite(result.rollout.images).all()
-    with pytest.raises(ValueError, match="anchor must be in"):
+    with pytest.raises(ValueError, match=r"anchor = 1.5: must be a number in \[0, 1\]"):
         gen.GenerateOptions(anchor=1.5)
     with pytest.raises(ValueError, match="anchor_until"):
         gen.GenerateOptions(anchor_until=1.0)
@@ -603,7 +603,7 @@ def test_render_pasting_keeps_the_render_where_u_trusts_it_and_the_decoding_in_t
         assert bool(((pasted.images[between] >= lo) & (pasted.images[between] <= hi)).all())
     # The Gaussians are those of the frames as kept: the pasted run's differ from the decoded run's.
     assert not torch.equal(pasted.windows[0].means, decoded.windows[0].means)
-    with pytest.raises(ValueError, match="paste must be in"):
+    with pytest.raises(ValueError, match=r"paste = -0.1: must be a number in \[0, 1\]"):
         gen.GenerateOptions(paste=-0.1)
 
 

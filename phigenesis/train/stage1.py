@@ -184,15 +184,17 @@ class Stage1TrainConfig:
     @classmethod
     def load(cls, path: str | os.PathLike[str], **overrides: Any) -> Stage1TrainConfig:
         """The config in a YAML file, with ``overrides`` (the command line's, None: not given)
-        applied. Unknown keys, values outside their type or range, and a file that names no
-        ``vae_checkpoint`` when no override gives one raise :class:`ConfigError` naming the file."""
+        applied. Unknown keys, values outside their type or range, and a file without the key
+        ``vae_checkpoint`` when no override gives one raise :class:`ConfigError` naming the file
+        (``vae_checkpoint: null`` asks for an untrained VAE, which only tests want)."""
         path = Path(path)
         values = read_config_file(path)
         given = {k: v for k, v in overrides.items() if v is not None}
-        if not values.get("vae_checkpoint") and not given.get("vae_checkpoint"):
+        if "vae_checkpoint" not in values and not given.get("vae_checkpoint"):
             raise ConfigError(
                 f"{path}: vae_checkpoint is missing: Stage 1 trains on a frozen, trained VAE "
-                "(phigenesis-train vae); name its checkpoint here or pass --vae"
+                "(phigenesis-train vae); name its checkpoint here or pass --vae (null: an untrained "
+                "VAE, for tests only)"
             )
         return from_mapping(cls, values, str(path), **given)
 
