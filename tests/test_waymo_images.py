@@ -1,7 +1,9 @@
 """Camera images are checked where the Waymo source reads them: a JPEG cut short, or one whose
 header reads but which does not decode, is an error naming the file, the record and the camera,
 and under ``on_error="skip"`` loses only that image (the frame keeps its other cameras, the
-manifest counts it).
+manifest counts it). A cache that nevertheless holds such an image (written before the check, or
+crafted) fails in the loader, the range-view loader, the VAE's and the segmenter's image readers
+and the preview with an error naming the shard, the row and the camera.
 
 Each record is written with valid TFRecord CRCs: only the JPEG inside is damaged.
 """
@@ -24,12 +26,15 @@ from phigenesis import prep
 from phigenesis.data import image_headers
 from phigenesis.data.loader import FrameDataset
 from phigenesis.data.pipeline import PipelineSpec, PrepError, prepare
-from phigenesis.data.records import InvalidRecord, check_image_decodes
+from phigenesis.data.records import CameraImage, InvalidRecord, check_image_decodes
 from phigenesis.data.shards import CacheReader
 from phigenesis.data.sources.synthetic import SyntheticScene
 from phigenesis.data.sources.synthetic.waymo_export import raw_frame
 from phigenesis.data.sources.waymo import WaymoConfig, WaymoSource, convert, protos, tfrecord, v1, v2
 from phigenesis.data.sources.waymo.raw import CAMERAS_LEFT_OUT, RawFrame, WaymoFormatError
+from phigenesis.errors import CacheError
+from phigenesis.train.segmenter import LabelledImage, LabelledImages, SegmenterTrainConfig
+from phigenesis.train.vae import ClipImages
 from tests.test_waymo_hostile import CONFIG, FRONT_RIGHT
 from tests.test_waymo_hostile import SPEC as NO_STAGES
 from tests.test_waymo_real import PANOPTIC
@@ -269,3 +274,39 @@ def test_the_real_frames_jpegs_pass_and_its_front_image_cut_in_half_names_record
     words = f"camera FRONT image_bytes holds {len(front.image)} bytes that end without the JPEG end-of-image"
     with pytest.raises(PrepError, match=re.escape(f"{_where(path, 0)}: {words}")):
         _prep(tmp_path / "out", path)
+
+
+# --------------------------------------------------------------------------------------------
+# A cache that nevertheless holds such an image
+
+
+@pytest.mark.parametrize("damage", list(DAMAGES))
+def test_a_cache_holding_a_damaged_image_fails_naming_the_shard_row_and_camera(
+    tmp_path: Path, raws: list[RawFrame], monkeypatch: pytest.MonkeyPatch, damage: str
+) -> None:
+    make, words = DAMAGES[damage]
+    with monkeypatch.context() as m:  # as a cache written before the source checked images
+        m.setattr(CameraImage, "check_image", lambda self: None)
+        _prep(tmp_path / "out", _v1(tmp_path, _damaged(raws, make)))
+    out = tmp_path / "out"
+    reader = CacheReader(out)
+    shard, row = reader.locate(DAMAGED)
+    size = len(make(_image(raws[DAMAGED]).jpeg))
+    where = re.escape(f"{shard}: row {row}: camera FRONT_RIGHT")
+    loader_words = re.escape(f"image holds {size} bytes that {words}")
+    for fields in (("images",), ("range_view",)):
+        dataset = FrameDataset(out, fields=fields, decode_threads=1)
+        dataset[0]  # the frame before it loads
+        with pytest.raises(CacheError, match=rf"^{where}: {loader_words}$"):
+            dataset[DAMAGED]
+    with pytest.raises(CacheError, match=rf"^{where}: {loader_words}$"):
+        ClipImages(reader, (24, 36)).image(DAMAGED, "FRONT_RIGHT")
+    labelled = LabelledImages(
+        reader, [LabelledImage(DAMAGED, 2, "label_semantic_png")], SegmenterTrainConfig(), False
+    )
+    with pytest.raises(CacheError, match=rf"^{where}: {loader_words}$"):
+        labelled.load(0)
+    at = re.escape(f"{shard}: row {row}: camera FRONT_RIGHT at ")  # and the image's time
+    preview_words = re.escape(f" image_bytes holds {size} bytes that {words}")
+    with pytest.raises(CacheError, match=rf"^{at}\d+{preview_words}$"):
+        prep.preview(out, frame=DAMAGED)
