@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from phigenesis.data.executors import ExecutorName
 from phigenesis.data.pipeline import OnError, PipelineSpec, PrepSummary, prepare
 from phigenesis.data.shards import CacheReader, VerifyReport, verify_cache
+from phigenesis.errors import CacheError
 
 
 def synthetic(
@@ -174,11 +175,19 @@ def preview(
     out: str | os.PathLike[str] | None = None,
     scale: int = 2,
 ) -> NDArray[np.uint8]:
-    """Draws global frame ``frame`` of a cache; writes a PNG to ``out`` if given. Returns RGB."""
+    """Draws global frame ``frame`` of a cache; writes a PNG to ``out`` if given. Returns RGB.
+
+    A value of the frame that is invalid (an image that does not decode, ...) raises a
+    :class:`~phigenesis.errors.CacheError` naming the shard, the row and the field."""
     from phigenesis.data.preview import draw_frame
+    from phigenesis.data.records import InvalidRecord
 
     reader = CacheReader(cache_dir)
-    image = draw_frame(reader.frame(frame), scale=scale)
+    try:
+        image = draw_frame(reader.frame(frame), scale=scale)
+    except InvalidRecord as e:
+        path, row = reader.locate(frame)
+        raise CacheError(f"{path}: row {row}: {e}") from None
     if out is not None:
         out = Path(out)
         if out.parent and not out.parent.exists():

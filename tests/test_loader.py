@@ -291,7 +291,9 @@ def test_an_image_that_does_not_decode_is_named_by_its_camera_on_any_thread_coun
     wrong_size = cv2.imencode(".jpg", np.full((8, 10, 3), 128, np.uint8))[1].tobytes()
     jobs = [loader._IMAGE_JOB]
     cf = _camera_fields([good, b"not a jpeg", good, good], 8, 12)
-    with pytest.raises(ValueError, match=r"^camera B: image does not decode$"):
+    with pytest.raises(
+        ValueError, match=r"^camera B: image holds 10 bytes that are neither a JPEG nor a PNG stream$"
+    ):
         loader._decode_maps(cf, ["A", "B", "C", "D"], jobs, loader._Arenas(), threads)
     cf = _camera_fields([good, good, good, wrong_size], 8, 12)
     with pytest.raises(ValueError, match=r"^camera D: image is 10x8, the calibration says 12x8$"):

@@ -29,6 +29,7 @@ from phigenesis.data.sources.synthetic.rigs import LidarSpec
 from phigenesis.errors import PrepError
 from tests.cache_checks import non_finite_values
 from tests.conftest import tiny_config
+from tests.test_waymo_images import undecodable
 
 VERSION = "v1.0-mini"
 #: One scene, 2 keyframes: 7 camera steps, 11 LiDAR sweeps; tiny images and LiDAR.
@@ -133,6 +134,24 @@ def camera_count(frames: list[Frame], camera: str) -> int:
 
 def skipped(scene: Scene) -> list[str]:
     return [s["skipped"] for s in scene.metadata["skipped"]]
+
+
+def damage_image(
+    root: Path, channel: str, nth: int, damage: Callable[[bytes], bytes]
+) -> tuple[dict[str, Any], Path]:
+    """The ``nth`` non-keyframe sample_data of camera ``channel`` and its image file, which
+    ``damage`` rewrites."""
+    sd = sweep(root, channel, key=False, nth=nth)
+    path = root / sd["filename"]
+    path.write_bytes(damage(path.read_bytes()))
+    return sd, path
+
+
+def load_error(root: Path) -> str:
+    """The message of the :class:`NuScenesError` that loading ``root``'s scene raises."""
+    with pytest.raises(NuScenesError) as e:
+        load(root)
+    return str(e.value)
 
 
 def annotation(root: Path, nth: int = 0) -> dict[str, Any]:
@@ -515,19 +534,37 @@ def test_an_image_whose_size_differs_from_its_record_is_an_error_and_skip_leaves
     assert camera_count(frames, "CAM_FRONT_RIGHT") == STEPS - 1
 
 
-def test_a_truncated_image_is_an_error_naming_it_and_skip_leaves_it_out(root: Path) -> None:
-    sd = sweep(root, "CAM_BACK_RIGHT", key=False, nth=2)
-    path = root / sd["filename"]
-    path.write_bytes(path.read_bytes()[:40])
-    with pytest.raises(NuScenesError) as e:
-        load(root)
-    assert str(e.value) == (
-        f"{path}: not a readable JPEG (a truncated segment) "
+@pytest.mark.parametrize(
+    ("cut", "problem"),
+    [
+        (slice(None, 40), "a truncated segment"),
+        (slice(None, -10), "it ends without the end-of-image marker FF D9: cut short"),  # the header reads
+    ],
+)
+def test_a_truncated_image_is_an_error_naming_it_and_skip_leaves_it_out(
+    root: Path, cut: slice, problem: str
+) -> None:
+    sd, path = damage_image(root, "CAM_BACK_RIGHT", 2, lambda data: data[cut])
+    assert load_error(root) == (
+        f"{path}: not a readable JPEG ({problem}) "
         f"(named by sample_data {sd['token']!r} 'filename' in {table_path(root, 'sample_data')})"
     )
     scene, frames = load(root, "skip")
     assert skipped(scene) == [f"sample_data {sd['token']}"]
     assert camera_count(frames, "CAM_BACK_RIGHT") == STEPS - 1
+
+
+def test_an_image_that_does_not_decode_is_an_error_when_its_frame_loads_and_skip_leaves_it_out(
+    root: Path,
+) -> None:
+    sd, path = damage_image(root, "CAM_FRONT_LEFT", 1, undecodable)  # header and end marker intact
+    assert load_error(root) == (
+        f"{table_path(root, 'sample_data')}: sample_data {sd['token']!r}: as an image ({path}): "
+        f"camera CAM_FRONT_LEFT image_bytes holds {path.stat().st_size} bytes that do not decode"
+    )
+    scene, frames = load(root, "skip")
+    assert camera_count(frames, "CAM_FRONT_LEFT") == STEPS - 1
+    assert scene.dropped.totals() == {DROPPED_FILES: 1}
 
 
 def test_a_camera_sweep_with_another_calibration_than_its_camera_is_left_out(root: Path) -> None:

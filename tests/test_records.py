@@ -55,8 +55,10 @@ def test_camera_image_without_image_says_so_when_decoded():
 def test_png_images_round_trip_exactly_and_garbage_does_not_decode():
     rgb = np.random.default_rng(0).integers(0, 255, size=(6, 8, 3), dtype=np.uint8)
     assert np.array_equal(decode_rgb(encode_rgb(rgb, "png"), "test"), rgb)
-    with pytest.raises(ValueError, match="do not decode"):
+    with pytest.raises(ValueError, match=r"^camera X image_bytes holds 12 bytes that are neither a JPEG"):
         decode_rgb(b"not an image", "camera X")
+    with pytest.raises(ValueError, match=r"^camera X image_bytes holds 4 bytes that do not decode$"):
+        decode_rgb(b"\xff\xd8\xff\xd9", "camera X")
 
 
 def test_lidar_sweep_checks_per_point_arrays_against_the_point_count():

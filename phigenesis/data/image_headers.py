@@ -1,20 +1,32 @@
-"""An encoded image's size from its header alone (JPEG frame header, PNG IHDR chunk).
+"""An encoded image's size from its header alone (JPEG frame header, PNG IHDR chunk), and
+whether its stream is whole (it ends with the format's end marker).
 
-Sources compare it with the calibration before anything decodes the image: a crafted header can
-declare gigapixels, and a decoder would allocate them. The readers take a ``read(n) -> bytes``
+Sources compare the size with the calibration before anything decodes the image: a crafted header
+can declare gigapixels, and a decoder would allocate them. The readers take a ``read(n) -> bytes``
 callable (``io.BytesIO(data).read`` for bytes in memory, ``file.read`` for a file), so a file's
 size is known after reading its first segments only.
+
+:func:`end_problem` reads the last bytes only: a stream cut short (a truncated file, a record
+rewritten with half an image) does not end with the marker, where a decoder may fill the missing
+rows with grey and report success (libjpeg only warns; OpenCV 4 returns that image). A stream cut
+and given a new end marker still passes: every decoder reads it, grey below the cut.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
+from numpy.typing import NDArray
+
 #: JPEG start-of-frame markers (baseline, progressive, lossless, arithmetic): they hold the size.
 _JPEG_SOF_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 #: JPEG markers without a length field (restart markers, TEM).
 _JPEG_BARE_MARKERS = frozenset(range(0xD0, 0xD8)) | {0x01}
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: The last bytes of a whole stream: JPEG's end-of-image marker, PNG's empty IEND chunk (with its CRC).
+JPEG_END = b"\xff\xd9"
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
 
 Read = Callable[[int], bytes]
 
@@ -63,3 +75,19 @@ def png_size(read: Read) -> tuple[int, int]:
     if width == 0 or height == 0:
         raise ValueError(f"the IHDR chunk gives the size {width}x{height}")
     return width, height
+
+
+def end_problem(data: bytes | memoryview | NDArray[np.uint8]) -> str | None:
+    """What shows that encoded image bytes are not a whole JPEG or PNG stream, or None.
+
+    The format is the one the first bytes name (as decoders choose it): a JPEG must end with its
+    end-of-image marker (FF D9), a PNG with its IEND chunk. Reads the first 8 and last 12 bytes.
+    """
+    head, tail = bytes(data[:8]), bytes(data[-len(PNG_END) :])
+    if head[:2] == b"\xff\xd8":
+        whole, marker = tail.endswith(JPEG_END), "JPEG end-of-image marker FF D9"
+    elif head == _PNG_SIGNATURE:
+        whole, marker = tail == PNG_END, "PNG IEND chunk"
+    else:
+        return "are neither a JPEG nor a PNG stream"
+    return None if whole else f"end without the {marker} (cut short)"

@@ -77,6 +77,7 @@ from torch.utils.data import Dataset
 
 from phigenesis.data import batch_pool, codec
 from phigenesis.data.loader_rangeview import lidar_range_sample, range_view_sample
+from phigenesis.data.records import decode_whole
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheError, CacheReader
 
@@ -142,10 +143,9 @@ def _decode_flow_channels_first(data: np.ndarray, out: np.ndarray) -> np.ndarray
 
 def _decode_rgb(data: np.ndarray, out: np.ndarray) -> np.ndarray:
     """JPEG/PNG bytes into ``out`` [3, H, W] RGB, de-interleaved by OpenCV (several times faster
-    than a numpy transpose copy)."""
-    bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError("image does not decode")
+    than a numpy transpose copy); raises :class:`~phigenesis.data.records.InvalidRecord` for bytes
+    that are not a whole image (:func:`~phigenesis.data.records.decode_whole`)."""
+    bgr = decode_whole(data, cv2.IMREAD_COLOR, "image")
     if bgr.shape[:2] != out.shape[1:]:
         raise ValueError(
             f"image is {bgr.shape[1]}x{bgr.shape[0]}, the calibration says {out.shape[2]}x{out.shape[1]}"

@@ -48,7 +48,7 @@ from phigenesis.data.rangeview import (
     range_view_layout,
     range_view_rays,
 )
-from phigenesis.data.records import CameraCalibration
+from phigenesis.data.records import CameraCalibration, decode_whole
 from phigenesis.data.schema import lidar_of, lidar_range_image_of, range_view_of
 
 #: The camera column holding each depth / semantic source of :mod:`phigenesis.data.rangeview`.
@@ -109,13 +109,21 @@ def _camera_planes(
     have = decoded.get(DECODED_KEYS.get(column, ""))
     if have is not None:
         return [have[i].numpy() for i in index]
-    return [None if not cf[column][i].is_valid else decode(cf[column][i].as_py()) for i in index]
+    return [None if not cf[column][i].is_valid else _decode_camera(cf, column, i, decode) for i in index]
+
+
+def _decode_camera(cf: dict[str, pa.Array], column: str, i: int, decode: Any) -> np.ndarray:
+    """``decode`` of camera ``i``'s ``column``; a ValueError names the camera."""
+    try:
+        return decode(cf[column][i].as_py())
+    except ValueError as e:
+        raise ValueError(f"camera {cf['camera_name'][i].as_py()}: {e}") from e
 
 
 def _decode_rgb_chw(data: bytes) -> np.ndarray:
-    """JPEG/PNG bytes as a [3, H, W] RGB view (copied once, where it is placed)."""
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    return bgr.transpose(2, 0, 1)[::-1]
+    """JPEG/PNG bytes as a [3, H, W] RGB view (copied once, where it is placed); raises
+    :class:`~phigenesis.data.records.InvalidRecord` for bytes that are not a whole image."""
+    return decode_whole(data, cv2.IMREAD_COLOR, "image").transpose(2, 0, 1)[::-1]
 
 
 def range_view_sample(

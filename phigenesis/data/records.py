@@ -34,7 +34,9 @@ out, counted as :data:`INVALID_BOXES`); :func:`check_capture_time` checks one se
 before the frame is built, and :func:`check_frame_times` / :func:`increasing_frames` check a
 source's index of frame times once, before any frame is loaded. :class:`LazyFrames` checks
 each frame it loads against the index it was given (or, without one, against the frames loaded
-before it), so no source can hand a stage frames out of time order.
+before it), so no source can hand a stage frames out of time order. A constructor reads an
+encoded image's header only; a source calls :meth:`CameraImage.check_image` once for each image
+it reads (it costs a decode), so that nothing downstream meets an image that does not decode.
 """
 
 from __future__ import annotations
@@ -637,8 +639,20 @@ class CameraImage:
         """(4, 4) camera pose in the world at the capture time."""
         return self.world_from_ego @ self.calibration.ego_from_camera
 
+    def check_image(self) -> None:
+        """Raises :class:`InvalidRecord` naming the camera unless ``image_bytes`` (where there are
+        any) are a whole image that decodes (:func:`check_image_decodes`).
+
+        The constructor reads the header only (the size against the calibration); a source calls
+        this once for each image it reads, so that an image the stages, the loader or a preview
+        could not decode is an error naming its file and record, or left out under a skip policy.
+        """
+        if self.image_bytes is not None:
+            check_image_decodes(self.image_bytes, f"camera {self.name} image_bytes")
+
     def decode_image(self) -> NDArray[np.uint8]:
-        """The image as (H, W, 3) uint8 RGB; raises if there is none or it does not decode."""
+        """The image as (H, W, 3) uint8 RGB; raises if there is none, or :class:`InvalidRecord`
+        if it is not a whole image that decodes."""
         if self.image_bytes is None:
             raise ValueError(f"camera {self.name} at {self.timestamp_micros}: this frame has no image")
         if self._decoded is None or self._decoded[0] is not self.image_bytes:
@@ -647,12 +661,37 @@ class CameraImage:
         return self._decoded[1].copy()
 
 
+def decode_whole(data: bytes | NDArray[np.uint8], flags: int, name: str = "image_bytes") -> NDArray[np.uint8]:
+    """``cv2.imdecode(data, flags)`` of JPEG/PNG bytes that are a whole stream.
+
+    Raises :class:`InvalidRecord` naming ``name`` if the bytes do not end with their format's
+    end marker (:func:`~phigenesis.data.image_headers.end_problem`: a stream cut short, which a
+    decoder may fill with grey) or do not decode.
+    """
+    problem = image_headers.end_problem(data)
+    image = None if problem else cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    if image is None:
+        raise InvalidRecord(name, f"holds {len(data)} bytes that {problem or 'do not decode'}")
+    return image
+
+
+def check_image_decodes(data: bytes, name: str = "image_bytes") -> None:
+    """Raises :class:`InvalidRecord` naming ``name`` unless JPEG/PNG ``data`` is a whole stream
+    that decodes (see :func:`decode_whole`).
+
+    It decodes at 1/8 scale: the decoder still parses every marker and entropy-decodes every
+    block, which is where a damaged stream fails, but skips most of the inverse DCT and the
+    colour conversion (a real 1920 x 1280 Waymo JPEG: 4 ms against 12 ms, 1920 x 886: 2.4 ms
+    against 4.5 ms). On 6,200 damaged JPEGs (cut, bytes overwritten, bits flipped, spans deleted;
+    baseline and progressive, up to 1920 x 1280) it failed exactly where the full decode fails.
+    """
+    decode_whole(data, cv2.IMREAD_REDUCED_COLOR_8, name)
+
+
 def decode_rgb(data: bytes, what: str) -> NDArray[np.uint8]:
-    """Decodes JPEG/PNG bytes to (H, W, 3) uint8 RGB; ``what`` names the image in errors."""
-    bgr = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError(f"{what}: image bytes do not decode ({len(data)} bytes)")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    """Decodes JPEG/PNG bytes to (H, W, 3) uint8 RGB; raises :class:`InvalidRecord` naming
+    ``what`` (the camera and time) if they are not a whole stream that decodes."""
+    return cv2.cvtColor(decode_whole(data, cv2.IMREAD_COLOR, f"{what} image_bytes"), cv2.COLOR_BGR2RGB)
 
 
 def encode_rgb(rgb: NDArray[np.uint8], image_format: ImageFormat = "jpeg", jpeg_quality: int = 95) -> bytes:

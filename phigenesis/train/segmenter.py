@@ -39,8 +39,10 @@ from numpy.typing import NDArray
 
 from phigenesis.data import codec
 from phigenesis.data import taxonomy as tx
+from phigenesis.data.records import decode_whole
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheReader
+from phigenesis.errors import CacheError
 from phigenesis.models import create_model
 from phigenesis.options import check_options, option
 from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
@@ -151,9 +153,14 @@ class LabelledImages(torch.utils.data.Dataset):
         """(H, W, 3) uint8 RGB and (H, W) uint8 labels of item ``index`` at the training size."""
         item = self.items[index]
         cf = cameras_of(self.reader.read(item.frame, ["cameras"]))
-        image = cv2.imdecode(np.frombuffer(cf["image"][item.camera].as_py(), np.uint8), cv2.IMREAD_COLOR)
+        camera = cf["camera_name"][item.camera].as_py()
+        try:
+            image = decode_whole(cf["image"][item.camera].as_py(), cv2.IMREAD_COLOR, "image")
+            label = codec.decode_semantic(cf[item.column][item.camera].as_py())
+        except ValueError as e:
+            path, row = self.reader.locate(item.frame)
+            raise CacheError(f"{path}: row {row}: camera {camera}: {e}") from None
         rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-        label = codec.decode_semantic(cf[item.column][item.camera].as_py())
         height = self.config.image_height
         if height is not None and height != rgb.shape[0]:
             width = max(8, round(rgb.shape[1] * height / rgb.shape[0]))

@@ -45,8 +45,10 @@ import torch
 import yaml
 from torch import nn
 
+from phigenesis.data.records import InvalidRecord, decode_whole
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheReader
+from phigenesis.errors import CacheError
 from phigenesis.models import create_model
 from phigenesis.models.vae import VideoVAE, vae_loss
 from phigenesis.options import check_options, option
@@ -285,10 +287,12 @@ class ClipImages:
             return self._cache[key]
         cf = cameras_of(self.reader.read(frame, ["cameras"]))
         k = cf["camera_name"].to_pylist().index(camera)
-        bgr = cv2.imdecode(np.frombuffer(cf["image"][k].as_buffer(), np.uint8), cv2.IMREAD_COLOR)
-        if bgr is None:
-            where = f"{self.reader.cache_dir}: frame {frame}, camera {camera}"
-            raise ValueError(f"{where}: image does not decode")
+        data = np.frombuffer(cf["image"][k].as_buffer(), np.uint8)
+        try:
+            bgr = decode_whole(data, cv2.IMREAD_COLOR, "image")
+        except InvalidRecord as e:
+            path, row = self.reader.locate(frame)
+            raise CacheError(f"{path}: row {row}: camera {camera}: {e}") from None
         rgb = torch.from_numpy(np.ascontiguousarray(bgr[:, :, ::-1])).permute(2, 0, 1)  # [3, h, w]
         image = (resize_images(rgb, self.size) * 255.0).round().to(torch.uint8)  # [3, H, W]
         self._cache[key] = image

@@ -31,13 +31,15 @@ a missing table, a field of the wrong kind (``is_key_frame: "false"``, a list fo
 missing ``timestamp``, a 2-element ``translation``, NaN or Inf anywhere, a timestamp that is
 negative or after 2100, a non-unit quaternion), a link to a token that does not exist, a repeated
 token, a ``filename`` that leads outside the dataroot (absolute, ``..`` or a symlink out; the file
-is never read), a missing or malformed image or LiDAR file, an image whose size differs from its
+is never read), a missing or malformed image or LiDAR file (a JPEG cut short: found when the scene
+is indexed; one that does not decode: when its frame loads), an image whose size differs from its
 record's, an unknown category, two sweeps of one channel at one time, samples or frames out of
 time order. LiDAR points with non-finite values are not errors: they are dropped and counted in
 :attr:`Scene.dropped`. With ``on_error="skip"`` the smallest faulty unit is left out, logged, and
 listed in the scene metadata (``skipped``): an annotation (that box), a sample_data (that image or
 LiDAR sweep), a sample whose time is out of order (its boxes), a frame whose time is; a file that
-cannot be read when its frame is loaded is counted in :attr:`Scene.dropped`. A scene that cannot
+cannot be read or decoded when its frame is loaded is left out of that frame and counted in
+:attr:`Scene.dropped`. A scene that cannot
 be read at all still fails, and the cache run's own ``--on-error skip`` then lists it in the
 manifest.
 
@@ -565,15 +567,18 @@ class _SceneReader:
         return self.tables.named_by("sample_data", sweep.record, "filename")
 
     def _camera_image(self, sweep: Sweep, with_bytes: bool) -> CameraImage:
-        """The image of a camera sweep in the world frame, its JPEG read if ``with_bytes``."""
+        """The image of a camera sweep in the world frame, its JPEG read (and checked to decode:
+        :meth:`CameraImage.check_image`) if ``with_bytes``."""
         try:
-            return CameraImage(
+            image = CameraImage(
                 calibration=self.calibrations[sweep.channel],
                 timestamp_micros=sweep.timestamp_micros,
                 world_from_ego=self.world_from_global @ sweep.global_from_ego,
                 image_bytes=convert.read_image(sweep.path, self._named_by(sweep)) if with_bytes else None,
                 image_format="jpeg",
             )
+            image.check_image()
+            return image
         except InvalidRecord as e:
             where = self.tables.error("sample_data", sweep.record, f"as an image ({sweep.path})")
             raise convert.scene_model_error(where, e) from None

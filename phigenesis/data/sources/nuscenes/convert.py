@@ -17,6 +17,7 @@ non-finite or out-of-range values are dropped and counted in the scene's
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal, TypeVar
@@ -194,10 +195,15 @@ def read_image(path: Path, named_by: str) -> bytes:
 
 
 def jpeg_size(path: Path, named_by: str) -> tuple[int, int]:
-    """(width, height) in pixels from a JPEG file's frame header (reads only the headers)."""
+    """(width, height) in pixels from a JPEG file's frame header; raises unless the file also ends
+    with the end-of-image marker (a file cut short does not). Reads the headers and the last bytes."""
     try:
         with path.open("rb") as f:
-            return image_headers.jpeg_size(f.read)
+            size = image_headers.jpeg_size(f.read)
+            f.seek(-len(image_headers.JPEG_END), os.SEEK_END)
+            if f.read() != image_headers.JPEG_END:
+                raise ValueError("it ends without the end-of-image marker FF D9: cut short")
+            return size
     except OSError as e:
         raise file_error(path, f"cannot read the image ({e.strerror or e})", named_by) from None
     except ValueError as e:

@@ -247,7 +247,8 @@ def camera_image(
 ) -> CameraImage:
     """One raw image as a :class:`CameraImage`; raises :class:`WaymoFormatError` naming ``where``,
     the camera and the field if any value is invalid (including a capture time more than a few
-    seconds from ``frame_time_micros``, when given)."""
+    seconds from ``frame_time_micros``, when given, and a JPEG that is cut short or does not
+    decode: :meth:`CameraImage.check_image`)."""
     what = f"{where}: camera {calibration.name}"
     readout_s = image.readout_done_time - image.trigger_time - image.shutter
     timestamp = _micros(image.pose_timestamp, f"{what} pose_timestamp")
@@ -259,9 +260,9 @@ def camera_image(
     if frame_time_micros is not None:
         name = f"camera {calibration.name} pose_timestamp"
         _record(where, lambda: check_capture_time(name, timestamp, frame_time_micros))
-    return _record(
-        where,
-        lambda: CameraImage(
+
+    def build() -> CameraImage:
+        built = CameraImage(
             calibration=calibration,
             timestamp_micros=timestamp,
             world_from_ego=_shift(image.global_from_vehicle, global_origin),
@@ -273,8 +274,11 @@ def camera_image(
             readout_micros=max(readout_s, 0.0) * 1e6 if math.isfinite(readout_s) else readout_s,
             velocity_world_mps=image.velocity_linear,
             angular_velocity_world_radps=image.velocity_angular,
-        ),
-    )
+        )
+        built.check_image()
+        return built
+
+    return _record(where, build)
 
 
 # --------------------------------------------------------------------------------------------
