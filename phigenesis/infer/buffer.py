@@ -56,6 +56,7 @@ import torch
 from torch import Tensor
 
 from phigenesis.models.gaussians import GaussianScene
+from phigenesis.options import check_options, option
 
 #: Bits per voxel coordinate in a packed voxel key (three of them fill 63 bits of an int64).
 KEY_BITS = 21
@@ -71,27 +72,22 @@ _EVICTION_SEED = 0x5EED
 class BufferConfig:
     """How a :class:`GaussianBuffer` de-duplicates and bounds its contents (see the module docstring)."""
 
-    voxel_m: float = 0.2  # voxel edge for de-duplication, metres
-    max_gaussians: int = 200_000  # the buffer holds at most this many Gaussians after every add
-    dynamic_speed_mps: float = 0.5  # a dynamic-flagged Gaussian moves only when faster than this, m/s
-    dynamic_windows: int = 1  # a moving Gaussian is kept for this many windows (1: newest only)
-    far_first_m: float | None = 150.0  # over the cap, Gaussians farther than this from the ego go first, m
+    voxel_m: float = option(0.2, gt=0, le=100, help="voxel edge for de-duplication, metres")
+    max_gaussians: int = option(
+        200_000, ge=1, le=100_000_000, help="the buffer holds at most this many Gaussians after every add"
+    )
+    dynamic_speed_mps: float = option(
+        0.5, ge=0, le=1000, help="a dynamic-flagged Gaussian moves only when faster than this, m/s"
+    )
+    dynamic_windows: int = option(
+        1, ge=1, le=1_000_000, help="a moving Gaussian is kept for this many windows (1: newest only)"
+    )
+    far_first_m: float | None = option(
+        150.0, gt=0, le=1e6, help="over the cap, Gaussians farther than this from the ego go first, m"
+    )
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.voxel_m) and self.voxel_m > 0):
-            raise ValueError(f"BufferConfig.voxel_m: must be a positive number of metres, got {self.voxel_m}")
-        if isinstance(self.max_gaussians, bool) or operator.index(self.max_gaussians) < 1:
-            raise ValueError(f"BufferConfig.max_gaussians: must be an int >= 1, got {self.max_gaussians!r}")
-        if not (math.isfinite(self.dynamic_speed_mps) and self.dynamic_speed_mps >= 0):
-            raise ValueError(
-                f"BufferConfig.dynamic_speed_mps: must be a speed >= 0 m/s, got {self.dynamic_speed_mps}"
-            )
-        if isinstance(self.dynamic_windows, bool) or operator.index(self.dynamic_windows) < 1:
-            raise ValueError(
-                f"BufferConfig.dynamic_windows: must be an int >= 1, got {self.dynamic_windows!r}"
-            )
-        if self.far_first_m is not None and not (self.far_first_m > 0):
-            raise ValueError(f"BufferConfig.far_first_m: must be > 0 metres or None, got {self.far_first_m}")
+        check_options(self, "BufferConfig")
 
 
 @dataclass(frozen=True)

@@ -94,6 +94,7 @@ from torch import Tensor
 from phigenesis.geometry import MIN_PROJECTION_DEPTH_M
 from phigenesis.models.depth_bins import DepthBins
 from phigenesis.models.stage1 import pixel_rays
+from phigenesis.options import check_options, option
 
 #: The kinds of uncertainty map :func:`uncertainty_map` makes.
 UncertaintyKind = Literal["random", "entropy", "localization_potential", "coverage"]
@@ -451,26 +452,33 @@ def localization_potential_to_u(
 class UncertaintyConfig:
     """Parameters of the uncertainty maps; each kind reads the fields it needs."""
 
-    hole_alpha: float = HOLE_ALPHA  # rendered alpha below which a pixel is a hole (u = 0), in [0, 1]
-    patch_px: int = DEFAULT_PATCH_PX  # random: side of one level's square patch, pixels
-    num_bins: int = PAPER_DEPTH_BINS.count  # entropy: K, bins of Stage 1's depth distribution
-    log_depth_step: float = DEFAULT_LOG_DEPTH_STEP  # localization potential: bin width, natural log depth
-    scale_px: float = DEFAULT_SCALE_PX  # localization potential: pixels per bin at which u = 1/e (stable)
-    occlusion_tolerance: float = OCCLUSION_TOLERANCE  # localization potential: relative depth margin
-    lp_trust: LpTrust = DEFAULT_LP_TRUST  # localization potential: which points u trusts (module docstring)
+    hole_alpha: float = option(
+        HOLE_ALPHA, ge=0, le=1, help="rendered alpha below which a pixel is a hole (u = 0)"
+    )
+    patch_px: int = option(
+        DEFAULT_PATCH_PX, ge=1, le=4096, help="random: side of one level's square patch, pixels"
+    )
+    num_bins: int = option(
+        PAPER_DEPTH_BINS.count, ge=2, le=4096, help="entropy: K, bins of Stage 1's depth distribution"
+    )
+    log_depth_step: float = option(
+        DEFAULT_LOG_DEPTH_STEP, gt=0, le=10, help="localization potential: bin width, natural log depth"
+    )
+    scale_px: float = option(
+        DEFAULT_SCALE_PX,
+        gt=0,
+        le=1e6,
+        help="localization potential: pixels per bin at which u = 1/e (stable)",
+    )
+    occlusion_tolerance: float = option(
+        OCCLUSION_TOLERANCE, ge=0, le=10, help="localization potential: relative depth margin"
+    )
+    lp_trust: LpTrust = option(
+        DEFAULT_LP_TRUST, help="localization potential: which points u trusts (module docstring)"
+    )
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.hole_alpha <= 1.0:
-            raise ValueError(f"UncertaintyConfig: hole_alpha must be in [0, 1], got {self.hole_alpha}")
-        if self.patch_px < 1 or self.num_bins < 2:
-            raise ValueError(
-                f"UncertaintyConfig: need patch_px >= 1, num_bins >= 2; got {self.patch_px}, {self.num_bins}"
-            )
-        if not (self.log_depth_step > 0 and self.scale_px > 0 and self.occlusion_tolerance >= 0):
-            raise ValueError(
-                "UncertaintyConfig: need log_depth_step > 0, scale_px > 0, occlusion_tolerance >= 0"
-            )
-        check_lp_trust(self.lp_trust, "UncertaintyConfig: lp_trust")
+        check_options(self, "UncertaintyConfig")
 
 
 @dataclass(frozen=True)
