@@ -23,17 +23,20 @@ The rules, the same for every config:
   ``bool`` is ``true`` or ``false`` (not ``'yes'``); a ``str`` is a string;
 - the bounds (``ge``, ``gt``, ``le``, ``lt``) apply to a number, to each item of a sequence of
   numbers and to each value of a mapping of numbers; ``keys`` lists the keys a mapping may hold;
+- a field whose type is itself a config (a dataclass of options) takes a mapping of its options;
 - a value outside its type or range raises :class:`ConfigError` naming the key, the value and what
   is allowed; :func:`from_mapping` adds the file (or record) it came from.
 
 :func:`from_mapping` is the one loader of a mapping of options (a YAML file's, a checkpoint header's,
 a stage's parameters): anything but a mapping, or an unknown key, is a :class:`ConfigError` naming
-the file and the known keys.
+the file and the known keys. :func:`check_values` checks some options of a config the same way
+without building it (a partial config that another source completes).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import functools
 import math
 import types
@@ -44,7 +47,15 @@ from typing import Any, Literal, TypeVar, get_args, get_origin
 
 from phigenesis.errors import PhiGenesisError
 
-__all__ = ["Bounds", "ConfigError", "check_options", "from_mapping", "option", "option_bounds"]
+__all__ = [
+    "Bounds",
+    "ConfigError",
+    "check_options",
+    "check_values",
+    "from_mapping",
+    "option",
+    "option_bounds",
+]
 
 T = TypeVar("T")
 
@@ -284,32 +295,73 @@ def _first_bad_item(value: Any, hint: Any, bounds: Bounds) -> tuple[str, Any, An
     return None
 
 
+def _checked_value(field: dataclasses.Field, hint: Any, value: Any, label: str) -> Any:
+    """``value`` of ``field`` (type ``hint``) as its type holds it; a mapping given for a nested
+    config (a field whose type is a dataclass of options) is built with :func:`from_mapping`.
+    Raises :class:`ConfigError` (``LABEL: KEY = VALUE: must be ...``) if it does not fit."""
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint) and isinstance(value, Mapping):
+        return from_mapping(hint, value, f"{label}: {field.name}")
+    bounds = option_bounds(field)
+    try:
+        return _check(value, hint, bounds)
+    except _Invalid as e:
+        item = _first_bad_item(value, hint, bounds)
+        if item is None:
+            raise ConfigError(f"{label}: {field.name} = {_short(value)}: must be {e}") from None
+        suffix, shown, item_hint = item
+        key = field.name + suffix
+        if item_hint is None:
+            raise ConfigError(
+                f"{label}: {key}: unknown key; {field.name} takes {list(bounds.keys)}"
+            ) from None
+        raise ConfigError(
+            f"{label}: {key} = {_short(shown)}: must be {_describe(item_hint, bounds)}"
+        ) from None
+
+
 def check_options(config: Any, label: str) -> None:
     """Checks every field of the dataclass instance ``config`` against its declared type and
     bounds, storing each value as its type holds it (an integer given for a float as a float, a
-    list given for a tuple as a tuple). Raises :class:`ConfigError` (``LABEL: KEY = VALUE: must
-    be ...``) for the first value that does not fit."""
+    list given for a tuple as a tuple, a mapping given for a nested config as that config).
+    Raises :class:`ConfigError` (``LABEL: KEY = VALUE: must be ...``) for the first value that
+    does not fit."""
     hints = _hints(type(config))
     for field in dataclasses.fields(config):
         value = getattr(config, field.name)
-        bounds = option_bounds(field)
-        try:
-            checked = _check(value, hints[field.name], bounds)
-        except _Invalid as e:
-            item = _first_bad_item(value, hints[field.name], bounds)
-            if item is None:
-                raise ConfigError(f"{label}: {field.name} = {_short(value)}: must be {e}") from None
-            suffix, shown, item_hint = item
-            key = field.name + suffix
-            if item_hint is None:
-                raise ConfigError(
-                    f"{label}: {key}: unknown key; {field.name} takes {list(bounds.keys)}"
-                ) from None
-            raise ConfigError(
-                f"{label}: {key} = {_short(shown)}: must be {_describe(item_hint, bounds)}"
-            ) from None
+        checked = _checked_value(field, hints[field.name], value, label)
         if checked is not value:
             object.__setattr__(config, field.name, checked)
+
+
+def check_values(cls: type, values: Any, where: str) -> dict[str, Any]:
+    """Some of the options of ``cls`` (a partial config: a pipeline spec's source defaults, which
+    the command line completes), each checked against its declared type and range as
+    :func:`from_mapping` checks them, without building ``cls`` (so the options left out and the
+    checks relating options to each other wait until it is built). Returns the values as their
+    types hold them; raises :class:`ConfigError` naming ``where`` as :func:`from_mapping` does."""
+    values = _known_mapping(cls, values, where)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    hints = _hints(cls)
+    try:
+        return {k: _checked_value(fields[k], hints[k], v, cls.__name__) for k, v in values.items()}
+    except ConfigError as e:
+        raise ConfigError(f"{where}: {e}") from None
+
+
+def _known_mapping(cls: type, values: Any, where: str) -> Mapping[str, Any]:
+    """``values`` (None: empty) if it is a mapping of options of ``cls``; otherwise a
+    :class:`ConfigError` naming ``where`` and the known keys."""
+    if values is None:
+        return {}
+    if not isinstance(values, Mapping):
+        raise ConfigError(f"{where}: must be a mapping of options (key: value), got {_kind(values)}")
+    known = [f.name for f in dataclasses.fields(cls)]
+    bad = sorted(str(k) for k in values if k not in known)
+    if bad:
+        close = [m for k in bad for m in difflib.get_close_matches(k, known, n=1)]
+        guess = f" (did you mean {', '.join(map(repr, close))}?)" if close else ""
+        raise ConfigError(f"{where}: unknown keys {bad}{guess}; known: {sorted(known)}")
+    return values
 
 
 def from_mapping(cls: type[T], values: Any, where: str, **extra: Any) -> T:
@@ -317,14 +369,7 @@ def from_mapping(cls: type[T], values: Any, where: str, **extra: Any) -> T:
     pipeline stage): anything but a mapping, an unknown key, or a value outside its type or range
     raises :class:`ConfigError` naming ``where``, the key, the value and what is allowed.
     ``extra`` are keyword arguments given beside the mapping (overrides from the command line)."""
-    if values is None:
-        values = {}
-    if not isinstance(values, Mapping):
-        raise ConfigError(f"{where}: must be a mapping of options (key: value), got {_kind(values)}")
-    known = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
-    bad = sorted(str(k) for k in values if k not in known)
-    if bad:
-        raise ConfigError(f"{where}: unknown keys {bad}; known: {sorted(known)}")
+    values = _known_mapping(cls, values, where)
     try:
         return cls(**{**values, **extra})
     except ConfigError as e:

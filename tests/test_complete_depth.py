@@ -23,6 +23,7 @@ from phigenesis.data.stages.complete import (
     complete_depth_map,
     fit_planes,
 )
+from phigenesis.options import ConfigError
 
 H, W, F = 120, 180, 150.0
 PLANE, VERTICAL, DENSIFIED = (DENSE_ORIGINS.index(k) for k in ("plane", "vertical", "densified"))
@@ -448,16 +449,17 @@ def test_hostile_inputs_are_refused_with_a_clear_message():
 
 
 def test_bad_parameters_name_the_stage():
-    with pytest.raises(ValueError, match="complete_depth: unknown parameters"):
+    with pytest.raises(ConfigError, match=r"^stage complete_depth: unknown keys \['max_depht_m'\]"):
         get_stage("complete_depth")(Scene("s", "x", [], []), {"max_depht_m": 10})
-    with pytest.raises(ValueError, match="complete_depth: max_sky_share must be in"):
-        CompletionParams(max_sky_share=2.0)
-    with pytest.raises(ValueError, match="complete_depth: min_depth_m"):
-        CompletionParams(min_depth_m=200.0)
-    with pytest.raises(ValueError, match="complete_depth: min_inliers must be an integer"):
-        CompletionParams(min_inliers=2.5)
-    with pytest.raises(ValueError, match="complete_depth: inlier_tol_m must be a finite number"):
-        CompletionParams(inlier_tol_m=float("nan"))
+    for values, message in (
+        ({"max_sky_share": 2.0}, "max_sky_share = 2.0: must be a number in [0, 1] (finite)"),
+        ({"min_depth_m": 200.0}, "min_depth_m = 200.0: must be below max_depth_m (150.0)"),
+        ({"min_inliers": 2.5}, "min_inliers = 2.5: must be an integer in [3, 100000000]"),
+        ({"inlier_tol_m": float("nan")}, "inlier_tol_m = nan: must be a number in (0, 100] (finite)"),
+    ):
+        with pytest.raises(ConfigError) as e:
+            CompletionParams(**values)
+        assert str(e.value) == f"CompletionParams: {message}"
 
 
 def test_dense_origin_must_match_the_dense_depth():

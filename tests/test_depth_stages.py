@@ -43,6 +43,7 @@ from phigenesis.data.stages.project import (
     project_camera,
     ray_box_depths,
 )
+from phigenesis.options import ConfigError
 
 SMALL_LIDAR = LidarSpec(beams=32, columns=512, sectors=8)
 
@@ -437,11 +438,11 @@ def test_ego_body_points_and_lidar_step():
 
 
 def test_bad_parameters_name_the_stage():
-    with pytest.raises(ValueError, match="project_depth: unknown parameters"):
+    with pytest.raises(ConfigError, match=r"^stage project_depth: unknown keys \['visibilty'\]"):
         get_stage("project_depth")(Scene("s", "x", [], []), {"visibilty": "splat"})
-    with pytest.raises(ValueError, match="visibility must be one of"):
+    with pytest.raises(ConfigError, match="visibility = 'zbuffer': must be one of 'splat', 'local_min'"):
         ProjectParams(visibility="zbuffer")
-    with pytest.raises(ValueError, match="aggregate_lidar: unknown parameters"):
+    with pytest.raises(ConfigError, match=r"^aggregate_lidar: unknown keys \['voxel'\]"):
         AggregateParams.from_dict({"voxel": 0.1})
 
 
@@ -512,5 +513,5 @@ def test_a_camera_below_the_coverage_threshold_is_warned_about_by_name(caplog):
     (warning,) = [r.getMessage() for r in caplog.records if "sparse depth" in r.getMessage()]
     assert "scene s camera CAM: only 25.00 % of its pixels have a sparse depth" in warning
     assert "min_sparse_coverage 30.00 %" in warning
-    with pytest.raises(ValueError, match="min_sparse_coverage must be in"):
+    with pytest.raises(ConfigError, match=r"min_sparse_coverage = 5: must be a number in \[0, 1\]"):
         get_stage("densify_depth")(Scene("s", "synthetic", [], frames), {"min_sparse_coverage": 5})

@@ -33,6 +33,7 @@ from phigenesis.data.stages.interpolate import (
     asap_boxes,
     interpolate_boxes_at,
 )
+from phigenesis.options import ConfigError
 
 #: A track: time (s) -> centre (3,) and yaw (rad).
 Track = Callable[[float], tuple[np.ndarray, float]]
@@ -772,9 +773,9 @@ def test_a_scene_without_keyframes_passes_through_unchanged(caplog) -> None:
 
 def test_unknown_parameters_and_methods_are_errors() -> None:
     scene = hand_built_scene({"car": straight()}, 7)
-    with pytest.raises(ValueError, match="unknown parameters"):
+    with pytest.raises(ConfigError, match=r"^stage interpolate_boxes: unknown keys \['windw'\]"):
         get_stage("interpolate_boxes")(scene, {"windw": 1})
-    with pytest.raises(ValueError, match="unknown interpolation method"):
+    with pytest.raises(ConfigError, match="method = 'spline': must be one of 'ctra', 'hermite'"):
         InterpolateParams(method="spline")  # type: ignore[arg-type]
 
 

@@ -8,7 +8,7 @@ from typing import Literal
 
 import pytest
 
-from phigenesis.options import ConfigError, check_options, from_mapping, option
+from phigenesis.options import ConfigError, check_options, check_values, from_mapping, option
 
 Kind = Literal["a", "b"]
 
@@ -72,3 +72,55 @@ def test_values_are_stored_as_their_type_holds_them():
 def test_checks_apply_when_built_in_code_too():
     with pytest.raises(ConfigError, match=r"^_Config: steps = -1: must be an integer in \[1, inf\)$"):
         _Config(steps=-1)
+
+
+@dataclass(frozen=True)
+class _Inner:
+    beams: int = option(64, ge=1, le=1024)
+
+    def __post_init__(self) -> None:
+        check_options(self, "_Inner")
+
+
+@dataclass(frozen=True)
+class _Outer:
+    name: str = option("x")
+    inner: _Inner = option(factory=_Inner)
+
+    def __post_init__(self) -> None:
+        check_options(self, "_Outer")
+
+
+def _error(cls: type, values: object) -> str:
+    with pytest.raises(ConfigError) as e:
+        from_mapping(cls, values, "x")
+    return str(e.value)
+
+
+def test_a_nested_config_is_built_from_its_mapping_with_its_own_checks():
+    assert from_mapping(_Outer, {"inner": {"beams": 16}}, "x.yaml").inner == _Inner(16)
+    assert _Outer(inner=_Inner(8)).inner.beams == 8
+    assert _error(_Outer, {"inner": {"beams": 0}}) == (
+        "x: _Outer: inner: _Inner: beams = 0: must be an integer in [1, 1024]"
+    )
+    assert _error(_Outer, {"inner": {"beam": 16}}).startswith(
+        "x: _Outer: inner: unknown keys ['beam'] (did you mean 'beams'?)"
+    )
+    assert "inner = 3: must be _Inner" in _error(_Outer, {"inner": 3})
+
+
+def test_some_options_are_checked_without_building_the_config():
+    assert check_values(_Config, {"lr": 1, "size": [3, 4]}, "spec") == {"lr": 1.0, "size": (3, 4)}
+    assert check_values(_Config, None, "spec") == {}
+    with pytest.raises(ConfigError, match=r"^spec: _Config: steps = 0: must be an integer in \[1, inf\)$"):
+        check_values(_Config, {"steps": 0}, "spec")
+    with pytest.raises(ConfigError, match=r"^spec: unknown keys \['zzz'\]"):
+        check_values(_Config, {"zzz": 1}, "spec")
+    with pytest.raises(ConfigError, match=r"^spec: must be a mapping of options"):
+        check_values(_Config, [1], "spec")
+
+
+def test_an_unknown_key_names_the_known_key_it_is_closest_to():
+    guessed = "x: unknown keys ['stpes'] (did you mean 'steps'?); known: ["
+    assert _error(_Config, {"stpes": 3}).startswith(guessed)
+    assert _error(_Config, {"zzz": 3}).startswith("x: unknown keys ['zzz']; known: [")

@@ -26,6 +26,7 @@ from phigenesis.data.stages.semantics import (
     label_frame,
 )
 from phigenesis.models import create_model
+from phigenesis.options import ConfigError
 from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 
 CONFIG = SyntheticConfig(
@@ -166,9 +167,9 @@ def test_stage_refuses_a_checkpoint_of_another_model(depth_scene, tmp_path: Path
 
 
 def test_stage_params_are_checked() -> None:
-    with pytest.raises(ValueError, match="unknown rules"):
+    with pytest.raises(ConfigError, match=r"rules\[1\] = 'walls': must be one of 'boxes', 'ground', 'sky'"):
         PseudoSemanticsParams(rules=("boxes", "walls"))
-    with pytest.raises(ValueError, match=r"pseudo_semantics: unknown parameters \['geometry'\]"):
+    with pytest.raises(ConfigError, match=r"^pseudo_semantics: unknown keys \['geometry'\]"):
         PseudoSemanticsParams.from_dict({"geometry": True})
 
 

@@ -44,9 +44,10 @@ from phigenesis.data.shards import (
     atomic_write_bytes,
     fsync_dir,
 )
-from phigenesis.data.sources import make_source
-from phigenesis.data.stages import get_stage
+from phigenesis.data.sources import given, make_source, source_config
+from phigenesis.data.stages import get_stage, stage_params
 from phigenesis.errors import PhiGenesisError, PrepError, describe
+from phigenesis.options import ConfigError, check_options, check_values, from_mapping, option
 
 log = logging.getLogger("phigenesis.prep")
 OnError = Literal["raise", "skip"]
@@ -56,42 +57,91 @@ OnError = Literal["raise", "skip"]
 # Pipeline specs
 
 
+#: The keys of a pipeline spec, of its ``source`` and of each of its stages.
+SPEC_KEYS = ("name", "source", "stages", "output")
+SOURCE_KEYS = ("name", "params")
+STAGE_KEYS = ("name", "params")
+#: Bounds of ``output.shard_max_bytes``: a row goes into a shard whole, so a limit below a row's
+#: size (1 byte, as tests use) gives each row its own shard; a TiB is past any file system's taste.
+MAX_SHARD_BYTES = 2**40
+
+
 @dataclass(frozen=True)
 class StageSpec:
-    name: str
-    params: dict[str, Any] = field(default_factory=dict)
+    """A stage of a spec: its registered name and its parameters as the spec gives them (the
+    stage builds them into its parameter class, :func:`~phigenesis.data.stages.stage_params`)."""
+
+    name: str = option()
+    params: dict[str, Any] = option(factory=dict)
+
+    def __post_init__(self) -> None:
+        check_options(self, "StageSpec")
+        try:
+            stage_params(self.name, self.params)
+        except KeyError as e:
+            raise ConfigError(f"StageSpec: {e.args[0]}") from None
 
 
 @dataclass(frozen=True)
 class PipelineSpec:
     """A declarative pipeline: the source and its default parameters, the stages, the outputs."""
 
-    name: str
-    source: str
-    source_params: dict[str, Any]
-    stages: tuple[StageSpec, ...] = ()
-    contents: CacheContents = CacheContents()
-    shard_max_bytes: int = DEFAULT_SHARD_MAX_BYTES
+    name: str = option()
+    source: str = option()
+    source_params: dict[str, Any] = option(factory=dict)
+    stages: tuple[StageSpec, ...] = option(())
+    contents: CacheContents = option(factory=CacheContents)
+    shard_max_bytes: int = option(DEFAULT_SHARD_MAX_BYTES, ge=1, le=MAX_SHARD_BYTES)
+
+    def __post_init__(self) -> None:
+        check_options(self, "PipelineSpec")
+        try:
+            config = source_config(self.source)
+        except ValueError as e:
+            raise ConfigError(f"PipelineSpec: {e}") from None
+        check_values(config, given(self.source_params), f"PipelineSpec: source {self.source} params")
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], where: str = "pipeline spec") -> PipelineSpec:
+    def from_dict(cls, d: Any, where: str = "pipeline spec") -> PipelineSpec:
+        """The spec a mapping holds (a YAML file's, or a manifest's ``pipeline``), every value
+        checked before any scene is read: the keys of the spec, its source and its stages; the
+        source's parameters against its config's declared types and ranges (the command line
+        completes them, so a required one may be missing here); every stage's parameters built
+        into the stage's parameter class; the outputs into :class:`CacheContents`. Raises
+        :class:`~phigenesis.errors.PrepError` naming ``where``, the stage (its position and name)
+        and the key."""
         try:
-            src = d["source"]
-            out = dict(d.get("output") or {})
-            shard_max = int(out.pop("shard_max_bytes", DEFAULT_SHARD_MAX_BYTES))
-            stages = tuple(StageSpec(s["name"], dict(s.get("params") or {})) for s in d.get("stages") or [])
-            for st in stages:
-                get_stage(st.name)
-            return cls(
-                name=str(d.get("name", src["name"])),
-                source=str(src["name"]),
-                source_params=dict(src.get("params") or {}),
-                stages=stages,
-                contents=CacheContents(**out),
-                shard_max_bytes=shard_max,
-            )
-        except (KeyError, TypeError, ValueError) as e:
-            raise PrepError(f"{where}: invalid pipeline spec ({type(e).__name__}: {e})") from e
+            return cls._from_dict(d, where)
+        except ConfigError as e:
+            raise PrepError(str(e)) from e
+
+    @classmethod
+    def _from_dict(cls, d: Any, where: str) -> PipelineSpec:
+        d = _spec_mapping(d, where, SPEC_KEYS)
+        if d.get("source") is None:
+            raise ConfigError(f"{where}: source is missing (a mapping with name and params)")
+        src = _spec_mapping(d["source"], f"{where}: source", SOURCE_KEYS)
+        source = src.get("name")
+        try:
+            config = source_config(source)
+        except ValueError as e:
+            raise ConfigError(f"{where}: source: {e}") from None
+        source_params = dict(_spec_mapping(src.get("params"), f"{where}: source {source} params"))
+        check_values(config, given(source_params), f"{where}: source {source} params")
+        name = check_values(cls, {"name": d.get("name", source)}, where)["name"]
+        stages = d.get("stages") or []
+        if not isinstance(stages, list):
+            raise ConfigError(f"{where}: stages must be a list of {{name, params}} mappings")
+        out = dict(_spec_mapping(d.get("output"), f"{where}: output"))
+        shard_max_bytes = out.pop("shard_max_bytes", DEFAULT_SHARD_MAX_BYTES)
+        return cls(
+            name=name,
+            source=source,
+            source_params=source_params,
+            stages=tuple(_stage_spec(s, f"{where}: stage {i}") for i, s in enumerate(stages, 1)),
+            contents=from_mapping(CacheContents, out, f"{where}: output"),
+            **check_values(cls, {"shard_max_bytes": shard_max_bytes}, f"{where}: output"),
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -104,6 +154,36 @@ class PipelineSpec:
                 "shard_max_bytes": self.shard_max_bytes,
             },
         }
+
+
+def _spec_mapping(value: Any, where: str, keys: tuple[str, ...] | None = None) -> dict[str, Any]:
+    """``value`` (None: empty) if it is a mapping with string keys among ``keys`` (None: any);
+    otherwise a :class:`ConfigError` naming ``where``."""
+    if value is None:
+        return {}
+    if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+        raise ConfigError(f"{where}: must be a mapping (key: value), got {type(value).__name__}")
+    unknown = sorted(set(value) - set(keys or value))
+    if unknown:
+        raise ConfigError(f"{where}: unknown keys {unknown}; known: {list(keys or ())}")
+    return value
+
+
+def _stage_spec(value: Any, where: str) -> StageSpec:
+    """A stage of a spec, its parameters built (and so checked) by the stage's parameter class
+    first here, so that an error names the stage's position in the spec."""
+    stage = _spec_mapping(value, where, STAGE_KEYS)
+    name = stage.get("name")
+    if not isinstance(name, str):
+        raise ConfigError(f"{where}: name = {name!r}: must be the name of a registered stage")
+    try:
+        get_stage(name)
+    except KeyError as e:
+        raise ConfigError(f"{where}: {e.args[0]}") from None
+    where = f"{where} ({name})"
+    params = _spec_mapping(stage.get("params"), f"{where}: params")
+    stage_params(name, params, where)
+    return StageSpec(name, dict(params))
 
 
 SPEC_SUFFIXES = (".yaml", ".yml")
@@ -573,6 +653,8 @@ def _open_source(
         raise PrepError(f"pipeline {spec.name!r} is for source {spec.source!r}, not {source!r}")
     try:
         src = make_source(source, _merge(spec.source_params, source_overrides or {}))
+    except ConfigError as e:  # names the source, the key, the value and what it allows
+        raise PrepError(str(e)) from e
     except (TypeError, ValueError) as e:
         raise PrepError(f"invalid {source} arguments: {e}") from e
     try:

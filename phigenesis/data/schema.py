@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 import pyarrow as pa
@@ -34,9 +34,11 @@ from phigenesis.data.records import (
     Frame,
     LidarSweep,
 )
+from phigenesis.options import ConfigError, check_options, option
 
 SCHEMA_VERSION = 6
-TRUTH_MAPS = ("depth", "semantic", "instance", "flow")
+TruthMap = Literal["depth", "semantic", "instance", "flow"]
+TRUTH_MAPS: tuple[TruthMap, ...] = get_args(TruthMap)
 
 
 @dataclass(frozen=True)
@@ -56,22 +58,22 @@ class CacheContents:
             ``lidar``: range and intensity are read from the sweep through it).
     """
 
-    camera_truth: tuple[str, ...] = TRUTH_MAPS
-    lidar: bool = True
-    lidar_truth: bool = True
-    camera_labels: bool = True
-    depth: bool = False
-    pseudo_semantics: bool = False
-    range_view: bool = False
-    lidar_range_image: bool = False
+    camera_truth: tuple[TruthMap, ...] = option(TRUTH_MAPS)
+    lidar: bool = option(True)
+    lidar_truth: bool = option(True)
+    camera_labels: bool = option(True)
+    depth: bool = option(False)
+    pseudo_semantics: bool = option(False)
+    range_view: bool = option(False)
+    lidar_range_image: bool = option(False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "camera_truth", tuple(self.camera_truth))
-        unknown = set(self.camera_truth) - set(TRUTH_MAPS)
-        if unknown:
-            raise ValueError(f"unknown camera truth maps {sorted(unknown)}; choose from {TRUTH_MAPS}")
+        check_options(self, "CacheContents")
         if self.lidar_range_image and not self.lidar:
-            raise ValueError("lidar_range_image needs lidar: the range image indexes the stored sweep")
+            raise ConfigError(
+                "CacheContents: lidar_range_image = True: needs lidar = true (the range image indexes the "
+                "stored sweep)"
+            )
 
     def includes(self, group: str | None) -> bool:
         if group is None:

@@ -25,18 +25,42 @@ class Source(Protocol):
 SOURCE_NAMES = ("synthetic", "waymo", "nuscenes")
 
 
-def make_source(name: str, params: dict[str, Any]) -> Source:
-    """The source called ``name`` configured with ``params`` (its ``arguments()`` round-trip)."""
+def source_config(name: str) -> type:
+    """The config class of the source called ``name`` (a dataclass of options,
+    :mod:`phigenesis.options`, with ``from_dict(values, where)``)."""
     if name == "synthetic":
-        from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticSource
+        from phigenesis.data.sources.synthetic import SyntheticConfig
 
-        return SyntheticSource(SyntheticConfig.from_dict(params))
+        return SyntheticConfig
     if name == "waymo":
-        from phigenesis.data.sources.waymo import WaymoConfig, WaymoSource
+        from phigenesis.data.sources.waymo import WaymoConfig
 
-        return WaymoSource(WaymoConfig.from_dict(params))
+        return WaymoConfig
     if name == "nuscenes":
-        from phigenesis.data.sources.nuscenes import NuScenesConfig, NuScenesSource
+        from phigenesis.data.sources.nuscenes import NuScenesConfig
 
-        return NuScenesSource(NuScenesConfig.from_dict(params))
+        return NuScenesConfig
     raise ValueError(f"unknown source {name!r}; available: {', '.join(SOURCE_NAMES)}")
+
+
+def given(values: dict[str, Any]) -> dict[str, Any]:
+    """The source parameters of ``values`` that are given: a null (None) one takes its default."""
+    return {k: v for k, v in values.items() if v is not None}
+
+
+def make_source(name: str, params: dict[str, Any]) -> Source:
+    """The source called ``name`` configured with ``params`` (its ``arguments()`` round-trip); an
+    unknown key or a value outside its type or range is a
+    :class:`~phigenesis.options.ConfigError` naming the source's parameters, the key and the value."""
+    config = source_config(name).from_dict(params)
+    if name == "synthetic":
+        from phigenesis.data.sources.synthetic import SyntheticSource
+
+        return SyntheticSource(config)
+    if name == "waymo":
+        from phigenesis.data.sources.waymo import WaymoSource
+
+        return WaymoSource(config)
+    from phigenesis.data.sources.nuscenes import NuScenesSource
+
+    return NuScenesSource(config)

@@ -1,22 +1,28 @@
 """Pipeline stages: plain functions ``stage(scene, params) -> scene`` with no I/O of their own.
 
 A stage is registered under a name with :func:`register_stage` and referenced by that name in a
-pipeline spec (``pipelines/*.yaml``). Stages that work frame by frame should wrap the scene's
-frames lazily (``LazyFrames.map``) so a scene never sits in memory whole.
+pipeline spec (``pipelines/*.yaml``). A stage declares its parameters as a dataclass of options
+(:mod:`phigenesis.options`: every value's type and range), registered with it; the spec's mapping
+for the stage is built into it when the spec loads (:func:`stage_params`), so a typo or a value
+out of range fails before any scene is read, and the stage function gets the built parameters.
+Stages that work frame by frame should wrap the scene's frames lazily (``LazyFrames.map``) so a
+scene never sits in memory whole.
 """
 
 from __future__ import annotations
 
-import dataclasses
+import functools
 import importlib
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any
 
 from phigenesis.data.records import Scene
+from phigenesis.options import from_mapping
 
-Stage = Callable[[Scene, dict[str, Any]], Scene]
-P = TypeVar("P")
+Stage = Callable[[Scene, Any], Scene]
 STAGES: dict[str, Stage] = {}
+#: The parameter class of each registered stage (None: the stage takes its spec mapping as is).
+STAGE_PARAMS: dict[str, type | None] = {}
 #: Modules of the built-in stages, imported (and so registered) on the first lookup.
 BUILTIN_STAGE_MODULES = (
     "aggregate",
@@ -29,26 +35,49 @@ BUILTIN_STAGE_MODULES = (
 )
 
 
-def register_stage(name: str) -> Callable[[Stage], Stage]:
-    """Decorator registering a stage function under ``name``."""
+def register_stage(name: str, params: type | None = None) -> Callable[[Stage], Stage]:
+    """Decorator registering a stage function under ``name``.
+
+    ``params`` is the dataclass of the stage's parameters, declared with
+    :func:`phigenesis.options.option`; the registered stage then takes either an instance of it
+    or a mapping of its options (a spec's, built with :func:`stage_params`), and the function
+    gets the instance. Without ``params`` the function gets whatever mapping it is given.
+    """
 
     def wrap(fn: Stage) -> Stage:
-        if name in STAGES and STAGES[name] is not fn:
+        registered = STAGES.get(name)
+        if registered is not None and getattr(registered, "__wrapped__", registered) is not fn:
             raise ValueError(f"a stage named {name!r} is already registered")
-        STAGES[name] = fn
-        return fn
+        stage = fn
+        if params is not None:
+
+            @functools.wraps(fn)
+            def stage(scene: Scene, values: Any) -> Scene:
+                return fn(scene, _built(params, values, f"stage {name}"))
+
+        STAGES[name] = stage
+        STAGE_PARAMS[name] = params
+        return stage
 
     return wrap
 
 
-def params_from_dict(cls: type[P], values: dict[str, Any], stage: str) -> P:
-    """A stage's parameter dataclass from a pipeline spec's mapping; unknown keys are an error
-    naming the stage and the known ones."""
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise ValueError(f"{stage}: unknown parameters {unknown}; known: {sorted(known)}")
-    return cls(**values)
+def stage_params(name: str, values: Any, where: str | None = None) -> Any:
+    """The parameters of the stage registered as ``name`` from ``values``: an instance of its
+    parameter class as is, a mapping (None: empty) built with
+    :func:`~phigenesis.options.from_mapping`, or, for a stage registered without a class, the
+    mapping itself. Raises :class:`~phigenesis.options.ConfigError` naming ``where`` (default:
+    the stage), the key, the value and what it allows."""
+    get_stage(name)
+    return _built(STAGE_PARAMS[name], values, where or f"stage {name}")
+
+
+def _built(cls: type | None, values: Any, where: str) -> Any:
+    if cls is None:
+        return {} if values is None else values
+    if isinstance(values, cls):
+        return values
+    return from_mapping(cls, values, where)
 
 
 def get_stage(name: str) -> Stage:

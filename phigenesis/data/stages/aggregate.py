@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,7 +42,8 @@ from phigenesis._open3d import open3d
 from phigenesis.data import taxonomy as tx
 from phigenesis.data.ego_body import camera_centres, check_sensors_outside, lidar_name, lidar_origins
 from phigenesis.data.records import Boxes, LidarSweep, Scene, frame_geometry
-from phigenesis.data.stages import params_from_dict, register_stage
+from phigenesis.data.stages import register_stage
+from phigenesis.options import check_options, from_mapping, option
 
 log = logging.getLogger("phigenesis.prep")
 
@@ -54,7 +55,8 @@ DEFAULT_EGO_BOXES: list[dict[str, list[float]]] = [
     {"center_ego": [1.4, 0.0, 0.5], "size_lwh": [5.0, 2.1, 1.0]}
 ]
 #: How the static map is voxel down-sampled (:func:`voxel_downsample`).
-VOXEL_BACKENDS = ("numpy", "open3d")
+VoxelBackend = Literal["numpy", "open3d"]
+VOXEL_BACKENDS: tuple[VoxelBackend, ...] = get_args(VoxelBackend)
 #: Tile size of the static map's spatial index, metres.
 TILE_M = 8.0
 
@@ -85,29 +87,26 @@ class AggregateParams:
         chunk_sweeps: sweeps gathered before each intermediate voxel down-sampling.
     """
 
-    voxel_m: float = 0.02
-    voxel_backend: str = "numpy"
-    object_voxel_m: float = 0.05
-    object_point_m: float = 0.02
-    object_min_sweeps: int = 2
-    moving_threshold_m: float = 0.5
-    box_scale: float = 1.1
-    box_margin_m: float = 0.15
-    ground_clearance_m: float = 0.1
-    outlier_neighbors: int = 8
-    outlier_std_ratio: float = 3.0
-    ego_margin_m: float = 0.1
-    chunk_sweeps: int = 10
+    voxel_m: float = option(0.02, ge=0, le=10)
+    voxel_backend: VoxelBackend = option("numpy")
+    object_voxel_m: float = option(0.05, ge=0, le=10)
+    object_point_m: float = option(0.02, ge=0, le=10)
+    object_min_sweeps: int = option(2, ge=1, le=10_000)
+    moving_threshold_m: float = option(0.5, ge=0, le=1000)
+    box_scale: float = option(1.1, gt=0, le=10)
+    box_margin_m: float = option(0.15, ge=0, le=100)
+    ground_clearance_m: float = option(0.1, ge=0, le=100)
+    outlier_neighbors: int = option(8, ge=0, le=1000)
+    outlier_std_ratio: float = option(3.0, gt=0, le=100)
+    ego_margin_m: float = option(0.1, ge=0, le=100)
+    chunk_sweeps: int = option(10, ge=1, le=100_000)
 
     def __post_init__(self) -> None:
-        if self.voxel_backend not in VOXEL_BACKENDS:
-            raise ValueError(
-                f"aggregate_lidar: voxel_backend must be one of {VOXEL_BACKENDS}, got {self.voxel_backend!r}"
-            )
+        check_options(self, "AggregateParams")
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> AggregateParams:
-        return params_from_dict(cls, values, "aggregate_lidar")
+        return from_mapping(cls, values, "aggregate_lidar")
 
 
 @dataclass
@@ -565,11 +564,11 @@ def _tile_sort(
     return points[order], unique, np.append(first, len(keys)).astype(np.int64)
 
 
-@register_stage("aggregate_lidar")
-def aggregate_lidar(scene: Scene, params: dict[str, Any]) -> Scene:
+@register_stage("aggregate_lidar", params=AggregateParams)
+def aggregate_lidar(scene: Scene, params: AggregateParams) -> Scene:
     """Stage: aggregates the scene's LiDAR (:func:`aggregate_scene`) into
     ``scene.products["lidar_map"]`` and records its statistics in the scene metadata."""
-    lidar_map = aggregate_scene(scene, AggregateParams.from_dict(params))
+    lidar_map = aggregate_scene(scene, params)
     scene.products["lidar_map"] = lidar_map
     # Timings stay out of the metadata: the rows of a cache must not depend on the machine.
     stats = {k: v for k, v in lidar_map.stats.items() if k != "seconds"}

@@ -162,10 +162,11 @@ from numpy.typing import NDArray
 
 from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import DENSE_ORIGINS, CameraImage, Frame, LazyFrames, Scene
-from phigenesis.data.stages import params_from_dict, register_stage
+from phigenesis.data.stages import register_stage
 from phigenesis.data.stages.aggregate import ego_boxes_of
 from phigenesis.data.stages.densify import REFERENCE_FOCAL_PX, camera_focal_px, check_depth_maps, check_rgb
 from phigenesis.data.stages.project import ego_body_depth, pixel_rays
+from phigenesis.options import ConfigError, check_options, from_mapping, option
 
 log = logging.getLogger("phigenesis.prep")
 
@@ -184,6 +185,15 @@ KIND_NONE, KIND_VERTICAL, KIND_GROUND = 0, 1, 2
 _MODE_GROUND_LINE = 3
 #: Labels of structures that stand (their planes are vertical); see ``line_planes``.
 STANDING_CLASSES = frozenset({tx.BUILDING, tx.WALL, tx.FENCE})
+#: Bounds of the parameters (:class:`CompletionParams`): lengths in reference pixels, areas in
+#: reference pixels squared, and counts of points (a 10^5-pixel image side at most, as every stage).
+MAX_REF_PX = 1e5
+MAX_REF_PX2 = 1e10
+MAX_POINTS = 10**8
+#: The largest distance between two 0-255 RGB colours (255 sqrt 3, rounded up), and the largest
+#: excess green or blue (2 g - r - b).
+MAX_COLOR_DISTANCE = 442.0
+MAX_EXCESS = 510.0
 #: Vehicles: a segment of one no plane explains, of one depth (``vehicle_max_spread``), is the side
 #: or back that faces the camera.
 VEHICLE_CLASSES = frozenset({tx.CAR, tx.TRUCK, tx.BUS, tx.TRAIN})
@@ -282,167 +292,85 @@ class CompletionParams:
         seed: seed of the RANSAC sampling (results are deterministic).
     """
 
-    segment_sigma_ref_px: float = 1.5
-    segment_k_ref_px2: float = 2400.0
-    segment_min_size_ref_px2: float = 160.0
-    merge_color_tol: float = 12.0
-    merge_edge_tol: float = 8.0
-    max_sky_share: float = 0.05
-    min_inliers: int = 12
-    min_inlier_share: float = 0.7
-    min_plane_share: float = 0.25
-    inlier_tol_m: float = 0.05
-    inlier_tol_rel: float = 0.01
-    max_residual_rel: float = 0.01
-    min_height_m: float = 0.3
-    min_height_rel: float = 0.05
-    max_tilt_deg: float = 8.0
-    ground_planes: bool = True
-    sparse_planes: bool = True
-    sparse_min_share: float = 0.5
-    sparse_plane_confidence: float = 0.7
-    line_planes: bool = True
-    climb_columns: bool = True
-    wall_columns: bool = True
-    wall_confidence: float = 0.2
-    wall_min_height_m: float = 1.0
-    min_line_m: float = 1.0
-    crowns: bool = True
-    canopies: bool = True
-    thin_planes: bool = True
-    canopy_min_known_share: float = 0.02
-    vehicle_max_spread: float = 0.05
-    crown_max_spread: float = 0.15
-    crown_confidence: float = 0.2
-    line_confidence: float = 0.5
-    ransac_iterations: int = 32
-    ransac_points: int = 64
-    fit_points: int = 256
-    min_incidence_deg: float = 2.0
-    min_depth_m: float = 0.5
-    max_depth_m: float = 150.0
-    max_extrapolation_ref_px: float = 600.0
-    split_extrapolation_ref_px: float = 30.0
-    hole_confidence: float = 0.7
-    propagate_ground: bool = True
-    min_boundary_ref_px: float = 20.0
-    propagate_color_tol: float = 24.0
-    propagate_confidence: float = 0.5
-    propagate_up: bool = True
-    upward_steps: int = 6
-    upward_boundary_share: float = 0.3
-    upward_min_boundary_ref_px: float = 3.0
-    upward_confidence: float = 0.6
-    upward_max_green: float = 20.0
-    upward_max_blue: float = 40.0
-    upward_max_thing_share: float = 0.02
-    max_thin_width_ref_px: float = 30.0
-    min_thin_aspect: float = 4.0
-    min_thin_height_ref_px: float = 40.0
-    min_thin_known: int = 6
-    min_thin_evidence: float = 0.25
-    min_thin_trusted: int = 1
-    base_band_ref_px: float = 20.0
-    max_confidence: float = 0.45
-    vertical_confidence: float = 0.3
-    conf_distance_ref_px: float = 400.0
-    conf_relative_residual: float = 0.01
-    max_side_px: int = 640
-    seed: int = 0
+    segment_sigma_ref_px: float = option(1.5, ge=0, le=MAX_REF_PX)
+    segment_k_ref_px2: float = option(2400.0, gt=0, le=MAX_REF_PX2)
+    segment_min_size_ref_px2: float = option(160.0, gt=0, le=MAX_REF_PX2)
+    merge_color_tol: float = option(12.0, ge=0, le=MAX_COLOR_DISTANCE)
+    merge_edge_tol: float = option(8.0, ge=0, le=MAX_COLOR_DISTANCE)
+    max_sky_share: float = option(0.05, ge=0, le=1)
+    min_inliers: int = option(12, ge=3, le=MAX_POINTS)
+    min_inlier_share: float = option(0.7, ge=0, le=1)
+    min_plane_share: float = option(0.25, ge=0, le=1)
+    inlier_tol_m: float = option(0.05, gt=0, le=100)
+    inlier_tol_rel: float = option(0.01, ge=0, le=10)
+    max_residual_rel: float = option(0.01, gt=0, le=10)
+    min_height_m: float = option(0.3, ge=0, le=1000)
+    min_height_rel: float = option(0.05, ge=0, le=100)
+    max_tilt_deg: float = option(8.0, ge=0, lt=45)
+    ground_planes: bool = option(True)
+    sparse_planes: bool = option(True)
+    sparse_min_share: float = option(0.5, ge=0, le=1)
+    sparse_plane_confidence: float = option(0.7, ge=0, le=1)
+    line_planes: bool = option(True)
+    climb_columns: bool = option(True)
+    wall_columns: bool = option(True)
+    wall_confidence: float = option(0.2, ge=0, le=1)
+    wall_min_height_m: float = option(1.0, gt=0, le=1000)
+    min_line_m: float = option(1.0, gt=0, le=1000)
+    crowns: bool = option(True)
+    canopies: bool = option(True)
+    thin_planes: bool = option(True)
+    canopy_min_known_share: float = option(0.02, ge=0, le=1)
+    vehicle_max_spread: float = option(0.05, ge=0, le=10)
+    crown_max_spread: float = option(0.15, gt=0, le=10)
+    crown_confidence: float = option(0.2, ge=0, le=1)
+    line_confidence: float = option(0.5, ge=0, le=1)
+    ransac_iterations: int = option(32, ge=1, le=100_000)
+    ransac_points: int = option(64, ge=3, le=MAX_POINTS)
+    fit_points: int = option(256, ge=3, le=MAX_POINTS)
+    min_incidence_deg: float = option(2.0, ge=0, lt=90)
+    min_depth_m: float = option(0.5, ge=0, le=1000)
+    max_depth_m: float = option(150.0, gt=0, le=1000)
+    max_extrapolation_ref_px: float = option(600.0, gt=0, le=MAX_REF_PX)
+    split_extrapolation_ref_px: float = option(30.0, gt=0, le=MAX_REF_PX)
+    hole_confidence: float = option(0.7, ge=0, le=1)
+    propagate_ground: bool = option(True)
+    min_boundary_ref_px: float = option(20.0, ge=0, le=MAX_REF_PX)
+    propagate_color_tol: float = option(24.0, ge=0, le=MAX_COLOR_DISTANCE)
+    propagate_confidence: float = option(0.5, ge=0, le=1)
+    propagate_up: bool = option(True)
+    upward_steps: int = option(6, ge=0, le=1000)
+    upward_boundary_share: float = option(0.3, ge=0, le=1)
+    upward_min_boundary_ref_px: float = option(3.0, ge=0, le=MAX_REF_PX)
+    upward_confidence: float = option(0.6, ge=0, le=1)
+    upward_max_green: float = option(20.0, ge=-MAX_EXCESS, le=MAX_EXCESS)
+    upward_max_blue: float = option(40.0, ge=-MAX_EXCESS, le=MAX_EXCESS)
+    upward_max_thing_share: float = option(0.02, ge=0, le=1)
+    max_thin_width_ref_px: float = option(30.0, gt=0, le=MAX_REF_PX)
+    min_thin_aspect: float = option(4.0, gt=0, le=1000)
+    min_thin_height_ref_px: float = option(40.0, ge=0, le=MAX_REF_PX)
+    min_thin_known: int = option(6, ge=1, le=MAX_POINTS)
+    min_thin_evidence: float = option(0.25, ge=0, le=1)
+    min_thin_trusted: int = option(1, ge=0, le=MAX_POINTS)
+    base_band_ref_px: float = option(20.0, gt=0, le=MAX_REF_PX)
+    max_confidence: float = option(0.45, ge=0, le=1)
+    vertical_confidence: float = option(0.3, ge=0, le=1)
+    conf_distance_ref_px: float = option(400.0, gt=0, le=MAX_REF_PX)
+    conf_relative_residual: float = option(0.01, gt=0, le=10)
+    max_side_px: int = option(640, ge=16, le=100_000)
+    seed: int = option(0, ge=0, le=2**32 - 1)
 
     def __post_init__(self) -> None:
-        shares = (
-            "max_sky_share",
-            "min_inlier_share",
-            "min_plane_share",
-            "min_thin_evidence",
-            "hole_confidence",
-            "propagate_confidence",
-            "upward_boundary_share",
-            "sparse_plane_confidence",
-            "line_confidence",
-            "crown_confidence",
-            "wall_confidence",
-            "canopy_min_known_share",
-            "sparse_min_share",
-            "upward_confidence",
-            "max_confidence",
-            "vertical_confidence",
-        )
-        positive = (
-            "segment_k_ref_px2",
-            "segment_min_size_ref_px2",
-            "inlier_tol_m",
-            "max_residual_rel",
-            "max_depth_m",
-            "max_extrapolation_ref_px",
-            "split_extrapolation_ref_px",
-            "max_thin_width_ref_px",
-            "min_thin_aspect",
-            "base_band_ref_px",
-            "wall_min_height_m",
-            "conf_distance_ref_px",
-            "conf_relative_residual",
-            "min_line_m",
-            "crown_max_spread",
-        )
-        for name in (*shares, *positive, "segment_sigma_ref_px", "merge_color_tol", "merge_edge_tol"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-                raise ValueError(f"complete_depth: {name} must be a finite number, got {value!r}")
-        for name in shares:
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"complete_depth: {name} must be in [0, 1], got {getattr(self, name)}")
-        for name in positive:
-            if getattr(self, name) <= 0:
-                raise ValueError(f"complete_depth: {name} must be positive, got {getattr(self, name)}")
-        nonnegative = (
-            "segment_sigma_ref_px",
-            "merge_color_tol",
-            "merge_edge_tol",
-            "inlier_tol_rel",
-            "min_height_m",
-            "min_height_rel",
-            "min_depth_m",
-            "min_boundary_ref_px",
-            "upward_min_boundary_ref_px",
-            "propagate_color_tol",
-            "min_thin_height_ref_px",
-            "vehicle_max_spread",
-        )
-        for name in nonnegative:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not np.isfinite(value) or value < 0:
-                raise ValueError(f"complete_depth: {name} must be a finite number >= 0, got {value!r}")
-        if not 0.0 <= self.max_tilt_deg < 45.0:
-            raise ValueError(f"complete_depth: max_tilt_deg must be in [0, 45), got {self.max_tilt_deg}")
-        if not 0.0 <= self.min_incidence_deg < 90.0:
-            raise ValueError(
-                f"complete_depth: min_incidence_deg must be in [0, 90), got {self.min_incidence_deg}"
-            )
+        check_options(self, "CompletionParams")
         if self.min_depth_m >= self.max_depth_m:
-            raise ValueError(
-                f"complete_depth: min_depth_m ({self.min_depth_m}) must be below max_depth_m "
+            raise ConfigError(
+                f"CompletionParams: min_depth_m = {self.min_depth_m}: must be below max_depth_m "
                 f"({self.max_depth_m})"
             )
-        for name, least in (
-            ("min_inliers", 3),
-            ("ransac_iterations", 1),
-            ("ransac_points", 3),
-            ("fit_points", 3),
-            ("min_thin_known", 1),
-            ("min_thin_trusted", 0),
-            ("upward_steps", 0),
-            ("max_side_px", 16),
-            ("seed", 0),
-        ):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
-                raise ValueError(f"complete_depth: {name} must be an integer >= {least}, got {value!r}")
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> CompletionParams:
-        return params_from_dict(cls, values, "complete_depth")
+        return from_mapping(cls, values, "complete_depth")
 
 
 @dataclass
@@ -1953,8 +1881,8 @@ class _CameraTables:
     ego: Mask
 
 
-@register_stage("complete_depth")
-def complete_depth(scene: Scene, params: dict[str, Any]) -> Scene:
+@register_stage("complete_depth", params=CompletionParams)
+def complete_depth(scene: Scene, p: CompletionParams) -> Scene:
     """Stage: extends every camera's dense depth where planes and thin vertical structures of its
     image explain it (module docstring); params: the fields of :class:`CompletionParams`.
 
@@ -1965,7 +1893,6 @@ def complete_depth(scene: Scene, params: dict[str, Any]) -> Scene:
     Cameras without a dense depth or an image are left alone; frames are processed lazily when
     the scene's frames are a :class:`LazyFrames`.
     """
-    p = CompletionParams.from_dict(params)
     ego_boxes = ego_boxes_of(scene)
     tables: dict[tuple, _CameraTables] = {}
     warned = False

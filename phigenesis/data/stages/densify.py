@@ -80,7 +80,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -96,6 +96,7 @@ from phigenesis.data.records import (
     dense_origin_of,
 )
 from phigenesis.data.stages import register_stage
+from phigenesis.options import ConfigError, check_options, from_mapping, option
 
 log = logging.getLogger("phigenesis.prep")
 
@@ -107,6 +108,10 @@ DEFAULT_DENSIFIER = "guided"
 DEFAULT_FALLBACK = "ipbasic"
 #: Quadrant radius of the enclosure test, as a multiple of the fill distance.
 ENCLOSURE_FACTOR = 1.5
+#: Default of the stage's ``min_sparse_coverage``: a camera with a sparse depth on fewer of its
+#: pixels than this share (over a scene) is warned about. The synthetic test scenes measure 3-50 %
+#: per camera (16- to 64-beam LiDARs, 60x90 to 96x160 images); a camera the ego body hid, 0 %.
+MIN_SPARSE_COVERAGE = 0.01
 # Stand-ins for 0 and infinity that keep arithmetic finite: masks are applied by multiplying,
 # since np.where is slow on the scattered masks of sparse depth.
 _TINY = np.float32(1e-12)
@@ -133,19 +138,103 @@ Densifier = Callable[..., DenseResult]
 #: The registered methods by name.
 DENSIFIERS: dict[str, Densifier] = {}
 _NEEDS_RGB: set[str] = set()
+Blur = Literal["bilateral", "gaussian", "none"]
+EdgeFilter = Literal["dtf", "fgs"]
+
+
+@dataclass(frozen=True)
+class DensifyParams:
+    """Parameters of the ``densify_depth`` stage: the stage's own, then every method's keyword
+    parameters, each declared once here with its type and range (None: not given, so the method
+    keeps its own default; a method is given only the parameters it takes, and naming one it does
+    not take is an error). ``*_ref_px`` lengths are pixels at :data:`REFERENCE_FOCAL_PX`.
+
+    Attributes:
+        method: the registered method (:data:`DENSIFIERS`) run on every camera.
+        fallback: the method run on a camera without an image when ``method`` needs one (it gets
+            those of the given parameters it takes); it must not need the image.
+        min_confidence: sparse depths below this confidence (depth-edge pixels) seed nothing.
+        min_sparse_coverage: share of a camera's pixels, over the scene, below which its sparse
+            depth is warned about.
+        max_depth_m ... keep_tau: ``ipbasic``'s (see :func:`ipbasic`).
+        window_ref_px, min_spread_px, residual_tol, edge_sigma_ref_px: ``planar``'s plane fits.
+        edge_filter, smooth_ref_px, sigma_color, min_image_support: ``guided``'s image-guided mean.
+        occlusion_ref_px, occlusion_tau: see-through samples dropped (all but ``ipbasic``).
+        max_fill_ref_px, extrapolate_top, conf_distance_ref_px, conf_relative_depth: what every
+            method may fill and the confidence of what it fills (module docstring).
+    """
+
+    method: str = option(DEFAULT_DENSIFIER)
+    fallback: str = option(DEFAULT_FALLBACK)
+    min_confidence: float = option(TRUSTED_DEPTH_CONFIDENCE, ge=0, le=1)
+    min_sparse_coverage: float = option(MIN_SPARSE_COVERAGE, ge=0, le=1)
+    max_depth_m: float | None = option(None, gt=0, le=1000)
+    blur: Blur | None = option(None)
+    dilate_ref_px: float | None = option(None, ge=0, le=1000)
+    close_ref_px: float | None = option(None, ge=0, le=1000)
+    fill_ref_px: float | None = option(None, ge=0, le=1000)
+    blur_ref_px: float | None = option(None, gt=0, le=1000)
+    bilateral_sigma_m: float | None = option(None, gt=0, le=1000)
+    keep_measured: bool | None = option(None)
+    keep_tau: float | None = option(None, ge=0, le=10)
+    window_ref_px: float | None = option(None, ge=0, le=1000)
+    min_spread_px: float | None = option(None, ge=0, le=1000)
+    residual_tol: float | None = option(None, ge=0, le=10)
+    edge_sigma_ref_px: float | None = option(None, gt=0, le=1000)
+    edge_filter: EdgeFilter | None = option(None)
+    smooth_ref_px: float | None = option(None, gt=0, le=1000)
+    sigma_color: float | None = option(None, gt=0, le=1000)
+    min_image_support: float | None = option(None, ge=0, le=1)
+    occlusion_ref_px: float | None = option(None, ge=0, le=1000)
+    occlusion_tau: float | None = option(None, ge=0, le=10)
+    max_fill_ref_px: float | None = option(None, ge=0, le=10_000)
+    extrapolate_top: bool | None = option(None)
+    conf_distance_ref_px: float | None = option(None, gt=0, le=10_000)
+    conf_relative_depth: float | None = option(None, gt=0, le=10)
+
+    def __post_init__(self) -> None:
+        check_options(self, "DensifyParams")
+        for key in ("method", "fallback"):
+            name = getattr(self, key)
+            if name not in DENSIFIERS:
+                known = sorted(DENSIFIERS)
+                raise ConfigError(f"DensifyParams: {key} = {name!r}: must be one of {known}")
+        if needs_rgb(self.fallback):
+            raise ConfigError(f"DensifyParams: fallback = {self.fallback!r}: must not need the image")
+        stage_keys = {"method", "fallback", "min_confidence", "min_sparse_coverage"}
+        given = [f.name for f in dataclasses.fields(self) if f.name not in stage_keys]
+        foreign = [k for k in given if getattr(self, k) is not None and k not in method_params(self.method)]
+        if foreign:
+            raise ConfigError(
+                f"DensifyParams: method {self.method!r} takes no parameters {foreign}; it takes "
+                f"{sorted(method_params(self.method))}"
+            )
+
+    def method_kwargs(self, method: str) -> dict[str, Any]:
+        """The given parameters (not None) that ``method`` takes, as its keyword arguments."""
+        values = {k: getattr(self, k) for k in method_params(method)}
+        return {k: v for k, v in values.items() if v is not None}
 
 
 def register_densifier(name: str, *, needs_rgb: bool = False) -> Callable[[Densifier], Densifier]:
     """Decorator registering a densification method under ``name``.
 
     The method is ``fn(sparse_m, sparse_confidence, rgb, focal_px, *, **params) -> DenseResult``
-    with keyword-only parameters; ``needs_rgb``: it uses the image and raises ValueError when
-    ``rgb`` is None.
+    with keyword-only parameters, each a field of :class:`DensifyParams` (its type and range are
+    declared there, once for every method; ValueError otherwise); ``needs_rgb``: it uses the image
+    and raises ValueError when ``rgb`` is None.
     """
 
     def wrap(fn: Densifier) -> Densifier:
         if name in DENSIFIERS and DENSIFIERS[name] is not fn:
             raise ValueError(f"a densifier named {name!r} is already registered")
+        declared = {f.name for f in dataclasses.fields(DensifyParams)}
+        undeclared = sorted(k for k, _ in _keyword_params(fn) if k not in declared)
+        if undeclared:
+            raise ValueError(
+                f"densifier {name!r}: parameters {undeclared} are not declared in DensifyParams "
+                "(each needs its type and range there)"
+            )
         DENSIFIERS[name] = fn
         if needs_rgb:
             _NEEDS_RGB.add(name)
@@ -181,11 +270,13 @@ def _keyword_params(fn: Densifier) -> tuple[tuple[str, Any], ...]:
 
 
 def check_params(method: str, params: dict[str, Any]) -> None:
-    """Raises ValueError if ``params`` holds a name that ``method`` does not accept."""
+    """Raises :class:`~phigenesis.options.ConfigError` (a ValueError) if ``params`` holds a name
+    that ``method`` does not accept or a value outside its type or range (:class:`DensifyParams`)."""
     accepted = method_params(method)
     unknown = sorted(set(params) - set(accepted))
     if unknown:
-        raise ValueError(f"densifier {method!r}: unknown parameters {unknown}; accepted: {sorted(accepted)}")
+        raise ConfigError(f"densifier {method!r}: unknown parameters {unknown}; accepted: {sorted(accepted)}")
+    from_mapping(DensifyParams, {**params, "method": method}, f"densifier {method!r}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -210,14 +301,29 @@ def densify(
             ValueError).
         focal_px: the camera's focal length in pixels (scales the method's neighbourhoods).
         method: a name in :data:`DENSIFIERS` (an unknown name raises KeyError).
-        params: the method's keyword parameters (an unknown name raises ValueError).
+        params: the method's keyword parameters (an unknown name, or a value outside its type or
+            range in :class:`DensifyParams`, raises :class:`~phigenesis.options.ConfigError`).
 
     Returns:
         The dense depth and its confidence (module docstring). The inputs are never modified:
         methods get read-only views of them.
     """
-    fn = get_densifier(method)
+    get_densifier(method)
     check_params(method, params)
+    return _densify_checked(sparse_m, sparse_confidence, rgb, focal_px, method, params)
+
+
+def _densify_checked(
+    sparse_m: F32,
+    sparse_confidence: F32,
+    rgb: NDArray[np.uint8] | None,
+    focal_px: float,
+    method: str,
+    params: dict[str, Any],
+) -> DenseResult:
+    """:func:`densify` with ``method`` and ``params`` already checked (the stage checks them once
+    per scene, :class:`DensifyParams`, not once per image)."""
+    fn = get_densifier(method)
     sparse, conf = check_depth_maps(sparse_m, sparse_confidence)
     if rgb is not None:
         rgb = check_rgb(rgb, sparse.shape)
@@ -839,12 +945,6 @@ def camera_focal_px(cam: CameraImage) -> float:
     return float(np.sqrt(k[0, 0] * k[1, 1]))
 
 
-#: Default of the stage's ``min_sparse_coverage``: a camera with a sparse depth on fewer of its
-#: pixels than this share (over a scene) is warned about. The synthetic test scenes measure 3-50 %
-#: per camera (16- to 64-beam LiDARs, 60x90 to 96x160 images); a camera the ego body hid, 0 %.
-MIN_SPARSE_COVERAGE = 0.01
-
-
 @dataclass
 class CameraCoverage:
     """Pixel counts of one camera over the frames of a scene seen so far."""
@@ -934,53 +1034,35 @@ class DepthCoverage:
                 )
 
 
-def _try_on_a_tiny_image(method: str, params: dict[str, Any]) -> None:
-    sparse = np.zeros((8, 8), np.float32)
-    sparse[::2, ::2] = 10.0
-    rgb = np.zeros((8, 8, 3), np.uint8) if needs_rgb(method) else None
-    densify(sparse, (sparse > 0).astype(np.float32), rgb, focal_px=100.0, method=method, **params)
-
-
-@register_stage("densify_depth")
-def densify_depth(scene: Scene, params: dict[str, Any]) -> Scene:
+@register_stage("densify_depth", params=DensifyParams)
+def densify_depth(scene: Scene, params: DensifyParams) -> Scene:
     """Fills ``dense_m`` / ``dense_confidence`` / ``dense_origin`` (lidar or densified,
     :func:`~phigenesis.data.records.dense_origin_of`) of every camera that has a :class:`CameraDepth`.
 
-    Params: ``method`` (default :data:`DEFAULT_DENSIFIER`), ``fallback`` (default
-    :data:`DEFAULT_FALLBACK`: what runs on a camera without an image when the method needs one;
-    a warning is logged once per scene), ``min_confidence`` (sparse depths below it, such as
-    pixels at depth edges, are not used as seeds; default
+    Params: :class:`DensifyParams`: ``method`` (default :data:`DEFAULT_DENSIFIER`), ``fallback``
+    (default :data:`DEFAULT_FALLBACK`: what runs on a camera without an image when the method
+    needs one; a warning is logged once per scene), ``min_confidence`` (sparse depths below it,
+    such as pixels at depth edges, are not used as seeds; default
     :data:`~phigenesis.data.records.TRUSTED_DEPTH_CONFIDENCE`), ``min_sparse_coverage`` (share of
     a camera's pixels, over the scene, below which its sparse depth is warned about; default
-    :data:`MIN_SPARSE_COVERAGE`), and the method's own parameters (the fallback gets
-    those of them it accepts); they are tried on a tiny image first, so bad ones fail before
-    any frame loads. Cameras without depth are left alone. Frames are processed lazily when the
+    :data:`MIN_SPARSE_COVERAGE`), and the method's own parameters (the fallback gets those of them
+    it accepts). Cameras without depth are left alone. Frames are processed lazily when the
     scene's frames are a :class:`LazyFrames`.
 
     Once every frame is processed, the per-camera coverage (share of pixels with a sparse and with
     a dense depth) is logged in one line per scene (:class:`DepthCoverage`): log only, as it is
     known only while the shards are written.
     """
-    params = dict(params)
-    method = params.pop("method", DEFAULT_DENSIFIER)
-    fallback = params.pop("fallback", DEFAULT_FALLBACK)
-    min_confidence = float(params.pop("min_confidence", TRUSTED_DEPTH_CONFIDENCE))
-    min_sparse_coverage = float(params.pop("min_sparse_coverage", MIN_SPARSE_COVERAGE))
-    if not 0.0 <= min_sparse_coverage <= 1.0:
-        raise ValueError(f"densify_depth: min_sparse_coverage must be in [0, 1], got {min_sparse_coverage}")
-    if needs_rgb(fallback):
-        raise ValueError(f"densify_depth: the fallback {fallback!r} must not need the image")
-    fallback_params = {k: v for k, v in params.items() if k in method_params(fallback)}
-    # Bad names or values fail here, before any (lazy) frame loads.
-    _try_on_a_tiny_image(method, params)
-    _try_on_a_tiny_image(fallback, fallback_params)
+    method, fallback = params.method, params.fallback
+    method_kwargs, fallback_kwargs = params.method_kwargs(method), params.method_kwargs(fallback)
+    min_confidence, min_sparse_coverage = params.min_confidence, params.min_sparse_coverage
     warned = False
 
     def densify_camera(cam: CameraImage) -> CameraImage:
         nonlocal warned
         if cam.depth is None:
             return cam
-        name, kwargs, rgb = method, params, None
+        name, kwargs, rgb = method, method_kwargs, None
         if needs_rgb(method):
             if cam.image_bytes is None:
                 if not warned:
@@ -992,12 +1074,12 @@ def densify_depth(scene: Scene, params: dict[str, Any]) -> Scene:
                         fallback,
                     )
                     warned = True
-                name, kwargs = fallback, fallback_params
+                name, kwargs = fallback, fallback_kwargs
             else:
                 rgb = cam.decode_image()
         depth = cam.depth
         seeds = np.where(depth.sparse_confidence >= min_confidence, depth.sparse_confidence, 0.0)
-        result = densify(depth.sparse_m, seeds, rgb, focal_px=camera_focal_px(cam), method=name, **kwargs)
+        result = _densify_checked(depth.sparse_m, seeds, rgb, camera_focal_px(cam), name, kwargs)
         dense = dataclasses.replace(
             depth,
             dense_m=result.depth_m,

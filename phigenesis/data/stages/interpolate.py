@@ -69,7 +69,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal, assert_never
+from typing import Any, Literal, assert_never, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -84,15 +84,16 @@ from phigenesis.data.records import (
     Scene,
     frame_geometry,
 )
-from phigenesis.data.stages import ctra, params_from_dict, register_stage
+from phigenesis.data.stages import ctra, register_stage
+from phigenesis.options import ConfigError, check_options, from_mapping, option
 
 log = logging.getLogger("phigenesis.prep")
 
 InterpolationMethod = Literal["ctra", "hermite", "linear", "asap"]
-INTERPOLATION_METHODS: tuple[InterpolationMethod, ...] = ("ctra", "hermite", "linear", "asap")
+INTERPOLATION_METHODS: tuple[InterpolationMethod, ...] = get_args(InterpolationMethod)
 #: What ``ctra`` returns at an annotation's own time (see the module docstring).
 KeyframePose = Literal["model", "annotation"]
-KEYFRAME_POSES: tuple[KeyframePose, ...] = ("model", "annotation")
+KEYFRAME_POSES: tuple[KeyframePose, ...] = get_args(KeyframePose)
 ANNOTATED, INTERPOLATED, EXTRAPOLATED = (BOX_STATUSES.index(s) for s in BOX_STATUSES)
 #: Bits of a search key given to the time (microseconds); the piece index takes the bits above.
 _TIME_BITS = 40
@@ -124,43 +125,28 @@ class InterpolateParams:
             "annotation" (the annotation exactly).
     """
 
-    method: InterpolationMethod = "ctra"
-    extrapolation_s: float = 0.5
-    max_gap_s: float = 1.5
-    stationary_m: float = 0.3
-    stationary_yaw_deg: float = 10.0
-    asap_steps: int = 6
-    half_window: int = 3
-    noise_m: float | None = None
-    yaw_noise_deg: float | None = None
-    keyframe_pose: KeyframePose = "model"
+    method: InterpolationMethod = option("ctra")
+    extrapolation_s: float = option(0.5, ge=0, le=3600)
+    max_gap_s: float = option(1.5, ge=0, le=86_400)
+    stationary_m: float = option(0.3, ge=0, le=1000)
+    stationary_yaw_deg: float = option(10.0, ge=0, le=180)
+    asap_steps: int = option(6, ge=1, le=1000)
+    half_window: int = option(3, ge=1, le=1000)
+    noise_m: float | None = option(None, gt=0, le=100)
+    yaw_noise_deg: float | None = option(None, gt=0, le=180)
+    keyframe_pose: KeyframePose = option("model")
 
     def __post_init__(self) -> None:
-        if self.method not in INTERPOLATION_METHODS:
-            raise ValueError(
-                f"unknown interpolation method {self.method!r}; choose from {INTERPOLATION_METHODS}"
-            )
-        if self.extrapolation_s < 0 or self.stationary_m < 0 or self.stationary_yaw_deg < 0:
-            raise ValueError("extrapolation_s, stationary_m and stationary_yaw_deg must be >= 0")
+        check_options(self, "InterpolateParams")
         if self.max_gap_s < 2 * self.extrapolation_s:
-            raise ValueError(
-                f"max_gap_s ({self.max_gap_s}) must be at least twice extrapolation_s "
+            raise ConfigError(
+                f"InterpolateParams: max_gap_s = {self.max_gap_s}: must be at least twice extrapolation_s "
                 f"({self.extrapolation_s}) so the pieces of a track never overlap in time"
             )
-        if self.asap_steps < 1:
-            raise ValueError(f"asap_steps must be >= 1, got {self.asap_steps}")
-        if self.half_window < 1:
-            raise ValueError(f"half_window must be >= 1, got {self.half_window}")
-        for name in ("noise_m", "yaw_noise_deg"):
-            value = getattr(self, name)
-            if value is not None and not value > 0:
-                raise ValueError(f"{name} must be > 0 or None (estimated), got {value}")
-        if self.keyframe_pose not in KEYFRAME_POSES:
-            raise ValueError(f"keyframe_pose must be one of {KEYFRAME_POSES}, got {self.keyframe_pose!r}")
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> InterpolateParams:
-        return params_from_dict(cls, values, "interpolate_boxes")
+        return from_mapping(cls, values, "interpolate_boxes")
 
 
 def interpolate_boxes_at(
@@ -754,12 +740,11 @@ class _FrameBoxes:
         return frame
 
 
-@register_stage("interpolate_boxes")
-def interpolate_boxes(scene: Scene, params: dict[str, Any]) -> Scene:
+@register_stage("interpolate_boxes", params=InterpolateParams)
+def interpolate_boxes(scene: Scene, p: InterpolateParams) -> Scene:
     """Stage: boxes at every frame's time (``frame.boxes``) and every image's own time
     (``camera.boxes``) from ``scene.keyframes`` (see the module docstring); lazy per frame. A
     scene without keyframes (every frame carries its own boxes) passes through unchanged."""
-    p = InterpolateParams.from_dict(params)
     if not scene.keyframes:
         log.info("scene %s: interpolate_boxes skipped: the scene has no keyframes", scene.scene_id)
         return scene

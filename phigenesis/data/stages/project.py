@@ -37,7 +37,7 @@ from __future__ import annotations
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -48,7 +48,7 @@ from phigenesis.data import taxonomy as tx
 from phigenesis.data.ego_body import camera_centres, check_sensors_outside
 from phigenesis.data.rangeview import undistorted_pixel_rays
 from phigenesis.data.records import DEPTH_ORIGINS, CameraDepth, CameraImage, Frame, LazyFrames, Scene
-from phigenesis.data.stages import params_from_dict, register_stage
+from phigenesis.data.stages import register_stage
 from phigenesis.data.stages.aggregate import (
     TILE_M,
     LidarMap,
@@ -59,11 +59,13 @@ from phigenesis.data.stages.aggregate import (
     lidar_angular_step,
     sweep_dt_s,
 )
+from phigenesis.options import ConfigError, check_options, from_mapping, option
 
 log = logging.getLogger("phigenesis.prep")
 
-VISIBILITY_TESTS = ("splat", "local_min", "none")
-ESTIMATORS = ("plane", "nearest_centre")
+Visibility = Literal["splat", "local_min", "none"]
+Estimator = Literal["plane", "nearest_centre"]
+MixedPixels = Literal["drop", "keep"]
 ORIGIN_WEIGHT = {"static_map": 1.0, "single_sweep": 1.0, "non_rigid_object": 0.9, "rigid_object": 0.8}
 ORIGIN_CODE = {name: i for i, name in enumerate(DEPTH_ORIGINS)}
 #: ORIGIN_WEIGHT indexed by origin code (0 for "none").
@@ -137,66 +139,55 @@ class ProjectParams:
         use_map: project the aggregated map when the scene has one (False: own sweep only).
     """
 
-    visibility: str = "splat"
-    tau: float = 0.05
-    slack_m: float = 0.1
-    window: int = 7
-    splat_scale: float = 0.75
-    max_splat_px: int = 12
-    max_range_m: float = 120.0
-    min_depth_m: float = 0.5
-    sweep_spacing_rad: float | None = None
-    object_spacing_m: float = 0.02
-    elevation_margin_deg: float = 0.5
-    top_band_deg: float = 1.5
-    top_bin_deg: float = 0.5
-    vehicle_occluders: bool = True
-    occluder_shrink: float = 0.9
-    occluder_clearance_m: float = 0.35
-    person_core: float = 0.8
-    supersample: int | None = None
-    max_offset_px: float = 1.0
-    estimator: str = "plane"
-    plane_min_points: int = 4
-    fit_window_px: int = 2
-    window_tolerance_m: float = 0.05
-    window_tolerance_rel: float = 0.005
-    fit_tolerance_m: float = 0.1
-    fit_tolerance_rel: float = 0.01
-    mixed_pixels: str = "drop"
-    edge_band_px: int = 4
-    edge_tolerance_rel: float = 0.1
-    edge_tolerance_m: float = 0.3
-    edge_min_share: float = 0.05
-    edge_near_band_px: int | None = None
-    edge_confidence: float = 0.25
-    image_edge_threshold: float | None = 150.0
-    thin: bool = True
-    threads: int = 2
-    thin_points_per_cell: float = 9.0
-    use_map: bool = True
+    visibility: Visibility = option("splat")
+    tau: float = option(0.05, ge=0, le=10)
+    slack_m: float = option(0.1, ge=0, le=100)
+    window: int = option(7, ge=1, le=255)
+    splat_scale: float = option(0.75, ge=0, le=100)
+    max_splat_px: int = option(12, ge=0, le=10_000)
+    max_range_m: float = option(120.0, gt=0, le=1000)
+    min_depth_m: float = option(0.5, ge=0, le=1000)
+    sweep_spacing_rad: float | None = option(None, gt=0, le=1)
+    object_spacing_m: float = option(0.02, ge=0, le=10)
+    elevation_margin_deg: float = option(0.5, ge=-90, le=90)
+    top_band_deg: float = option(1.5, ge=0, le=90)
+    top_bin_deg: float = option(0.5, gt=0, le=90)
+    vehicle_occluders: bool = option(True)
+    occluder_shrink: float = option(0.9, gt=0, le=10)
+    occluder_clearance_m: float = option(0.35, ge=0, le=100)
+    person_core: float = option(0.8, ge=0, le=1)
+    supersample: int | None = option(None, ge=1, le=15)
+    max_offset_px: float = option(1.0, ge=0, le=100)
+    estimator: Estimator = option("plane")
+    plane_min_points: int = option(4, ge=3, le=10_000)
+    fit_window_px: int = option(2, ge=0, le=100)
+    window_tolerance_m: float = option(0.05, ge=0, le=100)
+    window_tolerance_rel: float = option(0.005, ge=0, le=10)
+    fit_tolerance_m: float = option(0.1, ge=0, le=100)
+    fit_tolerance_rel: float = option(0.01, ge=0, le=10)
+    mixed_pixels: MixedPixels = option("drop")
+    edge_band_px: int = option(4, ge=0, le=1000)
+    edge_tolerance_rel: float = option(0.1, ge=0, le=10)
+    edge_tolerance_m: float = option(0.3, ge=0, le=100)
+    edge_min_share: float = option(0.05, ge=0, le=1)
+    edge_near_band_px: int | None = option(None, ge=0, le=1000)
+    edge_confidence: float = option(0.25, ge=0, le=1)
+    image_edge_threshold: float | None = option(150.0, ge=0, le=10_000)
+    thin: bool = option(True)
+    threads: int = option(2, ge=1, le=256)
+    thin_points_per_cell: float = option(9.0, gt=0, le=10_000)
+    use_map: bool = option(True)
 
     def __post_init__(self) -> None:
-        if self.visibility not in VISIBILITY_TESTS:
-            raise ValueError(
-                f"project_depth: visibility must be one of {VISIBILITY_TESTS}, got {self.visibility!r}"
-            )
-        if self.supersample is not None and (self.supersample < 1 or self.supersample % 2 == 0):
-            raise ValueError(
-                f"project_depth: supersample must be a positive odd number, got {self.supersample}"
-            )
-        if self.estimator not in ESTIMATORS:
-            raise ValueError(f"project_depth: estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
-        if self.mixed_pixels not in ("drop", "keep"):
-            raise ValueError(
-                f"project_depth: mixed_pixels must be 'drop' or 'keep', got {self.mixed_pixels!r}"
-            )
-        if self.window < 1 or self.window % 2 == 0:
-            raise ValueError(f"project_depth: window must be a positive odd number, got {self.window}")
+        check_options(self, "ProjectParams")
+        if self.supersample is not None and self.supersample % 2 == 0:
+            raise ConfigError(f"ProjectParams: supersample = {self.supersample}: must be odd")
+        if self.window % 2 == 0:
+            raise ConfigError(f"ProjectParams: window = {self.window}: must be odd")
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> ProjectParams:
-        return params_from_dict(cls, values, "project_depth")
+        return from_mapping(cls, values, "project_depth")
 
 
 @dataclass
@@ -1015,11 +1006,11 @@ class _Projector:
         return frame
 
 
-@register_stage("project_depth")
-def project_depth(scene: Scene, params: dict[str, Any]) -> Scene:
+@register_stage("project_depth", params=ProjectParams)
+def project_depth(scene: Scene, params: ProjectParams) -> Scene:
     """Stage: sparse depth and confidence for every image (see the module docstring); uses the
     aggregated map from ``aggregate_lidar`` when it ran, else each frame's own sweep."""
-    projector = _Projector(scene, ProjectParams.from_dict(params))
+    projector = _Projector(scene, params)
     if isinstance(scene.frames, LazyFrames):
         scene.frames = scene.frames.map(projector)
     else:

@@ -11,14 +11,14 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, get_args
 
 import numpy as np
 
 from phigenesis.data.lidar_range import estimate_columns, lidar_range_image
 from phigenesis.data.rangeview import Align, range_view_layout
 from phigenesis.data.records import Frame, LazyFrames, Scene, frame_geometry
-from phigenesis.data.stages import params_from_dict, register_stage
+from phigenesis.data.stages import register_stage
+from phigenesis.options import check_options, option
 
 
 @dataclass(frozen=True)
@@ -29,7 +29,10 @@ class RangeViewParams:
         align: "horizon" (views' horizons on one row) or "top" (all views at row 0).
     """
 
-    align: Align = "horizon"
+    align: Align = option("horizon")
+
+    def __post_init__(self) -> None:
+        check_options(self, "RangeViewParams")
 
 
 @dataclass(frozen=True)
@@ -45,9 +48,12 @@ class LidarRangeParams:
         lidar_id: which LiDAR of the sweep (0 = the first; Waymo's TOP).
     """
 
-    beams: int | None = None
-    columns: int | None = None
-    lidar_id: int = 0
+    beams: int | None = option(None, ge=1, le=10_000)
+    columns: int | None = option(None, ge=1, le=100_000)
+    lidar_id: int = option(0, ge=0, le=255)
+
+    def __post_init__(self) -> None:
+        check_options(self, "LidarRangeParams")
 
 
 def _map_frames(scene: Scene, fn: Callable[[Frame], Frame]) -> Scene:
@@ -57,16 +63,13 @@ def _map_frames(scene: Scene, fn: Callable[[Frame], Frame]) -> Scene:
     return scene
 
 
-@register_stage("range_view")
-def range_view(scene: Scene, params: dict[str, Any]) -> Scene:
+@register_stage("range_view", params=RangeViewParams)
+def range_view(scene: Scene, p: RangeViewParams) -> Scene:
     """Sets ``Frame.range_view`` (the layout of the frame's cameras) on every frame.
 
     Params: :class:`RangeViewParams`. A frame missing a camera (nuScenes' dropped sweeps) gets the
     layout of the cameras it has.
     """
-    p = params_from_dict(RangeViewParams, params, "range_view")
-    if p.align not in get_args(Align):  # fails before any frame loads
-        raise ValueError(f"range_view: align must be one of {get_args(Align)}, got {p.align!r}")
 
     def attach(frame: Frame) -> Frame:
         if not frame.cameras:
@@ -77,14 +80,13 @@ def range_view(scene: Scene, params: dict[str, Any]) -> Scene:
     return _map_frames(scene, attach)
 
 
-@register_stage("lidar_range_image")
-def lidar_range_image_stage(scene: Scene, params: dict[str, Any]) -> Scene:
+@register_stage("lidar_range_image", params=LidarRangeParams)
+def lidar_range_image_stage(scene: Scene, p: LidarRangeParams) -> Scene:
     """Sets ``Frame.lidar_range_image`` on every frame with a sweep.
 
     Params: :class:`LidarRangeParams`; the shape left open is taken from the first frame's sweep
     (read once, geometry only), so every frame of a scene has the same shape.
     """
-    p = params_from_dict(LidarRangeParams, params, "lidar_range_image")
     if not len(scene.frames):
         return scene
     beams, columns = p.beams, p.columns

@@ -37,7 +37,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal, get_args
 
 import cv2
 import numpy as np
@@ -54,16 +54,18 @@ from phigenesis.data.records import (
     LazyFrames,
     Scene,
 )
-from phigenesis.data.stages import params_from_dict, register_stage
+from phigenesis.data.stages import register_stage
 from phigenesis.data.stages.densify import sweep_sparse_depth
 from phigenesis.data.stages.project import pixel_rays
+from phigenesis.options import check_options, from_mapping, option
 
 if TYPE_CHECKING:  # torch is imported only when a segmenter runs (pipelines without one skip it)
     import torch
 
 log = logging.getLogger("phigenesis.prep")
 
-RULES = ("boxes", "ground", "sky")
+Rule = Literal["boxes", "ground", "sky"]
+RULES: tuple[Rule, ...] = get_args(Rule)
 SOURCE = {name: i for i, name in enumerate(PSEUDO_SOURCES)}
 #: Confidence of each geometric rule's labels ("sky_above": above the LiDAR's field).
 RULE_CONFIDENCE = {"box": 0.9, "ground_plane": 0.8, "sky": 0.9, "sky_above": 0.7}
@@ -105,36 +107,31 @@ class PseudoSemanticsParams:
         seed: seed of the RANSAC plane fit.
     """
 
-    checkpoint: str | None = None
-    model: str | None = None
-    rules: tuple[str, ...] = RULES
-    input_height: int | None = None
-    device: str = "cpu"
-    box_margin_m: float = 0.1
-    box_clearance_m: float = 0.1
-    ground_tolerance_m: float = 0.06
-    ground_tolerance_rel: float = 0.002
-    ground_max_range_m: float = 40.0
-    ground_fit_range_m: float = 30.0
-    ground_fit_height_m: float = 0.5
-    ground_seed_half_width_m: float = 3.0
-    sky_min_elevation_deg: float = 0.5
-    sky_bin_deg: float = 1.0
-    keep_segmenter_above: float = 0.9
-    sky_keep_segmenter_above: float = 0.5
-    seed: int = 0
+    checkpoint: str | None = option(None)
+    model: str | None = option(None)
+    rules: tuple[Rule, ...] = option(RULES)
+    input_height: int | None = option(None, ge=8, le=100_000)
+    device: str = option("cpu")
+    box_margin_m: float = option(0.1, ge=0, le=100)
+    box_clearance_m: float = option(0.1, ge=0, le=100)
+    ground_tolerance_m: float = option(0.06, ge=0, le=100)
+    ground_tolerance_rel: float = option(0.002, ge=0, le=10)
+    ground_max_range_m: float = option(40.0, gt=0, le=1000)
+    ground_fit_range_m: float = option(30.0, gt=0, le=1000)
+    ground_fit_height_m: float = option(0.5, gt=0, le=100)
+    ground_seed_half_width_m: float = option(3.0, ge=0, le=1000)
+    sky_min_elevation_deg: float = option(0.5, ge=-90, le=90)
+    sky_bin_deg: float = option(1.0, gt=0, le=90)
+    keep_segmenter_above: float = option(0.9, ge=0, le=1)
+    sky_keep_segmenter_above: float = option(0.5, ge=0, le=1)
+    seed: int = option(0, ge=0, le=2**32 - 1)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "rules", tuple(self.rules))
-        unknown = set(self.rules) - set(RULES)
-        if unknown:
-            raise ValueError(f"pseudo_semantics: unknown rules {sorted(unknown)}; choose from {RULES}")
-        if self.input_height is not None and self.input_height < 8:
-            raise ValueError(f"pseudo_semantics: input_height must be >= 8, got {self.input_height}")
+        check_options(self, "PseudoSemanticsParams")
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> PseudoSemanticsParams:
-        return params_from_dict(cls, values, "pseudo_semantics")
+        return from_mapping(cls, values, "pseudo_semantics")
 
 
 # --------------------------------------------------------------------------------------------
@@ -558,12 +555,11 @@ def label_frame(
     return dataclasses.replace(frame, cameras=cameras)
 
 
-@register_stage("pseudo_semantics")
-def pseudo_semantics(scene: Scene, params: dict[str, Any]) -> Scene:
+@register_stage("pseudo_semantics", params=PseudoSemanticsParams)
+def pseudo_semantics(scene: Scene, p: PseudoSemanticsParams) -> Scene:
     """Stage: pseudo-semantic labels for every image (see the module docstring). Runs after the
     depth stages when they are in the pipeline (it uses their depth); frames are labelled lazily
     when the scene's frames are a :class:`LazyFrames`."""
-    p = PseudoSemanticsParams.from_dict(params)
     segmenter = None
     if p.checkpoint is not None:
         segmenter = Segmenter.load(p.checkpoint, p.model, p.input_height, p.device)

@@ -53,7 +53,7 @@ import fnmatch
 import logging
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import Any, TypeVar
@@ -74,9 +74,11 @@ from phigenesis.data.records import (
     Scene,
     increasing_frames,
 )
+from phigenesis.data.sources import given
 from phigenesis.data.sources.nuscenes import convert
 from phigenesis.data.sources.nuscenes.convert import OnError, Problems
 from phigenesis.data.sources.nuscenes.tables import NuScenesError, NuScenesTables, Record
+from phigenesis.options import ConfigError, check_options, from_mapping, option
 
 SOURCE_NAME = "nuscenes"
 LIDAR_CHANNEL = "LIDAR_TOP"
@@ -108,26 +110,22 @@ class NuScenesConfig:
         lead_camera: the camera whose sweeps define the 12 Hz steps.
     """
 
-    dataroot: str
-    version: str = "v1.0-mini"
-    scenes: tuple[str, ...] = ()
-    on_error: OnError = "raise"
-    lead_camera: str = "CAM_FRONT"
+    dataroot: str = option()
+    version: str = option("v1.0-mini")
+    scenes: tuple[str, ...] = option(())
+    on_error: OnError = option("raise")
+    lead_camera: str = option("CAM_FRONT")
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "scenes", tuple(self.scenes or ()))
-        if self.on_error not in ("raise", "skip"):
-            raise ValueError(f"on_error must be 'raise' or 'skip', got {self.on_error!r}")
+        check_options(self, "NuScenesConfig")
+        if not self.dataroot:
+            raise ConfigError("NuScenesConfig: the nuscenes source needs a dataroot (--dataroot)")
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> NuScenesConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown nuscenes source parameters {unknown}; known: {sorted(known)}")
-        if not values.get("dataroot"):
-            raise ValueError("the nuscenes source needs a dataroot (--dataroot)")
-        return cls(**{k: v for k, v in values.items() if v is not None})
+    def from_dict(cls, values: dict[str, Any], where: str = "nuscenes source parameters") -> NuScenesConfig:
+        """The config from plain values (None: the default); a missing dataroot, an unknown key or
+        a value outside its type is a :class:`~phigenesis.options.ConfigError` naming ``where``."""
+        return from_mapping(cls, {"dataroot": "", **given(values)}, where)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

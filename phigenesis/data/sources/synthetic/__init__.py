@@ -11,7 +11,7 @@ as Waymo's and nuScenes' cameras do), so every image has its own timestamp and e
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass
 from functools import cached_property
 from typing import Any
 
@@ -27,15 +27,17 @@ from phigenesis.data.records import (
     Scene,
     encode_rgb,
 )
+from phigenesis.data.sources import given
 from phigenesis.data.sources.synthetic import meshes
 from phigenesis.data.sources.synthetic.renderer import Renderer
 from phigenesis.data.sources.synthetic.rigs import (
     RIG_FRAME_RATE_HZ,
-    RIGS,
     LidarSpec,
+    RigName,
     camera_calibrations,
 )
 from phigenesis.data.sources.synthetic.world import World, build_world
+from phigenesis.options import check_options, from_mapping, option
 
 SOURCE_NAME = "synthetic"
 #: The ego car's body as boxes in the ego frame (what the cameras and LiDAR may see of it),
@@ -74,32 +76,23 @@ class SyntheticConfig:
         start_micros: timestamp of each scene's first frame.
     """
 
-    scenes: int = 2
-    frames: int = 40
-    seed: int = 0
-    rig: str = "waymo5"
-    height: int = 160
-    width: int = 240
-    uniform_image_size: bool = True
-    frame_rate_hz: float | None = None
-    lidar: LidarSpec = field(default_factory=LidarSpec)
-    jpeg_quality: int = 95
-    ego_body: bool = True
-    shadows: bool = True
-    box_range_m: float = 80.0
-    start_micros: int = 1_600_000_000_000_000
+    scenes: int = option(2, ge=1, le=1_000_000)
+    frames: int = option(40, ge=1, le=100_000)
+    seed: int = option(0, ge=0, le=2**32 - 1)
+    rig: RigName = option("waymo5")
+    height: int = option(160, ge=8, le=100_000)
+    width: int = option(240, ge=8, le=100_000)
+    uniform_image_size: bool = option(True)
+    frame_rate_hz: float | None = option(None, gt=0, le=1000)
+    lidar: LidarSpec = option(factory=LidarSpec)
+    jpeg_quality: int = option(95, ge=1, le=100)
+    ego_body: bool = option(True)
+    shadows: bool = option(True)
+    box_range_m: float = option(80.0, gt=0, le=1000)
+    start_micros: int = option(1_600_000_000_000_000, ge=0, le=2**62)
 
     def __post_init__(self) -> None:
-        if self.rig not in RIGS:
-            raise ValueError(f"unknown rig {self.rig!r}; choose one of {sorted(RIGS)}")
-        if self.scenes < 1 or self.frames < 1:
-            raise ValueError(
-                f"need at least one scene and one frame, got scenes={self.scenes} frames={self.frames}"
-            )
-        if self.height < 8 or self.width < 8:
-            raise ValueError(f"image size {self.height}x{self.width} is too small (minimum 8x8)")
-        if isinstance(self.lidar, dict):
-            object.__setattr__(self, "lidar", LidarSpec(**self.lidar))
+        check_options(self, "SyntheticConfig")
 
     @property
     def rate_hz(self) -> float:
@@ -109,20 +102,11 @@ class SyntheticConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> SyntheticConfig:
-        """A config from plain values (as in a pipeline spec); unknown keys are an error."""
-        values = dict(values)
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown synthetic source parameters {unknown}; known: {sorted(known)}")
-        if isinstance(values.get("lidar"), dict):
-            lidar_known = {f.name for f in fields(LidarSpec)}
-            bad = sorted(set(values["lidar"]) - lidar_known)
-            if bad:
-                raise ValueError(f"unknown LiDAR parameters {bad}; known: {sorted(lidar_known)}")
-            values["lidar"] = LidarSpec(**values["lidar"])
-        return cls(**values)
+    def from_dict(cls, values: dict[str, Any], where: str = "synthetic source parameters") -> SyntheticConfig:
+        """A config from plain values (as in a pipeline spec, ``lidar`` a mapping of
+        :class:`LidarSpec`'s; None: the default); an unknown key or a value outside its type or
+        range is a :class:`~phigenesis.options.ConfigError` naming ``where``."""
+        return from_mapping(cls, given(values), where)
 
     def scene_ids(self) -> list[str]:
         return [f"synthetic-s{self.seed}-{i:04d}" for i in range(self.scenes)]

@@ -8,15 +8,16 @@ rigs closely enough for the geometry to be realistic; image sizes are configurab
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
 from phigenesis import geometry
 from phigenesis.data.records import CameraCalibration
+from phigenesis.options import ConfigError, check_options, option
 
 RigName = Literal["waymo5", "nuscenes6"]
-RIG_NAMES: tuple[RigName, ...] = ("waymo5", "nuscenes6")
+RIG_NAMES: tuple[RigName, ...] = get_args(RigName)
 
 BODY_FROM_OPENCV = geometry.BODY_FROM_OPENCV
 
@@ -110,24 +111,27 @@ class LidarSpec:
         sectors: the sweep is ray cast in this many time slices; a point's time is its slice's time.
     """
 
-    beams: int = 64
-    columns: int = 1024
-    inclination_top_deg: float = 2.5
-    inclination_bottom_deg: float = -22.0
-    inclination_warp: float = 1.6
-    position_m: tuple[float, float, float] = (1.2, 0.0, 2.15)
-    max_range_m: float = 75.0
-    min_range_m: float = 1.0
-    range_noise_m: float = 0.02
-    dropout: float = 0.01
-    sectors: int = 16
+    beams: int = option(64, ge=1, le=1024)
+    columns: int = option(1024, ge=1, le=100_000)
+    inclination_top_deg: float = option(2.5, ge=-90, le=90)
+    inclination_bottom_deg: float = option(-22.0, ge=-90, le=90)
+    inclination_warp: float = option(1.6, gt=0, le=100)
+    position_m: tuple[float, float, float] = option((1.2, 0.0, 2.15), ge=-100, le=100)
+    max_range_m: float = option(75.0, gt=0, le=1000)
+    min_range_m: float = option(1.0, ge=0, le=1000)
+    range_noise_m: float = option(0.02, ge=0, le=10)
+    dropout: float = option(0.01, ge=0, le=1)
+    sectors: int = option(16, ge=1, le=100_000)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "position_m", tuple(float(x) for x in self.position_m))
-        if self.beams < 1 or self.columns < self.sectors or self.sectors < 1:
-            raise ValueError(
-                "LiDAR needs beams >= 1 and columns >= sectors >= 1, got "
-                f"beams={self.beams}, columns={self.columns}, sectors={self.sectors}"
+        check_options(self, "LidarSpec")
+        if self.columns < self.sectors:
+            raise ConfigError(
+                f"LidarSpec: columns = {self.columns}: must be at least sectors ({self.sectors})"
+            )
+        if self.min_range_m >= self.max_range_m:
+            raise ConfigError(
+                f"LidarSpec: min_range_m = {self.min_range_m}: must be below max_range_m ({self.max_range_m})"
             )
 
     def inclinations_rad(self) -> np.ndarray:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import fnmatch
 import re
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import Any, Literal
@@ -42,6 +42,7 @@ from phigenesis.data.records import (
     check_frame_times,
     increasing_frames,
 )
+from phigenesis.data.sources import given
 from phigenesis.data.sources.waymo import convert
 from phigenesis.data.sources.waymo.raw import (
     FRAMES_LEFT_OUT,
@@ -51,6 +52,7 @@ from phigenesis.data.sources.waymo.raw import (
     RawFrame,
     WaymoFormatError,
 )
+from phigenesis.options import ConfigError, check_options, from_mapping, option
 
 SOURCE_NAME = "waymo"
 WaymoFormat = Literal["auto", "v1", "v2"]
@@ -71,29 +73,23 @@ class WaymoConfig:
             invalid frame, camera image, LiDAR or box and counts it (``Scene.dropped``).
     """
 
-    input: str
-    split: str | None = None
-    segments: tuple[str, ...] = ()
-    format: WaymoFormat = "auto"
-    check_crc: bool = True
-    on_error: OnError = "raise"
+    input: str = option()
+    split: str | None = option(None)
+    segments: tuple[str, ...] = option(())
+    format: WaymoFormat = option("auto")
+    check_crc: bool = option(True)
+    on_error: OnError = option("raise")
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "segments", tuple(self.segments or ()))
-        if self.format not in ("auto", "v1", "v2"):
-            raise ValueError(f"format must be auto, v1 or v2, got {self.format!r}")
-        if self.on_error not in ("raise", "skip"):
-            raise ValueError(f"on_error must be 'raise' or 'skip', got {self.on_error!r}")
+        check_options(self, "WaymoConfig")
+        if not self.input:
+            raise ConfigError("WaymoConfig: the waymo source needs an input path (--input)")
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> WaymoConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown waymo source parameters {unknown}; known: {sorted(known)}")
-        if not values.get("input"):
-            raise ValueError("the waymo source needs an input path (--input)")
-        return cls(**{k: v for k, v in values.items() if v is not None})
+    def from_dict(cls, values: dict[str, Any], where: str = "waymo source parameters") -> WaymoConfig:
+        """The config from plain values (None: the default); a missing input, an unknown key or a
+        value outside its type is a :class:`~phigenesis.options.ConfigError` naming ``where``."""
+        return from_mapping(cls, {"input": "", **given(values)}, where)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
