@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import re
 import sys
 from collections.abc import Callable, Sequence
@@ -77,6 +78,23 @@ def positive(value: str) -> int:
     if n < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
     return n
+
+
+def positive_float(value: str) -> float:
+    """argparse type: a finite number above 0."""
+    x = float(value)
+    if not (math.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {value}")
+    return x
+
+
+def time_after_frame_s(value: str) -> float:
+    """argparse type: seconds after a frame, finite and within a day either way (a time further off
+    overflows the microsecond clock or is a typo)."""
+    x = float(value)
+    if not (math.isfinite(x) and abs(x) <= 86_400):
+        raise argparse.ArgumentTypeError(f"must be seconds within [-86400, 86400], got {value}")
+    return x
 
 
 def unit_interval(value: str) -> float:

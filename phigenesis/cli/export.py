@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from phigenesis.cli.common import Parser, run
+from phigenesis.cli.common import Parser, run, time_after_frame_s
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -20,7 +20,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frame", type=int, required=True, help="frame index (within --scene, else in the cache)")
     p.add_argument("--scene", help="scene id (default: --frame counts over the whole cache)")
     p.add_argument("--out", required=True, help="output .ply path")
-    p.add_argument("--t-s", type=float, help="place moving Gaussians at this time (s after the frame)")
+    p.add_argument(
+        "--t-s", type=time_after_frame_s, help="place moving Gaussians at this time (s after the frame)"
+    )
     p.add_argument(
         "--sh-degree", type=int, default=3, choices=(0, 1, 2, 3), help="SH bands written (default 3)"
     )

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from phigenesis.cli.common import Parser, positive, run, size_hw
+from phigenesis.cli.common import Parser, positive, positive_float, run, size_hw
 
 if TYPE_CHECKING:
     from phigenesis.infer.insert import InsertSpec
@@ -75,11 +75,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--insert-class", metavar="NAME", help="the asset's class (car, person, truck, ...)")
     parser.add_argument(
-        "--insert-scale", type=float, default=1.0, help="the asset file's unit in metres (default 1)"
+        "--insert-scale", type=positive_float, default=1.0, help="the asset file's unit in metres (default 1)"
     )
     parser.add_argument(
         "--insert-spacing",
-        type=float,
+        type=positive_float,
         metavar="METRES",
         help="spacing of a mesh's surface Gaussians (default: its bounding-box diagonal / 100)",
     )

@@ -14,7 +14,7 @@ import os
 import sys
 from pathlib import Path
 
-from phigenesis.cli.common import Command, Parser, positive, run, size_hw
+from phigenesis.cli.common import Command, Parser, positive, positive_float, run, size_hw
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -77,7 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--stop-after", type=positive, help="leave after this many steps (then --resume)")
     g.add_argument(
         "--time-limit-min",
-        type=float,
+        type=positive_float,
         help="wall-clock budget in minutes: end (and write the final weights) after the step that passes it",
     )
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
