@@ -1,11 +1,13 @@
-"""Memory bounded by the input, and files refused by name (issue 53, items 3, 8 and 9): trajectory
-and rig files are regular files of at most 1 MiB whose times fit int64 microseconds."""
+"""Memory bounded by the input, and files refused by name (issue 53, items 3, 8 and 9): what a PLY
+header claims is checked against the file before anything is allocated; trajectory and rig files are
+regular files of at most 1 MiB whose times fit int64 microseconds."""
 
 from __future__ import annotations
 
 import json
 import os
 import threading
+import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -13,12 +15,37 @@ from typing import Any
 import numpy as np
 import pytest
 
+from phigenesis.export.ply import REQUIRED, PlyError, read_ply, scene_from_ply
 from phigenesis.infer.generate import TrajectoryError, TrajectoryFrame, load_trajectory_file
+from phigenesis.infer.insert import MAX_ASSET_GAUSSIANS, AssetError, load_asset
 from phigenesis.infer.rigs import RigError, load_rig_file
 
+#: A crafted small input may make a reader allocate at most this much (tracemalloc peak, bytes).
+SMALL_PEAK = 32 << 20
 #: The recorded rig a trajectory file is read against: frame at 1000 us, two cameras.
 RIG = TrajectoryFrame(1000, np.eye(4), np.stack([np.eye(4)] * 2), np.array([1000, 1010]))
 EYE = np.eye(4).tolist()
+
+
+def traced_peak(fn: Callable[[], Any]) -> tuple[BaseException | None, int]:
+    """(the exception ``fn`` raised or None, the peak bytes Python and numpy allocated meanwhile)."""
+    tracemalloc.start()
+    try:
+        fn()
+        error = None
+    except BaseException as e:  # returned for the test to judge
+        error = e
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return error, peak
+
+
+def gaussian_ply(path: Path, count: int | str, data_bytes: int = 14_000, before: str = "") -> Path:
+    """A 3DGS PLY header claiming ``count`` vertices, followed by ``data_bytes`` zero bytes."""
+    header = f"ply\nformat binary_little_endian 1.0\n{before}element vertex {count}\n"
+    header += "".join(f"property float {p}\n" for p in REQUIRED) + "end_header\n"
+    path.write_bytes(header.encode() + bytes(data_bytes))
+    return path
 
 
 def returns_without_blocking(fn: Callable[[], Any], fifo: Path) -> BaseException | None:
@@ -40,6 +67,57 @@ def returns_without_blocking(fn: Callable[[], Any], fifo: Path) -> BaseException
         thread.join(20)
         pytest.fail(f"reading {fifo} blocked until a writer opened it")
     return outcome.get("error")
+
+
+# --------------------------------------------------------------------------------------------
+# 3DGS PLY assets: claimed rows against the file's size
+
+
+@pytest.mark.parametrize("count", [10**7, 10**9])
+def test_a_ply_claiming_more_rows_than_its_bytes_names_the_element_and_both_sizes(
+    tmp_path: Path, count: int
+) -> None:
+    path = gaussian_ply(tmp_path / "claims.ply", count)
+    error, peak = traced_peak(lambda: read_ply(path))
+    assert isinstance(error, PlyError)
+    row = 4 * len(REQUIRED)
+    assert str(error) == (
+        f"{path}: truncated: element 'vertex' claims {count} rows of {row} bytes ({count * row} bytes) "
+        "but only 14000 bytes follow"
+    )
+    assert peak < SMALL_PEAK
+    with pytest.raises(AssetError, match="truncated: element 'vertex' claims 10000000 rows"):
+        load_asset(gaussian_ply(tmp_path / "at_max.ply", MAX_ASSET_GAUSSIANS), class_name="car")
+
+
+@pytest.mark.parametrize("count", ["1" + "0" * 30, "9" * 5000])
+def test_an_absurd_row_count_is_refused_without_parsing_it_to_the_end(tmp_path: Path, count: str) -> None:
+    path = gaussian_ply(tmp_path / "absurd.ply", count)
+    error, peak = traced_peak(lambda: scene_from_ply(path))
+    assert isinstance(error, PlyError)
+    assert str(error).startswith(f"{path}: element 'vertex' claims {count[:8]}")
+    assert str(error).endswith("rows, more than 1000000000000000")
+    assert peak < SMALL_PEAK
+
+
+def test_an_element_before_the_vertices_that_claims_too_much_is_named(tmp_path: Path) -> None:
+    path = gaussian_ply(
+        tmp_path / "camera.ply", 2, 2 * 56, before="element camera 5000000\nproperty double fx\n"
+    )
+    with pytest.raises(PlyError, match=r"element 'camera' claims 5000000 rows of 8 bytes \(40000000 bytes\)"):
+        read_ply(path)
+
+
+def test_a_time_origin_beyond_int64_microseconds_is_refused(tmp_path: Path) -> None:
+    path = gaussian_ply(tmp_path / "origin.ply", 1, 56)
+    text = path.read_bytes().replace(
+        b"element", b"comment time_origin_micros 99999999999999999999\nelement", 1
+    )
+    path.write_bytes(text)
+    with pytest.raises(
+        PlyError, match=r"origin\.ply: comment time_origin_micros 99999999999999999999 is beyond"
+    ):
+        scene_from_ply(path)
 
 
 # --------------------------------------------------------------------------------------------
