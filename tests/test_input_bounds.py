@@ -362,6 +362,12 @@ def test_a_missing_or_oversized_texture_image_is_refused_naming_the_image(tmp_pa
         AssetError, match=r"images\[0\]: 5000 x 5000 pixels, more than the 16777216 a texture"
     ):
         load_asset(missing, class_name="car")
+    (missing.parent / "texture.png").write_bytes(b"not a PNG at all")
+    with pytest.raises(AssetError, match=r"images\[0\]: not an image Pillow can read$"):
+        load_asset(missing, class_name="car")
+    (missing.parent / "texture.png").write_bytes(png_header(4, 4))  # a header, then no pixels
+    with pytest.raises(AssetError, match=r"model\.gltf: a texture of 4 x 4 pixels does not decode"):
+        load_asset(missing, class_name="car")
 
 
 def test_a_glb_whose_header_or_chunks_claim_more_than_the_file_is_refused(tmp_path: Path) -> None:

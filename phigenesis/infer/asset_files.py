@@ -175,6 +175,8 @@ def check_image(data: bytes, where: str) -> None:
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             with Image.open(io.BytesIO(data)) as image:
                 width, height = image.size
+    except Image.UnidentifiedImageError:
+        raise AssetError(f"{where}: not an image Pillow can read") from None
     except Image.DecompressionBombError as e:
         raise AssetError(
             f"{where}: {e}; the most a texture may have is {MAX_TEXTURE_PIXELS} pixels"
@@ -194,11 +196,20 @@ def _check_pixels(width: int, height: int, where: str) -> None:
 
 def check_textures(asset: Path, geometries: Iterable[Any]) -> None:
     """Checks every texture trimesh opened for ``geometries`` (their materials' images, not yet
-    decoded) against :data:`MAX_TEXTURE_PIXELS`; AssetError naming the asset file otherwise."""
+    decoded) against :data:`MAX_TEXTURE_PIXELS`, then decodes it (a texture whose header is fine but
+    whose data are not would otherwise fail later, naming nothing); AssetError naming the asset file
+    otherwise."""
     for geometry in geometries:
         material = getattr(getattr(geometry, "visual", None), "material", None)
         for image in _images_of(material):
             _check_pixels(*image.size, f"{asset}: a texture")
+            try:
+                image.load()
+            except Exception as e:  # Pillow raises OSError, SyntaxError, ValueError, ...
+                raise AssetError(
+                    f"{asset}: a texture of {image.size[0]} x {image.size[1]} pixels does not decode "
+                    f"({type(e).__name__}: {e})"
+                ) from None
 
 
 def _images_of(material: Any) -> Iterator[Any]:
