@@ -220,6 +220,14 @@ def test_a_compressed_mesh_is_refused_without_unpacking_it(tmp_path: Path) -> No
         load_asset(disguised, class_name="car")
 
 
+def test_an_asset_that_is_a_fifo_or_a_device_is_refused_without_reading(tmp_path: Path) -> None:
+    fifo = tmp_path / "fifo.obj"
+    os.mkfifo(fifo)
+    for path in (fifo, Path("/dev/zero"), tmp_path):
+        with pytest.raises(AssetError, match=rf"^{path}: not a regular file; an asset is a file"):
+            load_asset(path, class_name="car")
+
+
 def test_a_binary_stl_whose_triangle_count_disagrees_with_its_size_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "claims.stl"
     path.write_bytes(bytes(80) + struct.pack("<I", 10**9) + bytes(100))

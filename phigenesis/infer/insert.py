@@ -200,7 +200,8 @@ def load_asset(
     if up not in ("z", "y"):
         raise AssetError(f"{path}: up must be 'z' or 'y', got {up!r}")
     if not path.is_file():
-        raise AssetError(f"{path}: no such asset file")
+        what = "not a regular file; an asset is a file" if path.exists() else "no such asset file"
+        raise AssetError(f"{path}: {what}")
     rotation = _Y_UP if up == "y" else np.eye(3)
     if _is_gaussian_ply(path):
         return _gaussian_asset(path, class_id, scale, rotation, num_classes)
