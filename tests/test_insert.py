@@ -423,7 +423,8 @@ def _write(tmp_path: Path, name: str, text: str) -> Path:
         ("unknown_class", r"unknown asset class 'spaceship'"),
         ("missing_file", r"nowhere\.obj: no such asset file"),
         ("not_a_mesh", r"notes\.obj: no triangle faces"),
-        ("unreadable", r"notes\.xyz123: not a mesh trimesh can read"),
+        ("unknown_format", r"notes\.xyz123: not an asset format; assets are \.obj"),
+        ("unreadable", r"notes\.off: not a mesh trimesh can read"),
         ("nan_vertex", r"nanvert\.obj: 1 vertices have non-finite coordinates"),
         ("flat_point", r"point\.obj: the mesh has zero surface area"),
         ("bad_pose_text", r"pose 'one,two,3': expected x,y,z"),
@@ -455,8 +456,10 @@ def test_hostile_inputs_are_refused_naming_what_is_wrong(  # type: ignore[no-unt
             load_asset(tmp_path / "nowhere.obj", class_name="car")
         elif case == "not_a_mesh":
             load_asset(_write(tmp_path, "notes.obj", "just some words\n"), class_name="car")
-        elif case == "unreadable":
+        elif case == "unknown_format":
             load_asset(_write(tmp_path, "notes.xyz123", "just some words\n"), class_name="car")
+        elif case == "unreadable":
+            load_asset(_write(tmp_path, "notes.off", "OFF\nsome words\n"), class_name="car")
         elif case == "nan_vertex":
             text = "v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n"
             load_asset(_write(tmp_path, "nanvert.obj", text), class_name="car")
@@ -563,7 +566,9 @@ def test_a_gltf_reading_a_buffer_outside_its_folder_is_refused(tmp_path: Path) -
     for entry in doc["buffers"]:
         entry["uri"] = f"../{entry['uri']}"
     (folder / name).write_text(json.dumps(doc))
-    with pytest.raises(AssetError, match="not a mesh trimesh can read"):
+    with pytest.raises(
+        AssetError, match=r"buffers\[0\]\.uri '\.\./gltf_buffer_0\.bin': leaves the asset's folder"
+    ):
         load_asset(folder / name, class_name="car")
     for b in buffers:  # the same files inside the folder read
         (folder / b).write_bytes(files[b])

@@ -49,8 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--insert",
         metavar="ASSET",
-        help="insert this asset into every frame: a mesh trimesh reads (OBJ, GLB/GLTF, PLY, STL) made into "
-        "surface Gaussians, or a 3DGS PLY; its box joins the frames' boxes (needs --insert-pose or "
+        help="insert this asset into every frame: a mesh (OBJ, GLB/GLTF, PLY, STL, OFF; uncompressed) made "
+        "into surface Gaussians, or a 3DGS PLY; its box joins the frames' boxes (needs --insert-pose or "
         "--insert-path, and --insert-class)",
     )
     parser.add_argument(

@@ -97,6 +97,9 @@ MAX_DISTORTION = 1e3
 MAX_SENSOR_OFFSET_MICROS = 5_000_000
 #: Times are int64 microseconds.
 INT64_MAX = 2**63 - 1
+#: Largest |time| a user-given time (a path's keyframe, a trajectory's frame) may have, microseconds
+#: (about 146,000 years after 1970): sums and differences of two such times stay within int64.
+MAX_USER_MICROS = 2**62
 
 #: :class:`DroppedValues` kinds of the records' own helpers (sources use the same words).
 INVALID_POINTS = "LiDAR points with non-finite or out-of-range values"

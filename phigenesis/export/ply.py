@@ -44,6 +44,8 @@ import numpy as np
 import torch
 
 from phigenesis.data import taxonomy as tx
+from phigenesis.data.records import MAX_USER_MICROS
+from phigenesis.errors import PhiGenesisError
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.rasterizer import QUATERNION_ZERO_SQNORM
 
@@ -63,13 +65,18 @@ EXTRAS = ("semantic_class", "vx", "vy", "vz", "dynamic", "time_s")
 #: Frame description written into the header.
 FRAME_COMMENT = "frame: world frame of the scene, metres, OpenCV-free: points are plain world coordinates"
 
-#: PLY scalar type names and their little-endian numpy types.
+#: PLY scalar type names and their numpy types (without byte order).
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
-    "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
-    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "int64": "i8", "uint64": "u8",
+    "float16": "f2", "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }  # fmt: skip
+#: PLY formats whose header is read (:func:`read_ply` reads the data of the first only).
+_FORMATS = ("binary_little_endian", "binary_big_endian", "ascii")
+#: Most rows a PLY element may claim (10^15; what a file holds is checked against its size too).
+MAX_PLY_ROWS = 10**15
 #: Rows of the vertex table filled and written at a time.
 _BLOCK_ROWS = 8192
 #: Largest finite float32: bigger values would be written as inf.
@@ -242,117 +249,198 @@ def _write_atomically(path: Path, header: bytes, blocks: Iterable[np.ndarray]) -
 # ------------------------------------------------------------------------------------------------ read
 
 
+class PlyError(PhiGenesisError, ValueError):
+    """A PLY file that cannot be read: the message names the file, the element or property and
+    what is wrong."""
+
+
+@dataclass(frozen=True)
+class _Property:
+    name: str
+    type: str  # numpy type code without byte order ("f4", "u1"); of the items for a list
+    count_type: str | None = None  # a list property's length type; None for a scalar
+
+
 @dataclass(frozen=True)
 class _Element:
     name: str
     count: int
-    properties: list[tuple[str, str]]  # (name, numpy dtype); dtype "list" for list properties
+    properties: list[_Property]
 
 
 @dataclass(frozen=True)
 class _Header:
     size: int  # bytes, up to and including the "end_header" line
+    format: str  # one of _FORMATS
     comments: list[str]
     elements: list[_Element]
 
 
-def read_ply(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+def read_ply(path: str | os.PathLike[str], max_vertices: int | None = None) -> dict[str, np.ndarray]:
     """The vertex properties of a binary little-endian PLY, by name, in file order.
 
     Each value is a 1-D array (one entry per vertex) of the property's type (float32 for ``float``,
     float64 for ``double``, uint8 for ``uchar``, int32 for ``int``, ...). Elements before ``vertex``
-    are skipped; list properties (faces) are supported only after the vertex element.
+    are skipped; list properties (faces) are supported only after the vertex element. The sizes the
+    header claims are checked against the file's size before anything is allocated, so memory is
+    bounded by the file, whatever its header says.
+
+    Args:
+        path: the file.
+        max_vertices: the most vertices read (None: any number the file holds).
 
     Raises:
-        ValueError: naming the file, if it is not a PLY, is ASCII or big-endian, has no vertex
-            element, or is shorter (or, with nothing after the vertices, longer) than its header says.
+        PlyError: naming the file, if it is not a PLY, is ASCII or big-endian, has no vertex
+            element, claims more vertices than ``max_vertices``, or is shorter (naming the element,
+            the bytes it claims and the bytes present) or, with nothing after the vertices, longer
+            than its header says.
     """
     path = Path(path)
     with path.open("rb") as f:
         header = _read_header(f, path)
-        vertex_index, offset = _vertex_offset(header, path)
-        vertex = header.elements[vertex_index]
-        dtype = np.dtype([(name, t) for name, t in vertex.properties])
-        f.seek(header.size + offset)
-        buf = bytearray(vertex.count * dtype.itemsize)
-        got = f.readinto(buf)
-        if got < len(buf):
-            raise ValueError(
-                f"{path}: truncated: the header declares {vertex.count} vertices of {dtype.itemsize} bytes "
-                f"({len(buf)} bytes) but only {got} bytes follow"
+        if header.format != "binary_little_endian":
+            raise PlyError(
+                f"{path}: PLY format {header.format!r} is not supported; only binary_little_endian is"
             )
+        vertex_index = _vertex_index(header, path)
+        vertex = header.elements[vertex_index]
+        if max_vertices is not None and vertex.count > max_vertices:
+            raise PlyError(
+                f"{path}: element vertex claims {vertex.count} vertices, more than the {max_vertices} read"
+            )
+        starts = _element_starts(f, header, path, vertex_index + 1)
+        dtype = np.dtype([(p.name, "<" + p.type) for p in vertex.properties])
+        f.seek(starts[vertex_index])
+        buf = bytearray(vertex.count * dtype.itemsize)  # within the file: _element_starts checked it
+        if f.readinto(buf) < len(buf):  # the file shrank since
+            raise PlyError(f"{path}: truncated: the {vertex.count} vertices end past the end of the file")
         if vertex_index == len(header.elements) - 1 and f.read(1):
-            raise ValueError(f"{path}: more data after the {vertex.count} vertices than the header declares")
+            raise PlyError(f"{path}: more data after the {vertex.count} vertices than the header declares")
     table = np.frombuffer(buf, dtype=dtype, count=vertex.count)
     return {name: np.ascontiguousarray(table[name]) for name in dtype.names or ()}
+
+
+def check_ply_size(path: str | os.PathLike[str]) -> None:
+    """Checks that every element of a binary PLY (either byte order; any PLY, mesh or not) fits in
+    the file, before a reader allocates what its header claims. Rows with list properties count as
+    long as the element's first row (as trimesh reads them). ASCII PLYs are not checked: a text
+    reader's memory is bounded by the text.
+
+    Raises:
+        PlyError: naming the file, for a header :func:`read_ply` cannot parse (formats aside), or
+            naming the element, the bytes it claims and the bytes present, for an element that
+            does not fit.
+    """
+    path = Path(path)
+    with path.open("rb") as f:
+        header = _read_header(f, path)
+        if header.format != "ascii":
+            _element_starts(f, header, path, len(header.elements))
+
+
+def _element_starts(f: BinaryIO, header: _Header, path: Path, stop: int) -> list[int]:
+    """Byte offsets of the first ``stop`` binary elements in the file, after checking that each
+    one's rows (``count`` times its first row's size) fit in what follows it; PlyError naming the
+    element otherwise."""
+    order = "<" if header.format == "binary_little_endian" else ">"
+    file_size = os.fstat(f.fileno()).st_size
+    starts, pos = [], header.size
+    for element in header.elements[:stop]:
+        row = _row_bytes(f, element, pos, order, path)
+        claimed, left = element.count * row, file_size - pos
+        if claimed > left:
+            raise PlyError(
+                f"{path}: truncated: element {element.name!r} claims {element.count} rows of {row} bytes "
+                f"({claimed} bytes) but only {left} bytes follow"
+            )
+        starts.append(pos)
+        pos += claimed
+    return starts
+
+
+def _row_bytes(f: BinaryIO, element: _Element, start: int, order: str, path: Path) -> int:
+    """Bytes of the first row of ``element``, which starts at byte ``start``; a list property's
+    length is read from that row (0 where the file ends first: the element's claim fails then)."""
+    row = 0
+    for p in element.properties:
+        if p.count_type is None:
+            row += np.dtype(p.type).itemsize
+            continue
+        count_type = np.dtype(order + p.count_type)
+        f.seek(start + row)
+        raw = f.read(count_type.itemsize) if element.count else b""
+        length = int(np.frombuffer(raw, count_type)[0]) if len(raw) == count_type.itemsize else 0
+        if length < 0:
+            raise PlyError(f"{path}: element {element.name!r} property {p.name!r}: list length {length}")
+        row += count_type.itemsize + length * np.dtype(p.type).itemsize
+    return row
 
 
 def _read_header(f: BinaryIO, path: Path) -> _Header:
     first = f.readline(16).rstrip(b"\r\n")
     if first != b"ply":
-        raise ValueError(f"{path}: not a PLY file (it starts with {first[:16]!r}, not 'ply')")
+        raise PlyError(f"{path}: not a PLY file (it starts with {first[:16]!r}, not 'ply')")
     comments: list[str] = []
     elements: list[_Element] = []
     fmt = None
     while True:
         raw = f.readline(_MAX_HEADER_BYTES)
         if not raw.endswith(b"\n") or f.tell() > _MAX_HEADER_BYTES:
-            raise ValueError(f"{path}: PLY header has no end_header line")
+            raise PlyError(f"{path}: PLY header has no end_header line")
         line = raw.decode("ascii", errors="replace").strip()
         word, _, rest = line.partition(" ")
         if word == "end_header":
             break
         if word == "format":
             fmt = rest.split()[0] if rest.split() else ""
-            if fmt != "binary_little_endian":
-                raise ValueError(f"{path}: PLY format {fmt!r} is not supported; only binary_little_endian is")
+            if fmt not in _FORMATS:
+                raise PlyError(f"{path}: PLY format {fmt!r} is not supported; only binary_little_endian is")
         elif word in ("comment", "obj_info"):
             comments.append(rest)
         elif word == "element":
             elements.append(_parse_element(rest, path))
         elif word == "property":
             if not elements:
-                raise ValueError(f"{path}: PLY property before any element: {line!r}")
+                raise PlyError(f"{path}: PLY property before any element: {line!r}")
             elements[-1].properties.append(_parse_property(rest, path))
         elif line:
-            raise ValueError(f"{path}: unexpected PLY header line {line!r}")
+            raise PlyError(f"{path}: unexpected PLY header line {line!r}")
     if fmt is None:
-        raise ValueError(f"{path}: PLY header has no format line")
-    return _Header(size=f.tell(), comments=comments, elements=elements)
+        raise PlyError(f"{path}: PLY header has no format line")
+    return _Header(size=f.tell(), format=fmt, comments=comments, elements=elements)
 
 
 def _parse_element(rest: str, path: Path) -> _Element:
     parts = rest.split()
     if len(parts) != 2 or not parts[1].isdigit():
-        raise ValueError(f"{path}: bad PLY element line 'element {rest}'")
+        raise PlyError(f"{path}: bad PLY element line 'element {rest}'")
+    if len(parts[1]) > len(str(MAX_PLY_ROWS)) or int(parts[1]) > MAX_PLY_ROWS:
+        raise PlyError(f"{path}: element {parts[0]!r} claims {parts[1]} rows, more than {MAX_PLY_ROWS}")
     return _Element(parts[0], int(parts[1]), [])
 
 
-def _parse_property(rest: str, path: Path) -> tuple[str, str]:
+def _parse_property(rest: str, path: Path) -> _Property:
     parts = rest.split()
-    if len(parts) == 4 and parts[0] == "list":
-        return parts[3], "list"
+    if len(parts) == 4 and parts[0] == "list" and parts[1] in _PLY_TYPES and parts[2] in _PLY_TYPES:
+        return _Property(parts[3], _PLY_TYPES[parts[2]], _PLY_TYPES[parts[1]])
     if len(parts) != 2 or parts[0] not in _PLY_TYPES:
-        raise ValueError(f"{path}: unsupported PLY property 'property {rest}'")
-    return parts[1], _PLY_TYPES[parts[0]]
+        raise PlyError(f"{path}: unsupported PLY property 'property {rest}'")
+    return _Property(parts[1], _PLY_TYPES[parts[0]])
 
 
-def _vertex_offset(header: _Header, path: Path) -> tuple[int, int]:
-    """Index of the vertex element and its byte offset after the header."""
-    offset = 0
+def _vertex_index(header: _Header, path: Path) -> int:
+    """Index of the vertex element, after checking that it and the elements before it hold no lists."""
     for i, element in enumerate(header.elements):
-        types = [t for _, t in element.properties]
-        if "list" in types:
+        if any(p.count_type is not None for p in element.properties):
             what = "the vertex element" if element.name == "vertex" else f"element {element.name!r} before it"
-            raise ValueError(f"{path}: list properties in {what} are not supported")
+            raise PlyError(f"{path}: list properties in {what} are not supported")
         if element.name == "vertex":
-            names = [n for n, _ in element.properties]
+            names = [p.name for p in element.properties]
             duplicates = sorted({n for n in names if names.count(n) > 1})
             if duplicates:
-                raise ValueError(f"{path}: repeated vertex properties {duplicates}")
-            return i, offset
-        offset += element.count * sum(np.dtype(t).itemsize for t in types)
-    raise ValueError(f"{path}: PLY file has no vertex element")
+                raise PlyError(f"{path}: repeated vertex properties {duplicates}")
+            return i
+    raise PlyError(f"{path}: PLY file has no vertex element")
 
 
 def read_ply_comments(path: str | os.PathLike[str]) -> list[str]:
@@ -365,7 +453,7 @@ def read_ply_comments(path: str | os.PathLike[str]) -> list[str]:
 # ---------------------------------------------------------------------------------------------- decode
 
 
-def scene_from_ply(path: str | os.PathLike[str]) -> GaussianScene:
+def scene_from_ply(path: str | os.PathLike[str], max_vertices: int | None = None) -> GaussianScene:
     """Decodes a 3DGS PLY (written by :func:`write_ply` or another 3DGS tool) into a scene on the CPU.
 
     Inverts the encodings: colours ``0.5 + C0 * f_dc`` clipped to [0, 1] (higher SH bands are
@@ -373,18 +461,20 @@ def scene_from_ply(path: str | os.PathLike[str]) -> GaussianScene:
     (w, x, y, z). Positions are world-frame metres as stored. Without the extras, velocities are zero,
     no Gaussian is dynamic, semantic logits are (N, 0) and ``time_s`` is the header's ``t_s`` (else 0).
     With ``semantic_class``, logits are ``10 * one_hot`` over the 19 unified classes (a row of zeros for
-    class -1). ``time_origin_micros`` comes from the header comment (else 0).
+    class -1). ``time_origin_micros`` comes from the header comment (else 0). ``max_vertices``: the
+    most Gaussians read (None: any number the file holds), checked before reading them.
 
     Raises:
-        ValueError: naming the file, for anything :func:`read_ply` rejects, missing required
-            properties (listed), or semantic classes outside -1..18.
+        PlyError: naming the file, for anything :func:`read_ply` rejects, missing required
+            properties (listed), semantic classes outside -1..18, or a time comment beyond
+            +-2^62 microseconds (``time_origin_micros``) or not a finite time (``t_s``).
     """
     path = Path(path)
-    props = read_ply(path)
+    props = read_ply(path, max_vertices)
     missing = [name for name in REQUIRED if name not in props]
     if missing:
-        raise ValueError(f"{path}: not a 3D Gaussian Splatting PLY: missing vertex properties {missing}")
-    origin, t_header = _time_comments(read_ply_comments(path))
+        raise PlyError(f"{path}: not a 3D Gaussian Splatting PLY: missing vertex properties {missing}")
+    origin, t_header = _time_comments(read_ply_comments(path), path)
     n = len(props["x"])
 
     def stack(*names: str) -> np.ndarray:
@@ -410,17 +500,26 @@ def scene_from_ply(path: str | os.PathLike[str]) -> GaussianScene:
     return GaussianScene(**tensors, dynamic=torch.from_numpy(dynamic), time_origin_micros=origin)
 
 
-def _time_comments(comments: list[str]) -> tuple[int, float | None]:
-    """``time_origin_micros`` (0 if absent) and ``t_s`` (None if absent or "none") from header comments."""
+def _time_comments(comments: list[str], path: Path) -> tuple[int, float | None]:
+    """``time_origin_micros`` (0 if absent) and ``t_s`` (None if absent, "none" or not a number) from
+    header comments; PlyError naming the file and the comment for a time beyond +-MAX_USER_MICROS."""
     origin, t_s = 0, None
     for comment in comments:
         if m := re.fullmatch(r"time_origin_micros\s+(-?\d+)", comment.strip()):
-            origin = int(m.group(1))
+            text = m.group(1)
+            origin = int(text) if len(text) <= 20 else MAX_USER_MICROS  # never a 4300-digit parse
+            if not -MAX_USER_MICROS < origin < MAX_USER_MICROS:
+                shown = text if len(text) <= 24 else text[:24] + "..."
+                raise PlyError(f"{path}: comment time_origin_micros {shown} is beyond +-{MAX_USER_MICROS} us")
         elif (m := re.fullmatch(r"t_s\s+(\S+).*", comment.strip())) and m.group(1) != "none":
             try:
                 t_s = float(m.group(1))
             except ValueError:
                 t_s = None
+            if t_s is not None and not abs(t_s) * 1e6 < MAX_USER_MICROS:
+                raise PlyError(
+                    f"{path}: comment t_s {m.group(1)} is not a time within +-{MAX_USER_MICROS} us"
+                )
     return origin, t_s
 
 
@@ -430,7 +529,7 @@ def _one_hot_logits(classes: np.ndarray | None, n: int, path: Path) -> np.ndarra
     ids = np.rint(classes.astype(np.float64))
     bad = (ids != classes) | (ids < -1) | (ids >= tx.NUM_CLASSES)
     if bad.any():
-        raise ValueError(
+        raise PlyError(
             f"{path}: {int(bad.sum())} semantic_class values are not integers in -1..{tx.NUM_CLASSES - 1}"
         )
     logits = np.zeros((n, tx.NUM_CLASSES))

@@ -37,8 +37,9 @@ A rollout generates ``frames`` frames of a scene from frame ``start`` on, window
 Trajectories: ``recorded`` (the cache's own poses and capture times), ``shift:Xm`` (the recorded
 ones moved X metres along the ego's +y, left; negative: right) or a JSON file (``{"frames":
 [{"timestamp_micros": int, "world_from_ego": 4x4}, ...]}``, one entry per generated frame, strictly
-increasing times after the history, rigid poses in the cache's world frame; each camera at the
-recorded rig's extrinsics and its recorded offset from the frame time).
+increasing times after the history and below 2^62, rigid poses of plain numbers in the cache's world
+frame, no other key; a regular file of at most 1 MiB; each camera at the recorded rig's extrinsics and
+its recorded offset from the frame time).
 
 The output folder holds a cache in the project's schema (one scene, the generated frames: images,
 calibrations at the model's size, poses, the generated Gaussians' rendered depth (dense origin
@@ -69,6 +70,7 @@ from torch import Tensor
 from phigenesis import __version__
 from phigenesis.data import records
 from phigenesis.data.records import (
+    MAX_USER_MICROS,
     Boxes,
     CameraCalibration,
     CameraDepth,
@@ -80,6 +82,7 @@ from phigenesis.data.records import (
 )
 from phigenesis.data.schema import SCHEMA_VERSION, CacheContents, frame_schema, frame_to_batch
 from phigenesis.data.shards import MANIFEST_NAME, Manifest, SceneEntry, ShardWriter
+from phigenesis.errors import PhiGenesisError
 from phigenesis.infer.buffer import GaussianBuffer
 from phigenesis.infer.conditions import (
     GEOMETRY_SOURCES,
@@ -101,6 +104,7 @@ from phigenesis.models.dit import MultiViewDiT
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.stage1 import Stage1Model
 from phigenesis.options import check_options, option
+from phigenesis.user_files import check_keys, matrix_problem, read_small_file
 
 log = logging.getLogger(__name__)
 
@@ -193,13 +197,6 @@ class Rollout:
 # Trajectories
 
 
-def _check_rigid(m: np.ndarray, what: str) -> np.ndarray:
-    try:
-        return records.check_transform(what, np.asarray(m, dtype=np.float64))
-    except InvalidRecord as e:
-        raise ValueError(str(e)) from None
-
-
 def recorded_trajectory(frames: list[dict[str, Any]]) -> list[TrajectoryFrame]:
     """The trajectory of loaded cache frames (loader dicts) as they were recorded."""
     return [
@@ -228,44 +225,76 @@ def shifted_trajectory(trajectory: list[TrajectoryFrame], metres: float) -> list
     ]
 
 
+class TrajectoryError(PhiGenesisError, ValueError):
+    """A trajectory file that cannot be used: the message names the file, the entry and the key."""
+
+
+#: Largest trajectory file read, bytes (as rig and path files).
+MAX_TRAJECTORY_FILE_BYTES = 1 << 20
+#: The keys of a trajectory file's entry.
+TRAJECTORY_KEYS = ("timestamp_micros", "world_from_ego")
+
+
 def load_trajectory_file(
     path: str | os.PathLike[str], count: int, rig: TrajectoryFrame, after_micros: int
 ) -> list[TrajectoryFrame]:
     """The ``count`` frames of a trajectory JSON file (format in the module docstring); each camera
-    fires at its offset from the frame time in ``rig`` (a recorded frame). Raises ValueError naming
-    the file and the entry for a wrong length, NaN, a non-rigid pose or time going backwards."""
+    fires at its offset from the frame time in ``rig`` (a recorded frame).
+
+    Raises:
+        TrajectoryError: naming the file, the entry and the key, for anything but a regular file of
+            at most :data:`MAX_TRAJECTORY_FILE_BYTES`, invalid JSON, a key other than ``frames`` (or,
+            in an entry, than :data:`TRAJECTORY_KEYS`), a wrong length, a time that is not an
+            integer in (``after_micros``, ``MAX_USER_MICROS``) after the previous one, or a pose that
+            is not a rigid 4x4 matrix of numbers (numeric strings are not numbers).
+    """
     path = Path(path)
+    text = read_small_file(path, "trajectory file", TrajectoryError, MAX_TRAJECTORY_FILE_BYTES)
     try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{path}: cannot read the trajectory ({e})") from None
-    entries = doc.get("frames") if isinstance(doc, dict) else None
-    if not isinstance(entries, list):
-        raise ValueError(f'{path}: a trajectory is {{"frames": [...]}}, one entry per generated frame')
+        doc = json.loads(text)
+    except (ValueError, RecursionError) as e:
+        raise TrajectoryError(f"{path}: not a JSON trajectory ({type(e).__name__}: {e})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("frames"), list):
+        raise TrajectoryError(f'{path}: a trajectory is {{"frames": [...]}}, one entry per generated frame')
+    entries = check_keys(doc, ["frames"], str(path), TrajectoryError)["frames"]
     if len(entries) != count:
-        raise ValueError(f"{path}: holds {len(entries)} frames, --frames asks for {count}")
+        raise TrajectoryError(f"{path}: holds {len(entries)} frames, --frames asks for {count}")
     offsets = rig.camera_timestamp_micros - rig.timestamp_micros
     ego_offsets = np.linalg.inv(rig.world_from_ego) @ rig.camera_world_from_ego  # camera-time ego motion
     out, last = [], after_micros
     for i, e in enumerate(entries):
-        where = f"{path}: frames[{i}]"
-        if not isinstance(e, dict) or "timestamp_micros" not in e or "world_from_ego" not in e:
-            raise ValueError(f"{where}: needs timestamp_micros and world_from_ego")
-        t = e["timestamp_micros"]
-        if not isinstance(t, int) or isinstance(t, bool):
-            raise ValueError(f"{where}.timestamp_micros: {t!r} is not an integer")
-        if t <= last:
-            raise ValueError(f"{where}.timestamp_micros: {t} is not after {last} (time must increase)")
-        try:
-            pose = np.asarray(e["world_from_ego"], dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"{where}.world_from_ego: not a 4x4 matrix of numbers") from None
-        if pose.shape != (4, 4):
-            raise ValueError(f"{where}.world_from_ego: shape {pose.shape}, not (4, 4)")
-        pose = _check_rigid(pose, f"{where}.world_from_ego")
+        t, pose = _trajectory_entry(f"{path}: frames[{i}]", e, last)
         out.append(TrajectoryFrame(t, pose, pose @ ego_offsets, t + offsets))
         last = t
     return out
+
+
+def _trajectory_entry(where: str, e: Any, after_micros: int) -> tuple[int, np.ndarray]:
+    """(timestamp_micros, world_from_ego) of one trajectory entry, checked (see
+    :func:`load_trajectory_file`); ``where`` names the file and the entry."""
+    check_keys(e, TRAJECTORY_KEYS, where, TrajectoryError)
+    missing = [k for k in TRAJECTORY_KEYS if k not in e]
+    if missing:
+        raise TrajectoryError(f"{where}: needs {' and '.join(TRAJECTORY_KEYS)}; {missing[0]} is missing")
+    t = e["timestamp_micros"]
+    if not isinstance(t, int) or isinstance(t, bool):
+        raise TrajectoryError(f"{where}.timestamp_micros: {t!r} is not an integer")
+    if t <= after_micros:
+        raise TrajectoryError(
+            f"{where}.timestamp_micros: {t} is not after {after_micros} (time must increase)"
+        )
+    if t >= MAX_USER_MICROS:
+        raise TrajectoryError(
+            f"{where}.timestamp_micros: {t} is not below {MAX_USER_MICROS} (int64 microseconds)"
+        )
+    problem = matrix_problem(e["world_from_ego"], 4, 4)
+    if problem is not None:
+        raise TrajectoryError(f"{where}.world_from_ego: {problem}")
+    try:
+        pose = records.check_transform(f"{where}.world_from_ego", np.array(e["world_from_ego"], np.float64))
+    except InvalidRecord as err:
+        raise TrajectoryError(str(err)) from None
+    return t, pose
 
 
 # --------------------------------------------------------------------------------------------

@@ -3,14 +3,17 @@
 
 - **Assets** (:func:`load_asset`). A 3D Gaussian Splatting PLY (recognised by its ``scale_0``,
   ``rot_0``, ``opacity`` and ``f_dc_0`` vertex properties; read with
-  :func:`phigenesis.export.ply.scene_from_ply`) stays as its Gaussians. Any other mesh trimesh
-  reads (OBJ, GLB/GLTF scenes, whose meshes are joined with their node transforms, PLY meshes,
-  STL, ...) becomes surface Gaussians: ``ceil(area / spacing^2)`` points spread over the faces in
+  :func:`phigenesis.export.ply.scene_from_ply`) stays as its Gaussians. A mesh (OBJ, GLB/GLTF
+  scenes, whose meshes are joined with their node transforms, PLY meshes, STL, OFF; read with
+  trimesh after :mod:`phigenesis.infer.asset_files` has checked what the file claims against its
+  size, refused compressed files, and kept the files it refers to inside its own folder) becomes
+  surface Gaussians: ``ceil(area / spacing^2)`` points spread over the faces in
   proportion to their areas (a fixed low-discrepancy pattern inside each face: the same file
   always gives the same Gaussians), each a flat, nearly opaque disc lying in its face (standard
   deviations ``DISC_SCALE * spacing`` in the face, ``DISC_THICKNESS * spacing`` along its normal)
   with the colour of the face there (face colours, vertex colours interpolated, or the texture at
-  the interpolated UV; uniform grey without any). Every Gaussian is labelled with the user's class
+  the interpolated UV; a textureless material's colour; uniform grey without any). Every Gaussian is
+  labelled with the user's class
   (logits ``ONE_HOT_LOGIT * one_hot``).
 - **The asset frame** is the file's own frame in metres (times ``scale``), read as x forward
   (the box's length and heading), y left (width), z up (height); ``up="y"`` reads a Y-up file (glTF's
@@ -39,7 +42,7 @@ first frame (``10,0,0`` is ten metres ahead of where the car starts). A path fil
 (:func:`load_path_file`, JSON or YAML)::
 
     keyframes:                       # or the list itself
-      - t_s: 0.0                     # or timestamp_micros: 1700000000000000 (one kind per file)
+      - t_s: 0.0                     # |t_s| <= 1e6; or timestamp_micros: 1700000000000000 (one kind per file)
         xyz: [10.0, 2.0, 0.0]        # metres
         yaw_deg: 90                  # optional, default 0
       - t_s: 2.0
@@ -69,12 +72,14 @@ from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import (
     BOX_STATUSES,
     MAX_BOX_SIZE_M,
+    MAX_USER_MICROS,
     Boxes,
     InvalidRecord,
     check_transform,
 )
-from phigenesis.errors import PhiGenesisError
+from phigenesis.infer.asset_files import AssetError, AssetFolder, check_mesh_file, check_textures
 from phigenesis.models.gaussians import GaussianScene
+from phigenesis.user_files import check_keys, is_number, matrix_problem, read_small_file
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +111,8 @@ VELOCITY_STEP_MICROS = 1000
 MAX_PATH_FILE_BYTES = 1 << 20
 #: Most keyframes of a path.
 MAX_KEYFRAMES = 10_000
+#: Largest |t_s| of a keyframe, seconds after the scene's first frame (about 11.6 days).
+MAX_PATH_SECONDS = 1e6
 #: Properties that make a PLY a 3D Gaussian Splatting file rather than a mesh.
 GAUSSIAN_PLY_PROPERTIES = ("scale_0", "rot_0", "opacity", "f_dc_0")
 
@@ -116,11 +123,6 @@ PoseFrame = Literal["world", "ego"]
 _Y_UP = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 #: The plastic number's inverse powers: the R2 low-discrepancy sequence in the unit square.
 _R2 = (1 / 1.32471795724474602596, 1 / 1.32471795724474602596**2)
-
-
-class AssetError(PhiGenesisError, ValueError):
-    """An asset, pose or path that cannot be used: the message names the file (or the pose text),
-    the keyframe and what is wrong."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -172,7 +174,7 @@ def load_asset(
     """Reads an asset file as Gaussians in its own frame (see the module docstring).
 
     Args:
-        path: a 3DGS PLY, or any mesh trimesh reads (OBJ, GLB/GLTF, PLY, STL, OFF, ...).
+        path: a 3DGS PLY, or a mesh: .obj, .glb, .gltf, .ply, .stl or .off (not compressed).
         class_name: the asset's class, one of :data:`phigenesis.data.taxonomy.CLASS_NAMES`.
         spacing_m: distance between neighbouring surface Gaussians of a mesh, metres after
             ``scale`` (default: the mesh's bounding-box diagonal / 100); it widens so that at most
@@ -182,9 +184,12 @@ def load_asset(
         num_classes: K of the semantic logits (19, or 0 for none).
 
     Raises:
-        AssetError: naming the file, for a missing or unreadable file, a file with no faces (or no
-            Gaussians), non-finite vertices or Gaussians, a zero-size or too-large asset, too many
-            faces, an unknown class, or a non-positive scale or spacing.
+        AssetError: naming the file, for a missing or unreadable file, a compressed file or another
+            format, a header claiming more than the file holds (or more Gaussians than
+            :data:`MAX_ASSET_GAUSSIANS`), a glTF reference to what does not exist or lies outside the
+            asset's folder, a texture of more than ``MAX_TEXTURE_PIXELS``, a file with no faces (or
+            no Gaussians), non-finite vertices or Gaussians, a zero-size or too-large asset, too
+            many faces, an unknown class, or a non-positive scale or spacing.
     """
     path = Path(path)
     class_id = class_id_of(class_name)
@@ -195,7 +200,8 @@ def load_asset(
     if up not in ("z", "y"):
         raise AssetError(f"{path}: up must be 'z' or 'y', got {up!r}")
     if not path.is_file():
-        raise AssetError(f"{path}: no such asset file")
+        what = "not a regular file; an asset is a file" if path.exists() else "no such asset file"
+        raise AssetError(f"{path}: {what}")
     rotation = _Y_UP if up == "y" else np.eye(3)
     if _is_gaussian_ply(path):
         return _gaussian_asset(path, class_id, scale, rotation, num_classes)
@@ -261,17 +267,16 @@ def _fmt(v: np.ndarray) -> str:
 
 
 def _gaussian_asset(path: Path, class_id: int, scale: float, rotation: np.ndarray, k: int) -> Asset:
-    from phigenesis.export.ply import scene_from_ply
+    from phigenesis.export.ply import PlyError, scene_from_ply
 
     try:
-        scene = scene_from_ply(path)
-    except ValueError as e:
-        raise AssetError(f"{path}: not a readable 3D Gaussian Splatting PLY: {e}") from None
+        scene = scene_from_ply(path, max_vertices=MAX_ASSET_GAUSSIANS)
+    except PlyError as e:
+        why = str(e).removeprefix(f"{path}: ")
+        raise AssetError(f"{path}: not a readable 3D Gaussian Splatting PLY: {why}") from None
     n = len(scene)
     if n == 0:
         raise AssetError(f"{path}: the Gaussian PLY has no Gaussians")
-    if n > MAX_ASSET_GAUSSIANS:
-        raise AssetError(f"{path}: {n} Gaussians, more than the {MAX_ASSET_GAUSSIANS} an asset may have")
     values = {
         name: getattr(scene, name).double().numpy()
         for name in ("means", "quats", "scales", "opacities", "colors")
@@ -334,16 +339,24 @@ def _mesh_asset(
 
 
 def _read_meshes(path: Path) -> list[Any]:
-    """The triangle meshes of a file trimesh reads, node transforms applied (a scene's meshes)."""
+    """The triangle meshes of a file trimesh reads, node transforms applied (a scene's meshes):
+    the file checked first (:func:`~phigenesis.infer.asset_files.check_mesh_file`), the files it
+    refers to read from its own folder only, its textures checked before they are decoded."""
+    check_mesh_file(path, MAX_FACES)
     import trimesh
 
+    folder = AssetFolder(path)
     try:
-        loaded = trimesh.load(path, process=False)
+        loaded = trimesh.load(path, process=False, resolver=folder)
     except Exception as e:  # trimesh raises anything from its many loaders
+        folder.raise_refused()
         raise AssetError(f"{path}: not a mesh trimesh can read ({type(e).__name__}: {e})") from None
+    folder.raise_refused()
     if isinstance(loaded, trimesh.Scene):
-        geoms = list(loaded.dump()) if loaded.geometry else []
+        check_textures(path, loaded.geometry.values())
+        geoms = list(loaded.dump()) if loaded.geometry else []  # copies (decodes) the textures
     else:
+        check_textures(path, [loaded])
         geoms = [loaded]
     meshes = [g for g in geoms if isinstance(g, trimesh.Trimesh) and len(g.faces)]
     if not meshes:
@@ -413,7 +426,10 @@ def _sample_colors(mesh: Any, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
             corners = np.asarray(uv, np.float64)[np.asarray(mesh.faces)[face]]  # (N, 3, 2)
             at = np.einsum("nc,ncd->nd", bary, corners)
             return trimesh.visual.color.uv_to_color(at, image)[:, :3] / 255.0
-        visual = visual.to_color()  # an untextured material: its main colour
+        # A material without a texture (or whose UVs do not fit the mesh): its main colour.
+        main = np.asarray(getattr(material, "main_color", None) if material is not None else None)
+        rgb = main[:3] / 255.0 if main.ndim == 1 and len(main) >= 3 else GREY
+        return np.tile(np.asarray(rgb, np.float64), (len(face), 1))
     kind = getattr(visual, "kind", None)
     if kind == "face":
         return np.asarray(visual.face_colors, np.float64)[face, :3] / 255.0
@@ -480,6 +496,7 @@ class AssetPlacement:
             raise AssetError(f"{self.where}: poses must be ({len(times)}, 4, 4), got {poses.shape}")
         if not np.issubdtype(times.dtype, np.integer):
             raise AssetError(f"{self.where}: keyframe times must be integer microseconds, got {times.dtype}")
+        _check_micros(self.where, [int(t) for t in times])
         checked = np.stack([_rigid(f"{self.where}: keyframe {i}", p) for i, p in enumerate(poses)])
         steps = np.diff(times)
         if (steps <= 0).any():
@@ -517,10 +534,11 @@ class AssetPlacement:
                 f"{where}: keyframe {untimed[0]} has no time; a path of several poses needs one each"
             )
         times = [
-            int(start_micros) + round(k.t_s * 1e6) if k.t_s is not None
+            int(start_micros) + round(_seconds(f"{where}: keyframe {i}", k.t_s) * 1e6) if k.t_s is not None
             else int(start_micros) if k.timestamp_micros is None else int(k.timestamp_micros)
-            for k in keyframes
+            for i, k in enumerate(keyframes)
         ]  # fmt: skip
+        _check_micros(where, times)
         base = np.eye(4) if world_from_frame is None else np.asarray(world_from_frame, np.float64)
         poses = np.stack([base @ _rigid(f"{where}: keyframe {i}", k.matrix) for i, k in enumerate(keyframes)])
         return cls(np.array(times, np.int64), poses, where)
@@ -562,6 +580,14 @@ class AssetPlacement:
         return v[0] if points_local is None else v
 
 
+def _check_micros(where: str, times: Sequence[int]) -> None:
+    """AssetError naming ``where`` and the keyframe unless every time (microseconds) is within
+    +-MAX_USER_MICROS, so that times and their differences stay int64."""
+    for i, t in enumerate(times):
+        if not -MAX_USER_MICROS < t < MAX_USER_MICROS:
+            raise AssetError(f"{where}: keyframe {i}: time {t} us is beyond +-{MAX_USER_MICROS} us")
+
+
 def _rigid(where: str, pose: Any) -> np.ndarray:
     try:
         return check_transform("world_from_asset", pose)
@@ -584,6 +610,8 @@ def parse_keyframe(text: str) -> Keyframe:
     t_s = None if m.group(2) is None else float(m.group(2))
     if not all(math.isfinite(v) for v in [*values, 0.0 if t_s is None else t_s]):
         raise AssetError(f"pose {text!r}: every number must be finite")
+    if t_s is not None:
+        _seconds(f"pose {text!r}", t_s)
     yaw = math.radians(values[3]) if len(values) == 4 else 0.0
     return _keyframe(geometry.yaw_pose_to_transform(values[:3], yaw), t_s)
 
@@ -597,29 +625,23 @@ def parse_pose(text: str) -> np.ndarray:
 
 
 def load_path_file(path: str | os.PathLike[str]) -> list[Keyframe]:
-    """The keyframes of a JSON or YAML path file (format in the module docstring), checked: each
-    has one time (``t_s`` or ``timestamp_micros``, the same kind throughout, increasing), and
-    ``xyz`` (with an optional ``yaw_deg``) or ``world_from_asset``, finite and rigid. Refusals are
-    AssetErrors naming the file and the keyframe."""
+    """The keyframes of a JSON or YAML path file (format in the module docstring; a regular file of
+    at most :data:`MAX_PATH_FILE_BYTES`), checked: each has one time (``t_s`` within
+    +-:data:`MAX_PATH_SECONDS`, or ``timestamp_micros`` in [0, 2^62); the same kind throughout,
+    increasing), and ``xyz`` (with an optional ``yaw_deg``) or ``world_from_asset``, plain finite
+    numbers (not strings), rigid. Refusals are AssetErrors naming the file and the keyframe."""
     import yaml
 
     path = Path(path)
-    if not path.is_file():
-        raise AssetError(f"{path}: no such path file")
-    if path.stat().st_size > MAX_PATH_FILE_BYTES:
-        raise AssetError(f"{path}: larger than {MAX_PATH_FILE_BYTES} bytes; not a path file")
-    text = path.read_text(errors="replace")
+    text = read_small_file(path, "path file", AssetError, MAX_PATH_FILE_BYTES)
     try:
         data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
-    except (ValueError, yaml.YAMLError) as e:
+    except (ValueError, yaml.YAMLError, RecursionError) as e:
         raise AssetError(
             f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'YAML'}: {e}"
         ) from None
     if isinstance(data, Mapping):
-        unknown = sorted(str(k) for k in data if k != "keyframes")
-        if unknown:
-            raise AssetError(f"{path}: unknown field {', '.join(unknown)}; the field is 'keyframes'")
-        data = data.get("keyframes")
+        data = check_keys(data, ["keyframes"], str(path), AssetError, noun="field").get("keyframes")
     if not isinstance(data, list) or not 1 <= len(data) <= MAX_KEYFRAMES:
         got = f"{len(data)} keyframes" if isinstance(data, list) else type(data).__name__
         raise AssetError(f"{path}: keyframes must be a list of 1 to {MAX_KEYFRAMES} keyframes, got {got}")
@@ -637,46 +659,49 @@ def load_path_file(path: str | os.PathLike[str]) -> list[Keyframe]:
     return keyframes
 
 
-_KEYFRAME_KEYS = {"t_s", "timestamp_micros", "xyz", "yaw_deg", "world_from_asset"}
+_KEYFRAME_KEYS = ("t_s", "timestamp_micros", "xyz", "yaw_deg", "world_from_asset")
 
 
 def _number(where: str, name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+    if not is_number(value):
         raise AssetError(f"{where}: {name} must be a finite number, got {value!r}")
     return float(value)
 
 
-def _keyframe_from_dict(where: str, d: Any) -> Keyframe:
-    if not isinstance(d, Mapping):
-        raise AssetError(f"{where}: must be a mapping, got {type(d).__name__}")
-    unknown = sorted(str(k) for k in d if k not in _KEYFRAME_KEYS)
-    if unknown:
+def _seconds(where: str, value: Any) -> float:
+    """A keyframe's ``t_s`` (seconds after the scene's first frame), at most :data:`MAX_PATH_SECONDS`
+    either way; AssetError naming ``where`` otherwise."""
+    t_s = _number(where, "t_s", value)
+    if abs(t_s) > MAX_PATH_SECONDS:
         raise AssetError(
-            f"{where}: unknown field {', '.join(unknown)}; the fields are {sorted(_KEYFRAME_KEYS)}"
+            f"{where}: t_s {t_s!r} s is beyond +-{MAX_PATH_SECONDS:g} s of the scene's first frame"
         )
+    return t_s
+
+
+def _keyframe_from_dict(where: str, d: Any) -> Keyframe:
+    check_keys(d, _KEYFRAME_KEYS, where, AssetError, noun="field")
     if ("t_s" in d) == ("timestamp_micros" in d):
         raise AssetError(f"{where}: needs exactly one of t_s and timestamp_micros")
     t_s, micros = None, None
     if "t_s" in d:
-        t_s = _number(where, "t_s", d["t_s"])
+        t_s = _seconds(where, d["t_s"])
     else:
         value = d["timestamp_micros"]
-        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < 2**63:
-            raise AssetError(f"{where}: timestamp_micros must be a non-negative integer, got {value!r}")
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < MAX_USER_MICROS:
+            raise AssetError(
+                f"{where}: timestamp_micros must be an integer in [0, {MAX_USER_MICROS}), got {value!r}"
+            )
         micros = int(value)
     if ("xyz" in d) == ("world_from_asset" in d):
         raise AssetError(f"{where}: needs exactly one of xyz (with yaw_deg) and world_from_asset")
     if "world_from_asset" in d:
         if "yaw_deg" in d:
             raise AssetError(f"{where}: yaw_deg goes with xyz, not world_from_asset")
-        rows = d["world_from_asset"]
-        if not (
-            isinstance(rows, list)
-            and len(rows) == 4
-            and all(isinstance(r, list) and len(r) == 4 for r in rows)
-        ):
-            raise AssetError(f"{where}: world_from_asset must be 4 rows of 4 numbers")
-        pose = np.array([[_number(where, "world_from_asset", x) for x in r] for r in rows])
+        problem = matrix_problem(d["world_from_asset"], 4, 4)
+        if problem is not None:
+            raise AssetError(f"{where}: world_from_asset {problem}")
+        pose = np.array(d["world_from_asset"], np.float64)
     else:
         xyz = d["xyz"]
         if not (isinstance(xyz, list) and len(xyz) == 3):

@@ -60,6 +60,7 @@ from phigenesis.data.records import MAX_IMAGE_SIDE, CameraCalibration, InvalidRe
 from phigenesis.data.sources.synthetic import LIDAR_SPIN_PERIOD_S
 from phigenesis.data.sources.synthetic.rigs import RIGS, camera_calibrations
 from phigenesis.errors import PhiGenesisError
+from phigenesis.user_files import read_small_file
 
 NAMED_RIGS: tuple[str, ...] = ("waymo5", "nuscenes6")
 #: Largest rig file (bytes), most cameras in a rig, smallest image side (pixels).
@@ -285,17 +286,10 @@ def load_rig_file(path: str | os.PathLike[str]) -> Rig:
     """The rig of a YAML rig file (format in the module docstring), checked by :func:`check_rig`
     without an ego body. Raises :class:`RigError` naming the file, the camera and the field."""
     path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            data = f.read(MAX_RIG_FILE_BYTES + 1)
-        text = data.decode("utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise RigError(f"{path}: cannot read the rig file ({e})") from None
-    if len(data) > MAX_RIG_FILE_BYTES:
-        raise RigError(f"{path}: larger than {MAX_RIG_FILE_BYTES} bytes, the most a rig file may hold")
+    text = read_small_file(path, "rig file", RigError, MAX_RIG_FILE_BYTES)
     try:
         d = yaml.safe_load(text)
-    except yaml.YAMLError as e:
+    except (yaml.YAMLError, RecursionError) as e:
         raise RigError(f"{path}: not a YAML rig file ({' '.join(str(e).split())})") from None
     if not isinstance(d, Mapping):
         raise RigError(f"{path}: a rig file must hold a mapping with 'cameras', got {type(d).__name__}")
