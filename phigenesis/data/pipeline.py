@@ -48,6 +48,7 @@ from phigenesis.data.sources import given, make_source, source_config
 from phigenesis.data.stages import get_stage, stage_params
 from phigenesis.errors import PhiGenesisError, PrepError, describe
 from phigenesis.options import ConfigError, check_options, check_values, from_mapping, option
+from phigenesis.user_files import read_small_file
 
 log = logging.getLogger("phigenesis.prep")
 OnError = Literal["raise", "skip"]
@@ -209,9 +210,9 @@ def load_pipeline(name_or_path: str | os.PathLike[str]) -> PipelineSpec:
     or, for a bare name, the bundled spec of that name (see :func:`is_spec_path`)."""
     if is_spec_path(name_or_path):
         path = Path(name_or_path)
-        if not path.is_file():
+        if not path.exists():
             raise PrepError(f"{path}: pipeline spec not found")
-        text = path.read_text()
+        text = read_small_file(path, "pipeline spec", PrepError)
         where = str(path)
     else:
         name = os.fspath(name_or_path)

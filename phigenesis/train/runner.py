@@ -34,7 +34,6 @@ import os
 import re
 import shutil
 import signal
-import stat
 import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -60,6 +59,7 @@ from phigenesis.train.checkpoint import (
     trainer_state_step,
     write_trainer_state,
 )
+from phigenesis.user_files import read_small_file
 
 __all__ = [
     "CHECKPOINTS",
@@ -154,25 +154,15 @@ def create_overridden(name: str, overrides: dict[str, Any], label: str) -> nn.Mo
         raise ConfigError(f"{label}: model_overrides {overrides}: {' '.join(str(e).split())}") from None
 
 
-#: The largest training config file read (a config is a few hundred bytes).
-MAX_CONFIG_BYTES = 1 << 20
-
-
 def read_config_file(path: Path) -> dict[str, Any]:
     """The mapping of options in a YAML config file (an empty file: none). A missing file, one that
-    is not a regular file or is over 1 MiB, invalid YAML and a YAML value other than a mapping raise
-    :class:`~phigenesis.options.ConfigError` naming the file."""
+    is not a regular file or is over 1 MiB (:func:`~phigenesis.user_files.read_small_file`), invalid
+    YAML and a YAML value other than a mapping raise :class:`~phigenesis.options.ConfigError`
+    naming the file."""
+    text = read_small_file(path, "config", ConfigError)
     try:
-        info = path.stat()
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read the config ({e.strerror or e})") from None
-    if not stat.S_ISREG(info.st_mode):
-        raise ConfigError(f"{path}: not a regular file")
-    if info.st_size > MAX_CONFIG_BYTES:
-        raise ConfigError(f"{path}: {info.st_size} bytes; a config is at most {MAX_CONFIG_BYTES} bytes")
-    try:
-        values = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
+        values = yaml.safe_load(text)
+    except yaml.YAMLError as e:
         raise ConfigError(f"{path}: cannot read the config ({' '.join(str(e).split())})") from None
     if values is None:
         return {}
