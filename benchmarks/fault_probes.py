@@ -14,7 +14,8 @@ first line it says, its peak memory and a verdict.
    unfinished cache) and runs ``.venv/bin/phigenesis-*`` on it in a child with ``RLIMIT_AS`` at
    ``--mem-cap-mb`` (so a probe that still allocates gigabytes cannot take the machine down) and a
    wall-clock limit of ``--timeout`` seconds (a FIFO gets 45 s at most), in its own session so that
-   a kill reaches what it started. Peak RSS is the child's own (``os.wait4``'s ``ru_maxrss``).
+   a kill reaches what it started. Peak RSS is the child's own (``os.wait4``'s ``ru_maxrss``, taken
+   by a small launcher: see :data:`_LAUNCHER`).
 3. Verdicts: ``clear error`` exit 2 with a message naming the file or value at fault; ``vague
    error`` a refusal that names neither; ``bug`` the "unexpected: a bug" line or a traceback;
    ``accepted`` exit 0 where the input should have been refused; ``hang`` the time limit;
@@ -98,7 +99,7 @@ class Child:
     status: int
     timed_out: bool
     killed: bool  # killed by the probe on purpose (kill_when)
-    peak_mb: float
+    peak_mb: float | None  # None: the command was killed before its launcher could report it
     seconds: float
     stdout: str
     stderr: str
@@ -127,7 +128,9 @@ class Child:
     def hit_memory(self) -> bool:
         if any(m in self.stderr for m in MEMORY_MARKERS):
             return True
-        return self.mem_cap_mb is not None and self.peak_mb >= 0.9 * self.mem_cap_mb
+        return (
+            self.mem_cap_mb is not None and self.peak_mb is not None and self.peak_mb >= 0.9 * self.mem_cap_mb
+        )
 
     @property
     def is_bug(self) -> bool:
@@ -140,8 +143,27 @@ class Child:
         return f"SIG{signal.Signals(-self.status).name[3:]}" if self.status < 0 else str(self.status)
 
 
+#: Runs a command and reports its peak RSS to the file named first. A process forked from this
+#: script and then exec'd keeps the script's high-water mark (Linux carries an exec'd process's old
+#: memory peak into ``ru_maxrss``), so the command is started from this small launcher instead, and
+#: its ``ru_maxrss`` is its own. The launcher ends as the command did (its exit status or signal).
+_LAUNCHER = """
+import os, signal, subprocess, sys
+child = subprocess.Popen(sys.argv[2:])
+_, status, usage = os.wait4(child.pid, 0)
+with open(sys.argv[1], "w") as f:
+    f.write(str(usage.ru_maxrss))
+code = os.waitstatus_to_exitcode(status)
+if code < 0:
+    signal.signal(-code, signal.SIG_DFL)
+    os.kill(os.getpid(), -code)
+sys.exit(code)
+"""
+
+
 class Running:
-    """A command started in its own session, its output going to ``log.out`` / ``log.err``."""
+    """A command started in its own session (through :data:`_LAUNCHER`), its output going to
+    ``log.out`` / ``log.err``."""
 
     def __init__(
         self,
@@ -154,6 +176,8 @@ class Running:
         self.argv = [str(a) for a in argv]
         self.mem_cap_mb = mem_cap_mb
         self.out_path, self.err_path = log.parent / f"{log.name}.out", log.parent / f"{log.name}.err"
+        self.rss_path = log.parent / f"{log.name}.rss"
+        self.rss_path.unlink(missing_ok=True)
         log.parent.mkdir(parents=True, exist_ok=True)
         (log.parent / f"{log.name}.argv").write_text(" ".join(self.argv) + "\n")
 
@@ -167,7 +191,7 @@ class Running:
 
         with self.out_path.open("wb") as out, self.err_path.open("wb") as err:
             self.popen = subprocess.Popen(
-                self.argv,
+                [sys.executable, "-c", _LAUNCHER, str(self.rss_path), *self.argv],
                 cwd=cwd,
                 stdin=subprocess.DEVNULL,
                 stdout=out,
@@ -187,7 +211,7 @@ class Running:
         """The child's end if it has ended (killing it past ``timeout_s``, or once ``kill_when()``)."""
         if self.result is not None:
             return self.result
-        pid, status, usage = os.wait4(self.popen.pid, os.WNOHANG)
+        pid, status, _ = os.wait4(self.popen.pid, os.WNOHANG)
         if pid == 0:
             if time.perf_counter() - self.t0 > timeout_s:
                 self.timed_out = True
@@ -196,7 +220,7 @@ class Running:
             else:
                 return None
             self.kill()
-            pid, status, usage = os.wait4(self.popen.pid, 0)
+            pid, status, _ = os.wait4(self.popen.pid, 0)
         self.kill()  # anything the child left running in its session
         code = os.waitstatus_to_exitcode(status)
         self.popen.returncode = code  # reaped here: Popen must not wait for it again
@@ -205,7 +229,7 @@ class Running:
             code,
             self.timed_out,
             self.killed,
-            usage.ru_maxrss / 1024.0,  # KiB on Linux
+            int(self.rss_path.read_text()) / 1024.0 if self.rss_path.is_file() else None,  # KiB on Linux
             time.perf_counter() - self.t0,
             self.out_path.read_text(errors="replace"),
             self.err_path.read_text(errors="replace"),
@@ -285,7 +309,7 @@ def refusal_verdict(child: Child, names: Names = (), small: bool = False) -> str
     """The verdict of a command that should refuse its input with an error naming ``names``."""
     if child.timed_out:
         return "hang"
-    if child.hit_memory or (small and child.peak_mb > SMALL_INPUT_PEAK_MB):
+    if child.hit_memory or (small and (child.peak_mb or 0.0) > SMALL_INPUT_PEAK_MB):
         return "memory"
     if child.is_bug:
         return "bug"
@@ -1135,7 +1159,7 @@ def _concurrent_row(work: Work, name: str, children: list[Child], out: Path) -> 
     """Two writers of one folder: one should be refused, naming the lock or the other run."""
     verify = work.run(f"{name}-verify", [tool("prep"), "verify", out])
     codes = "/".join(c.exit_text for c in children)
-    peak = max(c.peak_mb for c in children)
+    peak = max((c.peak_mb for c in children if c.peak_mb is not None), default=None)
     refused = [c for c in children if c.status != 0]
     note = f"[exits {codes}; verify exit {verify.exit_text}]"
     if any(c.is_bug for c in children):
