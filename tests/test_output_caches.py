@@ -250,9 +250,9 @@ def test_a_render_stopped_by_a_full_disk_names_the_file_and_the_same_command_res
     # Room for the manifest and the lock, not for a shard (each is over 30 kB).
     proc = child(RENDER_CLI, *render_argv(cache, out), preexec_fn=_file_size_limit(12_000))
     assert proc.returncode == 2, proc.stdout + proc.stderr
-    assert (
-        f"phigenesis-render: error: {out / 'shards' / SCENES[0]}-00000.arrow: cannot write (" in proc.stderr
-    )
+    shard = out / "shards" / f"{SCENES[0]}-00000.arrow"
+    assert f"phigenesis-render: error: {shard}: cannot write (" in proc.stderr
+    assert f"finished scenes are kept in {out}; rerun the same command to resume" in proc.stderr
     assert "unexpected" not in proc.stderr and leftovers(out) == []
 
     from phigenesis.cli.render import main as render_main

@@ -47,6 +47,7 @@ from phigenesis.data.shards import (
     SWAP_MARKER,
     TMP_MARKER,
     CacheError,
+    CacheWriteError,
     Manifest,
     SceneEntry,
     ShardInfo,
@@ -416,7 +417,8 @@ def writing_cache(
     scenes ``scenes`` of a cache of ``source`` made with ``arguments`` and ``pipeline``, and yields
     the :class:`CacheRun` to commit them to (see the module docstring). A rerun of the same command
     resumes; a folder holding a cache made otherwise, or anything else, is refused with a
-    PrepError; whatever ends the run early, its unfinished files are removed.
+    PrepError; whatever ends the run early, its unfinished files are removed, and a
+    CacheWriteError (a full disk) says what was kept and that a rerun resumes.
 
     Example::
 
@@ -433,6 +435,9 @@ def writing_cache(
         run = start_run(out, source, arguments, pipeline, scenes)
         try:
             yield run
+        except CacheWriteError as e:  # a full disk: say what is kept, as prep does
+            run.tidy_after_stop()
+            raise CacheWriteError(f"{e} ({run.what_is_kept('rerun the same command to resume')})") from e
         except BaseException:
             run.tidy_after_stop()
             raise
