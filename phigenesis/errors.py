@@ -9,7 +9,8 @@ traceback. Anything else that escapes is a bug in the toolkit, and is reported a
 Hierarchy::
 
     PhiGenesisError
-      PrepError          a prep run cannot start, or a scene failed
+      PrepError          a run that writes a cache (prep, render, generate, Stage 2 latents)
+                         cannot start, or a scene failed
         SourceError      a dataset file is invalid (WaymoFormatError, NuScenesError, ...)
         CacheWriteError  a cache file cannot be written (a full disk; also an OSError; in shards.py)
       CacheError         a cache directory, manifest or shard is missing, malformed or corrupt
@@ -26,7 +27,8 @@ class PhiGenesisError(Exception):
 
 
 class PrepError(PhiGenesisError):
-    """A prep run cannot start or a scene failed; the message says which file or scene and why."""
+    """A run that writes a cache cannot start (its folder is locked by another run or holds
+    something else) or a scene failed; the message says which file or scene and why."""
 
 
 class SourceError(PrepError, ValueError):

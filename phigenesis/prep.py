@@ -164,8 +164,10 @@ def nuscenes(
 def verify(cache_dir: str | os.PathLike[str]) -> VerifyReport:
     """Re-checks a cache against its manifest: the manifest's schema and shard paths, then every
     shard's size, SHA-256, footer, rows, columns and schema version and each row's and column's
-    CRC (see :func:`~phigenesis.data.shards.verify_cache`). Never raises on a bad cache: each
-    problem is a line of ``report.errors`` naming the shard, row and column."""
+    CRC, then whether the run that wrote it finished every scene it asked for (see
+    :func:`~phigenesis.data.shards.verify_cache`). Never raises on a bad cache: each problem is a
+    line of ``report.errors`` naming the shard, row and column; ``report.status`` is ``DAMAGED``,
+    ``INCOMPLETE`` (``report.unfinished`` names the scenes) or ``OK``."""
     return verify_cache(cache_dir)
 
 

@@ -28,7 +28,7 @@ import pytest
 import yaml
 
 from phigenesis import prep
-from phigenesis.data import pipeline, shards
+from phigenesis.data import cache_run, shards
 from phigenesis.data.cache_lock import LOCK_NAME, CacheLock, LockHolder
 from phigenesis.data.loader import FrameDataset
 from phigenesis.data.pipeline import (
@@ -719,7 +719,7 @@ def test_a_swap_stopped_part_way_is_finished_by_the_next_run(
         if len(calls) == 2:  # the old manifest is removed and the new shards are in shards/
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(pipeline, "fsync_dir", interrupt_after_moving_the_shards)
+    monkeypatch.setattr(cache_run, "fsync_dir", interrupt_after_moving_the_shards)
     with pytest.raises(PrepInterrupted, match="while swapping the new version"):
         prep.synthetic(cache, overwrite=True, progress=False, **OTHER_ARGS)
     monkeypatch.undo()

@@ -15,6 +15,7 @@ import yaml
 from phigenesis.cli.render import main as render_main
 from phigenesis.data import records
 from phigenesis.data.shards import CacheReader, verify_cache
+from phigenesis.errors import PrepError
 from phigenesis.infer.render import render_views
 from phigenesis.infer.rig_render import PoseTrack, render, scene_pose_track, source_rig
 from phigenesis.infer.rigs import RigError, named_rig
@@ -197,7 +198,7 @@ def test_the_rendered_cache_verifies_opens_with_plain_pyarrow_and_resumes(
     again = render(None, cache, "random", out_dir, geometry="cache", seed=3, progress=False)
     assert again.skipped == [SCENE] and again.frames == 0 and not leftover.exists()
     assert verify_cache(out_dir).ok
-    with pytest.raises(ValueError, match="other arguments"):
+    with pytest.raises(PrepError, match=r"other arguments \(seed 3 -> 4\); choose another --out"):
         render(None, cache, "random", out_dir, geometry="cache", seed=4, progress=False)
 
 

@@ -14,6 +14,7 @@ import torch
 
 from phigenesis.cli.train import main as train_main
 from phigenesis.data.shards import CacheError, verify_cache
+from phigenesis.errors import PrepError
 from phigenesis.infer.conditions import context_cameras, future_cameras, history_scene, render_condition
 from phigenesis.train.checkpoint import CheckpointError
 from phigenesis.train.evaluate_stage1 import frame_truth
@@ -162,7 +163,7 @@ def test_a_rerun_of_the_precompute_skips_finished_scenes_and_other_inputs_are_re
         cache, latents, model, Stage2DataConfig(stride=3), stage1_checkpoint=str(stage1_checkpoint)
     )
     assert (latents / "manifest.json").read_text() == before
-    with pytest.raises(ValueError, match="other inputs"):
+    with pytest.raises(PrepError, match=r"other arguments \(stride 3 -> 2\)"):
         precompute_stage2(
             cache, latents, model, Stage2DataConfig(stride=2), stage1_checkpoint=str(stage1_checkpoint)
         )
@@ -188,7 +189,7 @@ def test_the_latent_caches_localization_potential_follows_lp_trust_and_is_part_o
             a.u["localization_potential"] + b.u["localization_potential"], a.u["coverage"], rtol=0, atol=1e-5
         )
         assert not torch.equal(a.u["localization_potential"], b.u["localization_potential"])
-    with pytest.raises(ValueError, match="other inputs"):
+    with pytest.raises(PrepError, match=r"other arguments \(lp_trust 'localised' -> 'stable'\)"):
         precompute_stage2(
             cache, other, model, Stage2DataConfig(stride=3), stage1_checkpoint=str(stage1_checkpoint)
         )
@@ -476,7 +477,7 @@ def test_a_generated_cache_passes_verify_and_the_loader_reads_its_rendered_depth
     assert not report.errors and report.frames == 7
     assert (out / "strip.png").stat().st_size > 0 and len(result.plys) == 2
     sample = FrameDataset(out, fields=["images", "cameras", "depth", "pseudo"])[0]
-    assert sample["images"].shape == (5, 3, *SIZE) and sample["frame_index"] == 2
+    assert sample["images"].shape == (5, 3, *SIZE) and sample["frame_index"] == 0
     rendered = records.DENSE_ORIGINS.index("rendered")
     dense = sample["depth_dense"]
     assert (dense > 0).any() and bool(((sample["depth_dense_origin"] == rendered) == (dense > 0)).all())

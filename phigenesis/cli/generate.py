@@ -48,7 +48,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--stage1", help="Stage 1 checkpoint (default: the one the Stage 2 model was trained with)"
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the noise")
-    parser.add_argument("--out", required=True, help="new folder for the generated cache, strip.png and PLYs")
+    parser.add_argument(
+        "--out",
+        required=True,
+        help="new folder for the generated cache, strip.png and PLYs (or a stopped run of the same "
+        "command: rerunning it generates the rollout again)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(command="generate")
     return parser
@@ -86,14 +91,17 @@ def _generate(args: argparse.Namespace) -> int:
         options=options,
         progress=not args.no_progress,
     )
-    per_frame = sum(result.rollout.seconds_per_window) / args.frames
-    print(f"generated {args.frames} frames in {result.seconds:.1f} s ({per_frame:.2f} s/frame)")
+    if result.rollout is None:
+        print(f"{result.out} already holds this rollout (the same command finished it); nothing to do")
+    else:
+        per_frame = sum(result.rollout.seconds_per_window) / args.frames
+        print(f"generated {args.frames} frames in {result.seconds:.1f} s ({per_frame:.2f} s/frame)")
     print(f"cache: {result.out} (phigenesis-prep verify {result.out}); strip: {result.strip}")
     return 0
 
 
 def interrupted(args: argparse.Namespace) -> str:
-    return f"interrupted; {args.out} may hold a partial rollout (remove it and rerun)"
+    return f"interrupted; {args.out} holds no finished rollout (rerun the same command to generate it)"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -89,7 +89,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _run_options(n)
 
-    v = sub.add_parser("verify", help="re-check every shard of a cache against its manifest")
+    v = sub.add_parser(
+        "verify",
+        help="re-check every shard of a cache against its manifest, and whether its run finished",
+        description="Re-checks a cache (from prep, render, generate or Stage 2's latents) against its\n"
+        "manifest: every shard's size, checksums, rows and columns; then whether the run that wrote\n"
+        "it finished every scene its arguments asked for.",
+        epilog=VERIFY_EXIT_CODES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     v.add_argument("cache", help="cache directory")
 
     pv = sub.add_parser("preview", help="draw one frame of a cache to a PNG")
@@ -141,15 +149,29 @@ def _nuscenes(args: argparse.Namespace) -> int:
     return 0
 
 
+#: ``phigenesis-prep verify``'s exit status for each :attr:`~phigenesis.data.shards.VerifyReport.status`.
+VERIFY_EXIT = {"OK": 0, "DAMAGED": 1, "INCOMPLETE": 3}
+VERIFY_EXIT_CODES = """exit status:
+  0  OK: every shard matches its manifest and every scene the run asked for is finished
+     (or, for a cache written before manifests recorded them, nothing more can be checked)
+  1  DAMAGED: a shard or the manifest is missing, corrupt or inconsistent (each problem named)
+  2  the command itself could not run (a bad argument)
+  3  INCOMPLETE: intact, but the run that wrote it did not finish every scene it asked for (it was
+     stopped: killed, a full disk, a failed scene); rerunning the same command resumes it"""
+
+
 def _verify(args: argparse.Namespace) -> int:
     report = prep.verify(args.cache)
     for w in report.warnings:
         print(f"warning: {w}")
     for e in report.errors:
         print(f"BAD: {e}")
-    status = "OK" if report.ok else f"{len(report.errors)} problems"
+    if report.manifest_read:
+        label = {None: "note", True: "complete", False: "incomplete"}[report.complete]
+        print(f"{label}: {report.completeness()}")
+    status = report.status + (f" ({len(report.errors)} problems)" if report.errors else "")
     print(f"{args.cache}: {report.shards} shards, {report.frames} frames verified: {status}")
-    return 0 if report.ok else 1
+    return VERIFY_EXIT[report.status]
 
 
 def _preview(args: argparse.Namespace) -> int:

@@ -1,11 +1,13 @@
-"""One writer per cache directory: an advisory lock file that a prep run holds while it writes.
+"""One writer per cache directory: an advisory lock file that a run holds while it writes the cache.
 
-The lock is ``DIR/.phigenesis.lock``, held with ``fcntl.flock`` by the coordinating process of a
-run (its worker processes write shards under it) and holding that process's PID, host and start
-time as text. The flock is the authority: the kernel releases it when its holder exits, however
-it exits, so a lock file left by a killed run is free and is taken over (and logged). On a file
-system without flock the recorded PID decides: a holder that no longer runs on this host has left
-a stale lock. Readers never lock. The file is removed when its holder releases it.
+Every command that writes a cache takes it: prep, ``phigenesis-render``, ``phigenesis-generate`` and
+Stage 2's latent cache (:mod:`phigenesis.data.cache_run`). The lock is ``DIR/.phigenesis.lock``, held
+with ``fcntl.flock`` by the coordinating process of a run (its worker processes write shards under
+it) and holding that process's PID, host, start time and command as text. The flock is the
+authority: the kernel releases it when its holder exits, however it exits, so a lock file left by a
+killed run is free and is taken over (and logged). On a file system without flock the recorded PID
+decides: a holder that no longer runs on this host has left a stale lock. Readers never lock. The
+file is removed when its holder releases it.
 """
 
 from __future__ import annotations
@@ -41,24 +43,29 @@ class LockHolder:
     pid: int
     host: str
     started: str  # ISO 8601, UTC
+    command: str = ""  # what the run writes: "prep", "render", ...; "" in lock files that name none
 
     def to_text(self) -> str:
-        return f"pid: {self.pid}\nhost: {self.host}\nstarted: {self.started}\n"
+        text = f"pid: {self.pid}\nhost: {self.host}\nstarted: {self.started}\n"
+        return text + (f"command: {self.command}\n" if self.command else "")
 
     @classmethod
     def from_text(cls, text: str) -> LockHolder | None:
         """The holder a lock file's text names; None for an empty or garbled file."""
         fields = dict(line.split(": ", 1) for line in text.splitlines() if ": " in line)
         try:
-            return cls(int(fields["pid"]), fields["host"], fields["started"])
+            return cls(int(fields["pid"]), fields["host"], fields["started"], fields.get("command", ""))
         except (KeyError, ValueError):
             return None
 
     @classmethod
-    def this_process(cls) -> LockHolder:
-        return cls(
-            os.getpid(), socket.gethostname(), datetime.now(timezone.utc).isoformat(timespec="seconds")
-        )
+    def this_process(cls, command: str = "") -> LockHolder:
+        started = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        return cls(os.getpid(), socket.gethostname(), started, command)
+
+    def run_name(self) -> str:
+        """The run as messages name it: "prep run", "render run"; "run" when the file names none."""
+        return f"{self.command} run" if self.command else "run"
 
     def describe(self) -> str:
         return f"PID {self.pid} on {self.host}, started {self.started}"
@@ -77,14 +84,17 @@ class LockHolder:
 
 
 class CacheLock:
-    """The exclusive lock on a cache directory for one prep run. Use as a context manager.
+    """The exclusive lock on a cache directory for one run that writes it. Use as a context manager.
 
+    ``command`` names what the run writes ("prep", "render", "generate", "stage2-latents"); it is
+    recorded in the lock file so that a refused run is told what holds the cache.
     :meth:`acquire` raises :class:`~phigenesis.errors.PrepError` naming the holder's PID when
     another run holds the lock; a lock left by a run that was killed is taken over with a log line.
     """
 
-    def __init__(self, cache_dir: str | os.PathLike[str]):
+    def __init__(self, cache_dir: str | os.PathLike[str], command: str = "prep"):
         self.path = Path(cache_dir) / LOCK_NAME
+        self.command = command
         self._fd: int | None = None
 
     def __enter__(self) -> CacheLock:
@@ -110,8 +120,9 @@ class CacheLock:
             raise PrepError(f"{self.path}: the lock file keeps being replaced; cannot lock the cache")
         if previous is not None:
             log.warning(
-                "%s: taking over the lock left by a prep run that no longer holds it (%s)",
+                "%s: taking over the lock left by a %s that no longer holds it (%s)",
                 self.path,
+                previous.run_name(),
                 previous.describe(),
             )
         self._write_holder(fd)
@@ -168,8 +179,9 @@ class CacheLock:
         who = holder.describe() if holder is not None else "a process that has not written its PID yet"
         if holder is not None and holder.is_running() is False:
             who += ", which no longer runs, though a process it started still holds the lock"
+        run = holder.run_name() if holder is not None else "run"
         return PrepError(
-            f"{self.path.parent}: another prep run is writing this cache ({who}; lock file {self.path}); "
+            f"{self.path.parent}: another {run} is writing this cache ({who}; lock file {self.path}); "
             "wait for it to finish or stop it, or choose another --out"
         )
 
@@ -185,7 +197,7 @@ class CacheLock:
         disk): the flock, not the text, is what excludes other runs."""
         with contextlib.suppress(OSError):
             os.ftruncate(fd, 0)
-            os.pwrite(fd, LockHolder.this_process().to_text().encode(), 0)
+            os.pwrite(fd, LockHolder.this_process(self.command).to_text().encode(), 0)
             os.fsync(fd)
 
 

@@ -3,46 +3,39 @@
 Entry point: :func:`prepare`. A run is defined by the source, its arguments and the pipeline
 spec; their fingerprint is stored in the manifest, so rerunning the same command into the same
 directory resumes (finished scenes are skipped), while a different command is refused unless
-``overwrite`` is given. Scenes are independent and run in parallel on the chosen executor.
+``overwrite`` is given. Scenes are independent and run in parallel on the chosen executor. The
+lock, the fingerprint, resuming and committing scenes are :mod:`phigenesis.data.cache_run`'s, which
+every command that writes a cache shares.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
 import importlib.resources
 import json
 import logging
 import os
 import time
 import traceback
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
 
-from phigenesis import __version__
-from phigenesis.data.cache_lock import LOCK_NAME, CacheLock
+from phigenesis.data.cache_lock import CacheLock
+from phigenesis.data.cache_run import POLICY_ARGUMENTS as POLICY_ARGUMENTS  # re-exported
+from phigenesis.data.cache_run import CacheRun, check_out_dir, start_run, swap_in
+from phigenesis.data.cache_run import fingerprint as fingerprint  # re-exported
 from phigenesis.data.executors import ExecutorName, ProgressHandle, ProgressMessage, run_tasks
-from phigenesis.data.schema import SCHEMA_VERSION, CacheContents, frame_schema, frame_to_batch
+from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
 from phigenesis.data.shards import (
     DEFAULT_SHARD_MAX_BYTES,
-    MANIFEST_NAME,
-    SHARDS_DIR,
-    STAGING_DIR,
-    SWAP_MARKER,
-    TMP_MARKER,
-    CacheError,
     CacheWriteError,
-    Manifest,
     SceneEntry,
     ShardInfo,
     ShardWriter,
-    atomic_write_bytes,
-    fsync_dir,
 )
 from phigenesis.data.sources import given, make_source, source_config
 from phigenesis.data.stages import get_stage, stage_params
@@ -244,24 +237,6 @@ def _merge(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-#: Source arguments that do not make a cache another cache: the error policy. A scene that
-#: completes under ``raise`` had nothing to leave out, so it is the scene ``skip`` makes, and a
-#: rerun with ``--on-error skip`` after a failed scene resumes instead of being refused.
-POLICY_ARGUMENTS = frozenset({"on_error"})
-
-
-def fingerprint(source: str, arguments: dict[str, Any], pipeline: dict[str, Any]) -> str:
-    """Hash of everything that determines a cache's rows (the arguments but the error policy,
-    :data:`POLICY_ARGUMENTS`)."""
-    arguments = {k: v for k, v in arguments.items() if k not in POLICY_ARGUMENTS}
-    blob = json.dumps(
-        {"source": source, "arguments": arguments, "pipeline": pipeline, "schema_version": SCHEMA_VERSION},
-        sort_keys=True,
-        default=str,
-    )
-    return hashlib.sha256(blob.encode()).hexdigest()
-
-
 # --------------------------------------------------------------------------------------------
 # One scene (runs in a worker)
 
@@ -406,244 +381,6 @@ class PrepInterrupted(KeyboardInterrupt):
         return str(self.args[0])
 
 
-@dataclass
-class _Run:
-    """Where a run writes and what it has recorded: ``target`` is the cache directory ``out``,
-    or for an overwrite of an existing cache the staging folder inside it."""
-
-    out: Path
-    target: Path
-    manifest: Manifest
-
-    @property
-    def staged(self) -> bool:
-        return self.target != self.out
-
-    def complete_scenes(self) -> list[SceneEntry]:
-        return [s for s in self.manifest.scenes if s.status == "complete"]
-
-
-def _check_out_dir(out: Path) -> None:
-    if out.exists() and not out.is_dir():
-        raise PrepError(f"--out {out} is a file, not a directory")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise PrepError(f"--out {out} cannot be created: {e.strerror or e}") from e
-    probe = out / f".write-probe{TMP_MARKER}{uuid.uuid4().hex[:8]}"
-    try:
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as e:
-        raise PrepError(f"--out {out} is not writable: {e.strerror or e}") from e
-
-
-def _refuse_links(cache_dir: Path) -> None:
-    """Refuses a cache whose ``shards/`` (or staging folder) is a symbolic link: clean-up deletes
-    files in them, and must never follow a link out of the cache."""
-    for name in (SHARDS_DIR, STAGING_DIR, f"{STAGING_DIR}/{SHARDS_DIR}"):
-        if (cache_dir / name).is_symlink():
-            raise PrepError(
-                f"{cache_dir / name} is a symbolic link; a cache's {name}/ must be a folder inside it"
-            )
-
-
-def _describe_difference(
-    old: Manifest, source: str, arguments: dict[str, Any], pipeline: dict[str, Any]
-) -> str:
-    # Compare as the manifest stores them (JSON: tuples become lists), like the fingerprint does.
-    arguments, pipeline = json.loads(json.dumps([arguments, pipeline], default=str))
-    diffs = []
-    if old.source != source:
-        diffs.append(f"source {old.source} -> {source}")
-    for k in sorted((set(old.arguments) | set(arguments)) - POLICY_ARGUMENTS):
-        if old.arguments.get(k) != arguments.get(k):
-            diffs.append(f"{k} {old.arguments.get(k)!r} -> {arguments.get(k)!r}")
-    if old.pipeline != pipeline:
-        diffs.append("pipeline spec differs")
-    if old.schema_version != SCHEMA_VERSION:
-        diffs.append(f"schema version {old.schema_version} -> {SCHEMA_VERSION}")
-    return ", ".join(diffs) or "fingerprint differs"
-
-
-def _is_ours(path: Path) -> bool:
-    """Whether a file in a ``shards/`` folder is one the toolkit writes (a shard or a temporary)."""
-    return path.suffix == ".arrow" or TMP_MARKER in path.name
-
-
-def _remove_unlisted(cache_dir: Path, listed: set[str]) -> list[str]:
-    """Removes the toolkit's files in ``cache_dir/shards/`` that ``listed`` (shard file names) does
-    not name, and manifest temporaries; returns them relative to ``cache_dir``."""
-    removed = []
-    shard_dir = cache_dir / SHARDS_DIR
-    if shard_dir.is_dir():
-        for p in sorted(shard_dir.iterdir()):
-            if _is_ours(p) and (TMP_MARKER in p.name or p.name not in listed):
-                p.unlink(missing_ok=True)
-                removed.append(p.relative_to(cache_dir).as_posix())
-    for p in sorted(cache_dir.glob(f"{MANIFEST_NAME}{TMP_MARKER}*")):
-        p.unlink(missing_ok=True)
-        removed.append(p.name)
-    return removed
-
-
-def _clean_unfinished(out: Path, manifest: Manifest) -> list[str]:
-    """Removes temporary files and shards no manifest entry lists (left by a killed run)."""
-    return _remove_unlisted(out, {Path(sh.path).name for sh in manifest.shards})
-
-
-def _clear_staging(staging: Path) -> None:
-    """Removes an overwrite's staging folder: its manifest, marker and shard files (anything else
-    in it is not ours and stays, and so does the folder then)."""
-    if not staging.is_dir():
-        return
-    _remove_unlisted(staging, set())
-    for name in (MANIFEST_NAME, SWAP_MARKER):
-        (staging / name).unlink(missing_ok=True)
-    for folder in (staging / SHARDS_DIR, staging):
-        with contextlib.suppress(OSError):  # not empty: it holds files that are not ours
-            folder.rmdir()
-
-
-def _is_foreign(out: Path) -> bool:
-    """True if ``out`` (which has no manifest) holds anything but the temporary files of a run
-    killed before its first manifest write, a lock file or a staging folder. Our runs write the
-    manifest before any shard, so shard files without a manifest are someone else's and are never
-    deleted."""
-    for p in out.iterdir():
-        if p.name == SHARDS_DIR and p.is_dir() and not p.is_symlink():
-            if any(TMP_MARKER not in q.name for q in p.iterdir()):
-                return True
-        elif p.name in (LOCK_NAME, STAGING_DIR):
-            continue
-        elif not p.name.startswith(f"{MANIFEST_NAME}{TMP_MARKER}"):
-            return True
-    return False
-
-
-def _swap_in(out: Path, staging: Path) -> None:
-    """Replaces the cache in ``out`` by the complete new version in ``staging``.
-
-    The swap is journaled: a marker in ``staging`` says it has begun, before anything of the old
-    cache is touched; a run killed part-way is finished by the next run on ``out``
-    (:func:`_finish_swap`)."""
-    atomic_write_bytes(staging / SWAP_MARKER, b"")
-    _finish_swap(out, staging)
-
-
-def _finish_swap(out: Path, staging: Path) -> None:
-    """Completes a begun swap (idempotent): removes the old manifest, moves the new shards over the
-    old ones, removes the old cache's other shard files, renames the new manifest into place and
-    removes the staging folder. Between the first step and the rename ``out`` has no manifest, so
-    a reader then fails with a clear error, never with a mix of the two versions."""
-    new_manifest = staging / MANIFEST_NAME
-    if new_manifest.is_file():  # else the rename was done: only the folder is left to remove
-        new = Manifest.load(staging)
-        (out / MANIFEST_NAME).unlink(missing_ok=True)
-        fsync_dir(out)
-        (out / SHARDS_DIR).mkdir(exist_ok=True)
-        for sh in new.shards:
-            moved = staging / sh.path
-            if moved.exists():
-                os.replace(moved, out / sh.path)
-        _remove_unlisted(out, {Path(sh.path).name for sh in new.shards})
-        fsync_dir(out / SHARDS_DIR)
-        os.replace(new_manifest, out / MANIFEST_NAME)
-        fsync_dir(out)
-    _clear_staging(staging)
-
-
-def _open_existing(
-    out: Path,
-    source: str,
-    arguments: dict[str, Any],
-    pipeline_dict: dict[str, Any],
-    fp: str,
-    overwrite: bool,
-) -> tuple[Manifest | None, bool]:
-    """The cache already in ``out``: (its manifest if this run resumes it, whether this run
-    replaces it). Refuses a cache made otherwise (unless ``overwrite``) and a foreign folder."""
-    if not (out / MANIFEST_NAME).exists():
-        if _is_foreign(out):
-            raise PrepError(
-                f"--out {out} is not empty and holds no phigenesis cache; choose a new or empty directory"
-            )
-        return None, False
-    try:
-        manifest = Manifest.load(out)
-    except CacheError as e:
-        if not overwrite:
-            raise PrepError(f"{e}. Rerun with --overwrite to rebuild the cache from scratch.") from e
-        log.warning("replacing the cache in %s: %s", out, e)
-        return None, True
-    if manifest.fingerprint == fp:
-        return manifest, False
-    if not overwrite:
-        raise PrepError(
-            f"{out} holds a cache made with other arguments "
-            f"({_describe_difference(manifest, source, arguments, pipeline_dict)}); "
-            "use --overwrite to replace it or choose another --out"
-        )
-    log.warning("replacing the cache in %s made with other arguments", out)
-    return None, True
-
-
-def _open_staging(staging: Path, fp: str) -> Manifest | None:
-    """The manifest of an interrupted overwrite with fingerprint ``fp`` staged in ``staging``
-    (this run resumes it); otherwise clears whatever an other overwrite left there."""
-    try:
-        manifest = Manifest.load(staging) if (staging / MANIFEST_NAME).is_file() else None
-    except CacheError as e:
-        log.warning("discarding the unreadable staged cache in %s: %s", staging, e)
-        manifest = None
-    if manifest is not None and manifest.fingerprint == fp:
-        return manifest
-    _clear_staging(staging)
-    return None
-
-
-def _start_run(
-    out: Path, source: str, arguments: dict[str, Any], pipeline_dict: dict[str, Any], fp: str, overwrite: bool
-) -> _Run:
-    """Decides where the run writes (``out``, or a staging folder when it replaces a cache), with
-    the manifest it resumes or a new one, after clearing what killed runs left unfinished."""
-    _refuse_links(out)
-    staging = out / STAGING_DIR
-    if (staging / SWAP_MARKER).exists():
-        log.warning("%s: finishing the overwrite that was stopped while swapping in its new version", out)
-        _finish_swap(out, staging)
-    manifest, replace = _open_existing(out, source, arguments, pipeline_dict, fp, overwrite)
-    target = out
-    if replace:
-        target = staging
-        manifest = _open_staging(staging, fp)
-        log.info(
-            "building the new cache in %s; the cache in %s stays readable until the new one is complete",
-            staging,
-            out,
-        )
-    elif staging.is_dir():
-        log.info("removing %s, left by an overwrite that did not finish", staging)
-        _clear_staging(staging)
-    if manifest is None:
-        manifest = Manifest(
-            schema_version=SCHEMA_VERSION,
-            source=source,
-            arguments=arguments,
-            pipeline=pipeline_dict,
-            fingerprint=fp,
-            phigenesis_version=__version__,
-        )
-    target.mkdir(exist_ok=True)
-    removed = _clean_unfinished(target, manifest)
-    if removed:
-        log.info(
-            "removed %d unfinished files left by an interrupted run: %s", len(removed), ", ".join(removed)
-        )
-    manifest.save(target)
-    return _Run(out, target, manifest)
-
-
 def _open_source(
     source: str, source_overrides: dict[str, Any] | None, pipeline: str | os.PathLike[str] | PipelineSpec
 ) -> tuple[PipelineSpec, dict[str, Any], list[str]]:
@@ -706,10 +443,9 @@ def prepare(
     out = Path(out)
     spec, arguments, scene_ids = _open_source(source, source_overrides, pipeline)
     pipeline_dict = spec.to_dict()
-    fp = fingerprint(source, arguments, pipeline_dict)
-    _check_out_dir(out)
-    with CacheLock(out):
-        run = _start_run(out, source, arguments, pipeline_dict, fp, overwrite)
+    check_out_dir(out)
+    with CacheLock(out, "prep"):
+        run = start_run(out, source, arguments, pipeline_dict, scene_ids, overwrite)
         summary = PrepSummary(str(out))
         tasks = _pending_tasks(run, scene_ids, source, arguments, pipeline_dict, summary)
         _run_scenes(run, tasks, scene_ids, summary, executor, workers, ray_address, on_error, progress)
@@ -720,7 +456,7 @@ def prepare(
 
 
 def _pending_tasks(
-    run: _Run,
+    run: CacheRun,
     scene_ids: list[str],
     source: str,
     arguments: dict[str, Any],
@@ -746,7 +482,7 @@ def _pending_tasks(
 
 
 def _run_scenes(
-    run: _Run,
+    run: CacheRun,
     tasks: list[SceneTask],
     scene_ids: list[str],
     summary: PrepSummary,
@@ -761,29 +497,26 @@ def _run_scenes(
     However the loop ends early (a failed scene under ``on_error="raise"``, a write error, an
     interrupt), the workers are stopped before anything else, then the unfinished files are
     removed; an interrupt comes out as :class:`PrepInterrupted`."""
-    order = {sid: i for i, sid in enumerate(scene_ids)}
     bars = _ProgressBars(enabled=progress)
     results = run_tasks(process_scene, tasks, executor, workers, ray_address, bars.update)
     try:
         with contextlib.closing(results):  # closing stops the workers
             for result in results:
                 bars.finish(result.scene_id)
-                _record(run, result, order, summary, on_error)
+                _record(run, result, summary, on_error)
     except KeyboardInterrupt as e:
         raise _interrupted(run, len(scene_ids)) from e
     except BaseException:
-        _tidy_after_stop(run)
+        run.tidy_after_stop()
         raise
     finally:
         bars.close()
 
 
-def _record(
-    run: _Run, result: SceneResult, order: dict[str, int], summary: PrepSummary, on_error: OnError
-) -> None:
-    """Records one scene's result in the manifest (saved at once) and applies the error policy."""
+def _record(run: CacheRun, result: SceneResult, summary: PrepSummary, on_error: OnError) -> None:
+    """Commits one scene's result to the manifest (saved at once) and applies the error policy."""
     if result.error is not None and result.error_stops_run:
-        raise CacheWriteError(f"{result.error} ({_what_is_kept(run, 'rerun the same command to resume')})")
+        raise CacheWriteError(f"{result.error} ({run.what_is_kept('rerun the same command to resume')})")
     if result.error is None:
         entry = SceneEntry(
             result.scene_id,
@@ -793,7 +526,7 @@ def _record(
             [s.path for s in result.shards],
             dropped=result.dropped,
         )
-        run.manifest.record_scene(entry, result.shards)
+        run.commit(entry, result.shards)
         summary.scenes_written.append(result.scene_id)
         summary.frames_written += result.frames
         summary.bytes_written += sum(s.bytes for s in result.shards)
@@ -801,48 +534,21 @@ def _record(
             log.warning("scene %s: the source left out %s", result.scene_id, result.dropped_description)
     else:
         status = "skipped" if on_error == "skip" else "failed"
-        run.manifest.record_scene(SceneEntry(result.scene_id, result.source, 0, status, [], result.error), [])
+        run.commit(SceneEntry(result.scene_id, result.source, 0, status, [], result.error))
         summary.scenes_skipped[result.scene_id] = result.error
-    run.manifest.scenes.sort(key=lambda s: order.get(s.id, len(order)))
-    run.manifest.save(run.target)
     if result.error is None:
         return
     if on_error == "raise":
-        kept = _what_is_kept(run, "--on-error skip converts the rest")
+        kept = run.what_is_kept("--on-error skip converts the rest")
         raise PrepError(f"scene {result.scene_id} failed: {result.error} ({kept})")
     log.warning("skipped scene %s: %s", result.scene_id, result.error)
 
 
-def _what_is_kept(run: _Run, advice: str) -> str:
-    """What a run that stops now leaves, and ``advice`` where something was kept, for its error."""
-    if not run.staged:
-        return f"finished scenes are kept in {run.out}; {advice}"
-    kept = len(run.complete_scenes())
-    if not kept:
-        return f"the cache in {run.out} is unchanged"
-    return (
-        f"the cache in {run.out} is unchanged; the {kept} finished scenes of its new version are kept "
-        f"in {run.target} for a rerun; {advice}"
-    )
-
-
-def _tidy_after_stop(run: _Run) -> None:
-    """After the workers stopped early: removes their unfinished files, and an overwrite's staging
-    folder if it holds no complete scene. Never raises (the error that stopped the run matters)."""
-    try:
-        if run.staged and not run.complete_scenes():
-            _clear_staging(run.target)
-        else:
-            _clean_unfinished(run.target, run.manifest)
-    except OSError as e:
-        log.warning("could not remove the unfinished files in %s: %s", run.target, e)
-
-
-def _interrupted(run: _Run, scenes_total: int) -> PrepInterrupted:
+def _interrupted(run: CacheRun, scenes_total: int) -> PrepInterrupted:
     """Leaves an interrupted run's cache consistent and says what was kept."""
     with contextlib.suppress(OSError):  # the scene recorded last may not have been saved yet
         run.manifest.save(run.target)
-    _tidy_after_stop(run)
+    run.tidy_after_stop()
     complete = run.complete_scenes()
     frames = sum(s.frames for s in complete)
     args = (str(run.out), len(complete), scenes_total, frames)
@@ -865,10 +571,10 @@ def _interrupted(run: _Run, scenes_total: int) -> PrepInterrupted:
     )
 
 
-def _swap_staged(run: _Run, scenes_total: int) -> None:
+def _swap_staged(run: CacheRun, scenes_total: int) -> None:
     """Swaps a complete overwrite into place; an interrupt during the swap is PrepInterrupted."""
     try:
-        _swap_in(run.out, run.target)
+        swap_in(run.out, run.target)
     except KeyboardInterrupt as e:
         complete = run.complete_scenes()
         raise PrepInterrupted(

@@ -2,9 +2,9 @@
 
 Layout of a cache directory::
 
-    manifest.json          what the cache holds (written last, atomically)
+    manifest.json          what the cache holds (the commit point: rewritten atomically per scene)
     shards/<scene>-00000.arrow  Arrow IPC files, one row per frame, one record batch per row
-    .phigenesis.lock       held by the one prep run writing the cache (see cache_lock.py)
+    .phigenesis.lock       held by the one run writing the cache (see cache_lock.py, cache_run.py)
     .phigenesis-staging/   the new version an ``overwrite`` run builds before swapping it in
 
 Integrity: the manifest records each shard's size and CRC-32C and, for every record batch (row),
@@ -20,7 +20,10 @@ writes them, never reading a shard back.
 Trust: a manifest is untrusted input. :meth:`Manifest.load` checks it against the cache's schema
 once (every field's type and range, the row index's shape, scenes and shards agreeing with each
 other) and checks that every shard path resolves, symbolic links included, inside the cache's
-``shards/`` folder; whatever reads or deletes a shard goes through :func:`resolve_shard_path`.
+``shards/`` folder; whatever reads or deletes a shard goes through :func:`resolve_shard_path`. A
+manifest that is itself a symbolic link is refused; scene ids and shard file names are bounded
+(:func:`scene_id_problem`, :data:`MAX_FILE_NAME_BYTES`), so no name reaches the file system that
+it cannot take.
 
 Atomicity: every file is written under a temporary name, flushed with fsync and renamed; the
 manifest is rewritten the same way after each scene completes. A killed run leaves only complete
@@ -586,6 +589,10 @@ class ShardWriter:
     def __init__(
         self, cache_dir: Path, scene_id: str, schema: pa.Schema, max_bytes: int = DEFAULT_SHARD_MAX_BYTES
     ):
+        problem = scene_id_problem(scene_id)
+        if problem:
+            shown = scene_id[:57] + "..." if len(scene_id) > 60 else scene_id
+            raise PrepError(f"scene id {shown!r} {problem}; cannot write its shards")
         self.cache_dir = Path(cache_dir)
         self.scene_id = scene_id
         self.schema = schema
@@ -755,6 +762,33 @@ def safe_name(scene_id: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in scene_id)
 
 
+#: The longest scene id a cache holds, in characters: its shard files are named after it.
+MAX_SCENE_ID_CHARS = 200
+#: The longest file name most file systems take (Linux's NAME_MAX), in bytes of UTF-8.
+MAX_FILE_NAME_BYTES = 255
+
+
+def scene_id_problem(scene_id: object) -> str | None:
+    """Why ``scene_id`` cannot be a cache's scene id (None if it can): it names the scene's shard
+    files (:func:`safe_name` plus ``-00000.arrow``), so it is a non-empty string of at most
+    :data:`MAX_SCENE_ID_CHARS` characters without control characters, whose file-name form fits in
+    200 bytes."""
+    if not isinstance(scene_id, str):
+        return "is not a string"
+    if not scene_id:
+        return "is empty"
+    if len(scene_id) > MAX_SCENE_ID_CHARS:
+        return (
+            f"has {len(scene_id)} characters; a scene id has at most {MAX_SCENE_ID_CHARS} "
+            "(it names the scene's shard files)"
+        )
+    if any(ord(c) < 32 or ord(c) == 127 for c in scene_id):
+        return "holds a control character"
+    if len(safe_name(scene_id).encode()) > MAX_SCENE_ID_CHARS:
+        return f"takes {len(safe_name(scene_id).encode())} bytes as a file name; at most {MAX_SCENE_ID_CHARS}"
+    return None
+
+
 # --------------------------------------------------------------------------------------------
 # Manifest
 
@@ -785,6 +819,9 @@ class Manifest:
 
     ``fingerprint`` is a hash of everything that determines the rows (source, its arguments, the
     pipeline spec, the schema version); a rerun into the same directory must match it.
+    ``scenes_expected`` lists the scene ids the run's arguments ask for, in order, recorded when
+    the run starts (:mod:`phigenesis.data.cache_run`): a cache with fewer finished scenes is
+    incomplete. None in manifests written before the field existed (completeness unknown).
     """
 
     schema_version: int
@@ -796,6 +833,7 @@ class Manifest:
     shards: list[ShardInfo] = field(default_factory=list)
     format: str = CACHE_FORMAT
     phigenesis_version: str = ""
+    scenes_expected: list[str] | None = None
 
     def scene(self, scene_id: str) -> SceneEntry | None:
         for s in self.scenes:
@@ -808,9 +846,20 @@ class Manifest:
         self.scenes = [s for s in self.scenes if s.id != entry.id] + [entry]
         self.shards = [s for s in self.shards if s.scene_id != entry.id] + list(shards)
 
+    def unfinished_scenes(self) -> list[str] | None:
+        """The scenes of ``scenes_expected`` the run has not finished (none recorded, or recorded
+        ``failed``: the run stopped there), in order; None where the manifest does not record
+        ``scenes_expected``. A ``skipped`` scene is finished: the run went on past it."""
+        if self.scenes_expected is None:
+            return None
+        finished = {s.id for s in self.scenes if s.status in ("complete", "skipped")}
+        return [sid for sid in self.scenes_expected if sid not in finished]
+
     def to_json(self) -> str:
         d = asdict(self)
         d["shards"] = [sh.to_dict() for sh in self.shards]
+        if d["scenes_expected"] is None:
+            del d["scenes_expected"]
         return json.dumps(d, indent=1, sort_keys=False)
 
     def save(self, cache_dir: Path) -> None:
@@ -837,7 +886,14 @@ class Manifest:
 
 
 def _read_json(path: Path) -> object:
-    """The parsed JSON document of a manifest file; CacheError naming it if it cannot be."""
+    """The parsed JSON document of a manifest file; CacheError naming it if it cannot be. A
+    manifest that is a symbolic link is refused, as a ``shards/`` folder that is one is: what a
+    cache holds lies inside it."""
+    if path.is_symlink():
+        raise CacheError(
+            f"{path}: the manifest is a symbolic link (to {os.readlink(path)}); a cache's "
+            f"{MANIFEST_NAME} must be a file inside it"
+        )
     if not path.is_file():
         hint = ""
         if (path.parent / STAGING_DIR / SWAP_MARKER).exists():
@@ -870,18 +926,26 @@ def resolve_shard_path(cache_dir: str | os.PathLike[str], relative: str, field: 
     deleted because a manifest names it."""
     cache_dir = Path(cache_dir)
     where = f"{cache_dir / MANIFEST_NAME}: {field}"
+    shown = repr(relative) if len(relative) <= 80 else repr(relative[:77]) + "..."
+    if len(relative.encode(errors="replace")) > len(SHARDS_DIR) + 1 + MAX_FILE_NAME_BYTES:
+        raise CacheError(
+            f"{where}: {shown} is {len(relative)} characters long; a shard's file name has at most "
+            f"{MAX_FILE_NAME_BYTES} bytes"
+        )
     pure = PurePosixPath(relative)
     if pure.is_absolute():
-        raise CacheError(f"{where}: {relative!r} is an absolute path; shard paths are 'shards/<file name>'")
+        raise CacheError(f"{where}: {shown} is an absolute path; shard paths are 'shards/<file name>'")
     if len(pure.parts) != 2 or pure.parts[0] != SHARDS_DIR or pure.as_posix() != relative or "\0" in relative:
-        raise CacheError(f"{where}: {relative!r} is not a file directly in {SHARDS_DIR}/")
+        raise CacheError(f"{where}: {shown} is not a file directly in {SHARDS_DIR}/")
+    if len(pure.name.encode(errors="replace")) > MAX_FILE_NAME_BYTES:
+        raise CacheError(f"{where}: {shown}: a shard's file name has at most {MAX_FILE_NAME_BYTES} bytes")
     root = cache_dir.resolve() / SHARDS_DIR
     try:
         resolved = (cache_dir / relative).resolve()
     except (OSError, RuntimeError) as e:  # a symbolic link loop
-        raise CacheError(f"{where}: {relative!r} cannot be resolved ({e})") from e
+        raise CacheError(f"{where}: {shown} cannot be resolved ({e})") from e
     if resolved == root or not resolved.is_relative_to(root):
-        raise CacheError(f"{where}: {relative!r} resolves to {resolved}, outside {root}")
+        raise CacheError(f"{where}: {shown} resolves to {resolved}, outside {root}")
     return resolved
 
 
@@ -988,6 +1052,7 @@ def parse_manifest(document: object, file: Path) -> Manifest:
     shards = [_parse_shard(file, i, v) for i, v in enumerate(top.array("shards"))]
     scenes = [_parse_scene(file, i, v) for i, v in enumerate(top.array("scenes"))]
     _check_listing(file, scenes, shards)
+    expected = _parse_scenes_expected(top)
     for i, sh in enumerate(shards):
         resolve_shard_path(file.parent, sh.path, f"shards[{i}].path")
     return Manifest(
@@ -1000,7 +1065,30 @@ def parse_manifest(document: object, file: Path) -> Manifest:
         shards=shards,
         format=CACHE_FORMAT,
         phigenesis_version=top.string("phigenesis_version", ""),
+        scenes_expected=expected,
     )
+
+
+def _parse_scenes_expected(top: _Fields) -> list[str] | None:
+    """``scenes_expected``: absent or null (a manifest written before it existed), or an array of
+    distinct scene ids."""
+    if top.raw("scenes_expected", None) is None:
+        return None
+    expected = top.strings("scenes_expected")
+    seen: set[str] = set()
+    for k, scene_id in enumerate(expected):
+        _check_scene_id(top, f"scenes_expected[{k}]", scene_id)
+        if scene_id in seen:
+            raise CacheError(f"{top.file}: scenes_expected[{k}]: {scene_id[:60]!r} is listed twice")
+        seen.add(scene_id)
+    return expected
+
+
+def _check_scene_id(f: _Fields, key: str, scene_id: str) -> None:
+    """CacheError naming the manifest and ``key`` if ``scene_id`` cannot be a scene id."""
+    problem = scene_id_problem(scene_id)
+    if problem:
+        raise f.error(key, f"{_show(scene_id)} {problem}")
 
 
 def _parse_shard(file: Path, i: int, value: object) -> ShardInfo:
@@ -1008,6 +1096,7 @@ def _parse_shard(file: Path, i: int, value: object) -> ShardInfo:
     f = _Fields(file, f"shards[{i}]", value)
     path = f.string("path")
     scene_id = f.string("scene_id")
+    _check_scene_id(f, "scene_id", scene_id)
     rows = f.integer("rows")
     size = f.integer("bytes")
     checksum = f.string("checksum", "crc32")
@@ -1072,8 +1161,10 @@ def _parse_scene(file: Path, i: int, value: object) -> SceneEntry:
         problem = _integer_problem(count)
         if problem:
             raise CacheError(f"{file}: {f.name('dropped')}[{what!r}]: {_show(count)} {problem}")
+    scene_id = f.string("id")
+    _check_scene_id(f, "id", scene_id)
     return SceneEntry(
-        id=f.string("id"),
+        id=scene_id,
         source=f.string("source"),
         frames=f.integer("frames"),
         status=status,
@@ -1203,15 +1294,8 @@ class ShardReader:
         return self._reader.schema
 
 
-def remove_unfinished_shards(cache_dir: str | os.PathLike[str]) -> None:
-    """Removes the temporary shard files an interrupted run left in ``cache_dir`` (only plain files
-    ``shards/*.tmp-*``): what a resuming writer calls before writing again."""
-    shard_dir = Path(cache_dir) / SHARDS_DIR
-    if shard_dir.is_dir():
-        for p in shard_dir.iterdir():
-            if TMP_MARKER in p.name and p.is_file() and not p.is_symlink():
-                log.info("removing %s, left by an interrupted run", p)
-                p.unlink()
+#: Columns every row of a frame cache has (:mod:`phigenesis.data.schema`), which a frame needs.
+FRAME_KEY_COLUMNS = ("scene_id", "frame_index", "frame_timestamp_micros", "world_from_ego", "cameras")
 
 
 class CacheReader:
@@ -1279,6 +1363,19 @@ class CacheReader:
             raise KeyError(f"{self.cache_dir}: no complete scene {scene_id!r}")
         return range(first, first + count)
 
+    def _check_frames(self, frame: int) -> None:
+        """CacheError naming the manifest if the shard holding ``frame`` does not hold frames (a
+        Stage 2 latent cache holds one row per window)."""
+        if not -len(self) <= frame < len(self):
+            return  # read() says it is out of range
+        missing = [c for c in FRAME_KEY_COLUMNS if c not in self.columns_of(frame)]
+        if missing:
+            raise CacheError(
+                f"{self.cache_dir / MANIFEST_NAME}: a cache of source {self.manifest.source!r} whose rows "
+                f"are not frames (no column {', '.join(missing)}); only frame caches (written by prep, "
+                "render or generate) hold frames to read or preview"
+            )
+
     def frame(self, frame: int, decode_truth: bool = True):  # -> records.Frame
         """The :class:`~phigenesis.data.records.Frame` record of a global frame index.
 
@@ -1288,6 +1385,7 @@ class CacheReader:
         from phigenesis.data.records import InvalidRecord
         from phigenesis.data.schema import row_to_frame
 
+        self._check_frames(frame)
         batch = self.read(frame)
         try:
             return row_to_frame(batch, 0, decode_truth)
@@ -1302,17 +1400,55 @@ class CacheReader:
 
 @dataclass
 class VerifyReport:
-    """Problems found in a cache: ``errors`` make it unusable, ``warnings`` do not."""
+    """What verifying a cache found: ``errors`` (damage: the cache cannot be trusted), ``warnings``
+    (nothing a reader trips on), and whether the run that wrote it finished.
+
+    ``scenes_expected``: the scenes the writing run asked for (None for a cache written before
+    manifests recorded them, whose completeness cannot be known); ``unfinished``: those of them
+    it has not finished (:meth:`Manifest.unfinished_scenes`); both empty where the manifest could not
+    be read (:attr:`manifest_read`)."""
 
     cache_dir: str
     frames: int = 0
     shards: int = 0
     errors: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    scenes_expected: list[str] | None = None
+    unfinished: list[str] = field(default_factory=list)
+    manifest_read: bool = False  # the manifest could be read and checked
 
     @property
     def ok(self) -> bool:
+        """No damage (an incomplete cache is still ok: what it lists is intact)."""
         return not self.errors
+
+    @property
+    def complete(self) -> bool | None:
+        """Whether every expected scene is finished; None where the manifest cannot tell."""
+        return None if self.scenes_expected is None else not self.unfinished
+
+    @property
+    def status(self) -> str:
+        """``"DAMAGED"`` (errors), else ``"INCOMPLETE"`` (unfinished scenes), else ``"OK"``."""
+        if self.errors:
+            return "DAMAGED"
+        return "INCOMPLETE" if self.unfinished else "OK"
+
+    def completeness(self) -> str:
+        """One line on whether the writing run finished, for the report."""
+        if self.scenes_expected is None:
+            return (
+                "the manifest does not record which scenes its run asked for (written before manifests "
+                "did): whether the cache is complete cannot be checked"
+            )
+        total = len(self.scenes_expected)
+        if not self.unfinished:
+            return f"all {total} scenes its run asked for are finished"
+        missing = ", ".join(self.unfinished[:10]) + (" ..." if len(self.unfinished) > 10 else "")
+        return (
+            f"{total - len(self.unfinished)} of the {total} scenes its run asked for are finished "
+            f"(missing: {missing}); rerunning the command that wrote it resumes it"
+        )
 
 
 def verify_cache(cache_dir: str | os.PathLike[str]) -> VerifyReport:
@@ -1323,7 +1459,10 @@ def verify_cache(cache_dir: str | os.PathLike[str]) -> VerifyReport:
     footer CRC, Arrow structure, row count, columns and schema version, and each row's metadata
     CRC and every column's CRC, whether or not the file's SHA-256 matches (a manifest whose row
     index is wrong fails the reader as surely as a damaged file). Each problem is reported by
-    shard, row and column. Never raises on a bad cache: problems are in the report."""
+    shard, row and column. Then whether the run that wrote the cache finished: the scenes its
+    manifest records as asked for (``scenes_expected``) against those it lists as finished
+    (:attr:`VerifyReport.status`: ``DAMAGED``, ``INCOMPLETE`` or ``OK``). Never raises on a bad
+    cache: problems are in the report."""
     cache_dir = Path(cache_dir)
     report = VerifyReport(str(cache_dir))
     try:
@@ -1332,9 +1471,15 @@ def verify_cache(cache_dir: str | os.PathLike[str]) -> VerifyReport:
         report.errors.append(str(e))
         return report
     report.warnings += _schema_version_warnings(cache_dir, manifest)
+    report.manifest_read = True
+    report.scenes_expected = manifest.scenes_expected
+    report.unfinished = manifest.unfinished_scenes() or []
     for info in manifest.shards:
         report.shards += 1
-        problems = _shard_problems(cache_dir, info, manifest.schema_version)
+        try:
+            problems = _shard_problems(cache_dir, info, manifest.schema_version)
+        except OSError as e:  # a file that cannot even be looked at
+            problems = [f"{cache_dir / info.path}: cannot be read ({os_reason(e)})"]
         report.errors += problems
         if not problems:
             report.frames += info.rows
@@ -1459,7 +1604,7 @@ def _leftover_warnings(cache_dir: Path, manifest: Manifest) -> list[str]:
                 what = (
                     "unfinished temporary file" if TMP_MARKER in p.name else "file not listed in the manifest"
                 )
-                warnings.append(f"{p}: {what} (ignored by readers; removed by the next prep run)")
+                warnings.append(f"{p}: {what} (ignored by readers; removed by the next run writing it)")
     staging = cache_dir / STAGING_DIR
     if staging.is_dir():
         warnings.append(

@@ -41,12 +41,12 @@ increasing times after the history and below 2^62, rigid poses of plain numbers 
 frame, no other key; a regular file of at most 1 MiB; each camera at the recorded rig's extrinsics and
 its recorded offset from the frame time).
 
-The output folder holds a cache in the project's schema (one scene, the generated frames: images,
-calibrations at the model's size, poses, the generated Gaussians' rendered depth (dense origin
-``rendered``) and class labels (pseudo source ``rendered``)), so ``phigenesis-prep verify``,
-``preview`` and the loader work on it; ``strip.png`` (generated frames, views side by side);
-``gaussians/window-KKK.ply`` (the Gaussians each window added to the buffer); ``generate.json`` (what
-made it, timings).
+The output folder holds a cache in the project's schema (one scene, the generated frames numbered
+from 0, with the recorded frame they start at in the scene's metadata: images, calibrations at the
+model's size, poses, the generated Gaussians' rendered depth (dense origin ``rendered``) and class
+labels (pseudo source ``rendered``)), so ``phigenesis-prep verify``, ``preview`` and the loader work
+on it; ``strip.png`` (generated frames, views side by side); ``gaussians/window-KKK.ply`` (the
+Gaussians each window added to the buffer); ``generate.json`` (what made it, timings).
 """
 
 from __future__ import annotations
@@ -69,6 +69,7 @@ from torch import Tensor
 
 from phigenesis import __version__
 from phigenesis.data import records
+from phigenesis.data.cache_run import writing_cache
 from phigenesis.data.records import (
     MAX_USER_MICROS,
     Boxes,
@@ -80,8 +81,8 @@ from phigenesis.data.records import (
     InvalidRecord,
     encode_rgb,
 )
-from phigenesis.data.schema import SCHEMA_VERSION, CacheContents, frame_schema, frame_to_batch
-from phigenesis.data.shards import MANIFEST_NAME, Manifest, SceneEntry, ShardWriter
+from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
+from phigenesis.data.shards import MANIFEST_NAME, SceneEntry, ShardInfo, ShardWriter, atomic_write_bytes
 from phigenesis.errors import PhiGenesisError
 from phigenesis.infer.buffer import GaussianBuffer
 from phigenesis.infer.conditions import (
@@ -530,11 +531,11 @@ def rollout(
 # Writing the generated scene
 
 
-def generated_frames(
-    result: Rollout, scene_id: str, calibrations: list[CameraCalibration], first_index: int
-) -> list[Frame]:
+def generated_frames(result: Rollout, scene_id: str, calibrations: list[CameraCalibration]) -> list[Frame]:
     """The generated frames as scene-model records (the images JPEG-encoded, the rendered depth as
-    the dense depth and the rendered classes as pseudo labels, no LiDAR, no boxes)."""
+    the dense depth and the rendered classes as pseudo labels, no LiDAR, no boxes). The generated
+    scene is a scene of its own: its frames are numbered from 0 (``frame_index``, as in every
+    cache); the scene's metadata records the recorded frame it starts at (``start``)."""
     frames = []
     n, v = result.images.shape[:2]
     for i in range(n):
@@ -570,7 +571,7 @@ def generated_frames(
         frames.append(
             Frame(
                 scene_id,
-                first_index + i,
+                i,
                 traj.timestamp_micros,
                 traj.world_from_ego,
                 cameras,
@@ -581,12 +582,19 @@ def generated_frames(
     return frames
 
 
-def write_generated_cache(
-    out: Path, frames: list[Frame], scene_id: str, arguments: dict[str, Any], metadata: dict[str, Any]
-) -> Path:
-    """Writes ``frames`` as a one-scene cache in ``out`` (manifest, shards, verify-able)."""
-    from phigenesis.data.pipeline import fingerprint
+#: The manifest ``pipeline`` of a generated cache: what its rows hold.
+GENERATED_PIPELINE: dict[str, Any] = {
+    "name": "generated",
+    "output": {"camera_truth": [], "lidar": False, "depth": True, "pseudo_semantics": True},
+}
 
+
+def write_generated_scene(
+    target: Path, frames: list[Frame], scene_id: str, metadata: dict[str, Any]
+) -> tuple[SceneEntry, list[ShardInfo]]:
+    """Writes ``frames`` as the shards of the generated scene ``scene_id`` in the cache folder
+    ``target``: (its manifest entry, its complete shards), which the caller commits
+    (:meth:`~phigenesis.data.cache_run.CacheRun.commit`)."""
     contents = CacheContents(
         camera_truth=(),
         lidar=False,
@@ -598,27 +606,11 @@ def write_generated_cache(
     schema = frame_schema(
         contents, {"phigenesis.source": "generated", "phigenesis.scene_metadata": json.dumps(metadata)}
     )
-    pipeline = {
-        "name": "generated",
-        "output": {"camera_truth": [], "lidar": False, "depth": True, "pseudo_semantics": True},
-    }
-    manifest = Manifest(
-        SCHEMA_VERSION,
-        "generated",
-        arguments,
-        pipeline,
-        fingerprint("generated", arguments, pipeline),
-        phigenesis_version=__version__,
-    )
-    with ShardWriter(out, scene_id, schema) as writer:
+    with ShardWriter(target, scene_id, schema) as writer:
         for frame in frames:
             writer.write(frame_to_batch(frame, "generated", schema))
         shards = writer.close()
-    manifest.record_scene(
-        SceneEntry(scene_id, "generated", len(frames), "complete", [s.path for s in shards]), shards
-    )
-    manifest.save(out)
-    return out
+    return SceneEntry(scene_id, "generated", len(frames), "complete", [s.path for s in shards]), shards
 
 
 def save_strip(result: Rollout, path: Path, max_rows: int = 8) -> Path:
@@ -635,7 +627,7 @@ def save_strip(result: Rollout, path: Path, max_rows: int = 8) -> Path:
     ok, png = cv2.imencode(".png", cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
     if not ok:
         raise ValueError(f"{path}: cannot encode the strip")
-    path.write_bytes(png.tobytes())
+    atomic_write_bytes(path, png.tobytes())
     return path
 
 
@@ -645,13 +637,14 @@ def save_strip(result: Rollout, path: Path, max_rows: int = 8) -> Path:
 
 @dataclass
 class GenerateResult:
-    """What :func:`generate` wrote, with the rollout itself."""
+    """What :func:`generate` wrote, with the rollout itself (None when ``out`` already held the
+    finished rollout of the same command, and nothing was generated)."""
 
     out: Path
     cache: Path
     strip: Path
     plys: list[Path]
-    rollout: Rollout
+    rollout: Rollout | None
     seconds: float
 
 
@@ -777,6 +770,14 @@ class Stage2Runner:
     ) -> tuple[Rollout, Any]:
         """(the rollout, the history clip) of ``frames`` frames of ``scene`` from ``start`` on."""
         options = self.resolve(options)
+        clip, traj = self.inputs(scene, start, frames, trajectory)
+        return self.roll_out(clip, traj, start, options, progress), clip
+
+    def inputs(
+        self, scene: str, start: int, frames: int, trajectory: str
+    ) -> tuple[Any, list[TrajectoryFrame]]:
+        """(the history clip, the trajectory) of a rollout request, checked: ValueError naming what
+        is wrong (:meth:`check`, a bad trajectory file) before anything is generated."""
         self.check(scene, start, frames, trajectory)
         t_h = self.history_frames
         clip = self.data.clip(scene, start - t_h, [], keep_frames=True)
@@ -790,15 +791,21 @@ class Stage2Runner:
             traj = shifted_trajectory(recorded_trajectory(loaded), float(m.group(1)))
         else:
             traj = load_trajectory_file(trajectory, frames, rig, rig.timestamp_micros)
+        return clip, traj
+
+    def roll_out(
+        self, clip: Any, traj: list[TrajectoryFrame], start: int, options: GenerateOptions, progress: bool
+    ) -> Rollout:
+        """The rollout along ``traj`` from the history ``clip`` of :meth:`inputs` (``options``
+        resolved by :meth:`resolve`)."""
         truth = None
         if options.geometry == "truth":
             depth, sem, flow = truth_maps(clip)
             truth = {"truth_depth_m": depth, "truth_semantic": sem, "truth_flow_mps": flow}
         ego_from_camera = clip.frames[start - 1]["ego_from_camera"]
-        result = rollout(
+        return rollout(
             self.denoiser, self.stage1, clip, traj, ego_from_camera, self.window, options, truth, progress
         )
-        return result, clip
 
 
 def generate(
@@ -819,7 +826,13 @@ def generate(
     (see the module docstring). ``stage1``: the Stage 1 checkpoint (default: the one the Stage 2
     model was trained with). Raises ValueError naming what is wrong for a scene not in the cache,
     a start without enough history, ``--frames`` past the cache's end with a recorded (or shifted)
-    trajectory, or a bad trajectory file; CheckpointError for a checkpoint that is not Stage 2's.
+    trajectory, or a bad trajectory file; CheckpointError for a checkpoint that is not Stage 2's;
+    all before ``out`` is touched. ``out`` is written as every cache is
+    (:mod:`phigenesis.data.cache_run`): under its lock (PrepError while another run writes it, or
+    when it holds anything but a run of this command), the scene committed last, after its shards,
+    ``strip.png``, the PLYs and ``generate.json``; a run stopped before that (killed, a full disk:
+    CacheWriteError naming the file) is redone by a rerun of the same command, and a rerun of a
+    finished one returns at once (``rollout`` None).
 
     Example::
 
@@ -827,20 +840,58 @@ def generate(
                  trajectory="shift:2m", options=GenerateOptions(omega=2.0))
     """
     t0 = time.perf_counter()
-    options = options or GenerateOptions()
     out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ValueError(
-            f"{out}: exists and is not an empty folder; choose a new folder for the generated cache"
-        )
     runner = Stage2Runner(ckpt, shards, stage1)
     options = runner.resolve(options)
-    result, clip = runner.run(scene, start, frames, trajectory, options, progress)
-    stage1_path, window = runner.stage1_path, runner.window
+    clip, traj = runner.inputs(scene, start, frames, trajectory)
+    generated_id = scene + GENERATED_SUFFIX
+    arguments = {
+        "stage2_checkpoint": str(ckpt),
+        "stage1_checkpoint": str(runner.stage1_path),
+        "frame_cache": str(Path(shards).resolve()),
+        "scene": scene,
+        "start": start,
+        "frames": frames,
+        "trajectory": trajectory,
+        **options.__dict__,
+    }
+    with writing_cache(out, "generated", arguments, GENERATED_PIPELINE, [generated_id], "generate") as run:
+        if run.is_complete(generated_id):
+            log.info("%s already holds this rollout (%s); nothing to do", out, generated_id)
+            plys = sorted((out / "gaussians").glob("window-*.ply"))
+            return GenerateResult(out, out / MANIFEST_NAME, out / "strip.png", plys, None, 0.0)
+        result = runner.roll_out(clip, traj, start, options, progress)
+        entry, written = write_generated_scene(
+            run.target,
+            generated_frames(result, generated_id, _generated_calibrations(runner, clip, start)),
+            generated_id,
+            {"generated_from": scene, "start": start},
+        )
+        strip, plys = _write_extras(out, result)
+        seconds = time.perf_counter() - t0
+        report = {
+            **arguments,
+            "windows": len(result.windows),
+            "window_frames": runner.window,
+            "seconds": seconds,
+            "seconds_per_window": result.seconds_per_window,
+            "seconds_per_frame": sum(result.seconds_per_window) / max(frames, 1),
+            "buffer_sizes": result.buffer_sizes,
+            "phigenesis_version": __version__,
+        }
+        atomic_write_bytes(out / "generate.json", json.dumps(report, indent=1, default=str).encode())
+        run.commit(entry, written)  # last: a finished cache has its strip, PLYs and report
+    log.info("generated %d frames of %s in %.1f s into %s", frames, scene, seconds, out)
+    return GenerateResult(out, out / MANIFEST_NAME, strip, plys, result, seconds)
+
+
+def _generated_calibrations(runner: Stage2Runner, clip: Any, start: int) -> list[CameraCalibration]:
+    """The cameras of the generated frames: the history's rig (its last frame's extrinsics, the
+    clip's intrinsics) at the Stage 1 model's image size, pinhole."""
     ego_from_camera = clip.frames[start - 1]["ego_from_camera"]
     h, w = runner.stage1.config.image_size
     names = list(clip.camera_names)
-    calibrations = [
+    return [
         CameraCalibration(
             names[j],
             w,
@@ -851,45 +902,18 @@ def generate(
         )
         for j in range(len(names))
     ]
-    out.mkdir(parents=True, exist_ok=True)
-    generated_id = scene + GENERATED_SUFFIX
-    arguments = {
-        "stage2_checkpoint": str(ckpt),
-        "stage1_checkpoint": str(stage1_path),
-        "frame_cache": str(Path(shards).resolve()),
-        "scene": scene,
-        "start": start,
-        "frames": frames,
-        "trajectory": trajectory,
-        **options.__dict__,
-    }
-    write_generated_cache(
-        out,
-        generated_frames(result, generated_id, calibrations, start),
-        generated_id,
-        arguments,
-        {"generated_from": scene, "start": start},
-    )
-    strip = save_strip(result, out / "strip.png")
+
+
+def _write_extras(out: Path, result: Rollout) -> tuple[Path, list[Path]]:
+    """Writes the rollout's ``strip.png`` and ``gaussians/window-KKK.ply`` (each window's Gaussians
+    added to the buffer) into ``out``; returns their paths."""
     from phigenesis.export.ply import write_ply
 
+    strip = save_strip(result, out / "strip.png")
     (out / "gaussians").mkdir(exist_ok=True)
     plys = [
         write_ply(g, out / "gaussians" / f"window-{i:03d}.ply")
         for i, g in enumerate(result.windows)
         if len(g)
     ]
-    seconds = time.perf_counter() - t0
-    report = {
-        **arguments,
-        "windows": len(result.windows),
-        "window_frames": window,
-        "seconds": seconds,
-        "seconds_per_window": result.seconds_per_window,
-        "seconds_per_frame": sum(result.seconds_per_window) / max(frames, 1),
-        "buffer_sizes": result.buffer_sizes,
-        "phigenesis_version": __version__,
-    }
-    (out / "generate.json").write_text(json.dumps(report, indent=1, default=str))
-    log.info("generated %d frames of %s in %.1f s into %s", frames, scene, seconds, out)
-    return GenerateResult(out, out / MANIFEST_NAME, strip, plys, result, seconds)
+    return strip, plys

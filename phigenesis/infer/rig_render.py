@@ -37,8 +37,11 @@ drawn per scene), and written as a new cache in the same frame schema:
 
 The output verifies, previews and loads like any cache; its manifest (source ``rendered``) names
 the source cache and its fingerprint, the checkpoint and its SHA-256, the geometry, the rig
-specification, the seed and the random ranges. A rerun into the same folder with the same
-arguments resumes after the last finished scene; a folder holding anything else is refused.
+specification, the seed and the random ranges. The output is written as every cache is
+(:mod:`phigenesis.data.cache_run`): under the cache's lock (a second writer is refused), the
+manifest recording the scenes asked for before the first one is rendered, each scene committed
+once its shards are complete; so a run killed (or stopped by a full disk) at any point is resumed
+by a rerun of the same command, and a folder holding anything else is refused.
 
 Units: metres, microseconds; images RGB uint8 in the cache.
 """
@@ -61,8 +64,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from phigenesis import __version__, geometry
+from phigenesis import geometry
 from phigenesis.data import records
+from phigenesis.data.cache_run import writing_cache
 from phigenesis.data.records import (
     Boxes,
     CameraCalibration,
@@ -72,15 +76,8 @@ from phigenesis.data.records import (
     Frame,
     encode_rgb,
 )
-from phigenesis.data.schema import SCHEMA_VERSION, CacheContents, frame_schema, frame_to_batch
-from phigenesis.data.shards import (
-    MANIFEST_NAME,
-    CacheReader,
-    Manifest,
-    SceneEntry,
-    ShardWriter,
-    remove_unfinished_shards,
-)
+from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
+from phigenesis.data.shards import MANIFEST_NAME, CacheReader, SceneEntry, ShardInfo, ShardWriter
 from phigenesis.infer.conditions import (
     TargetCameras,
     cache_scene,
@@ -383,26 +380,6 @@ def _export(
     return path
 
 
-def _open_output(out: Path, fp: str) -> Manifest | None:
-    """The manifest of a folder to resume (same fingerprint), None for a new or empty folder."""
-    if not out.exists():
-        return None
-    if not out.is_dir():
-        raise ValueError(f"{out}: exists and is not a folder; choose a new folder for the rendered cache")
-    if (out / MANIFEST_NAME).is_file():
-        manifest = Manifest.load(out)
-        if manifest.fingerprint != fp:
-            raise ValueError(
-                f"{out}: holds a cache made with other arguments (fingerprint {manifest.fingerprint}, "
-                f"this run's {fp}); choose a new folder"
-            )
-        remove_unfinished_shards(out)
-        return manifest
-    if any(out.iterdir()):
-        raise ValueError(f"{out}: exists, is not empty and holds no cache; choose a new folder")
-    return None
-
-
 def render(
     ckpt: str | os.PathLike[str] | None,
     shards: str | os.PathLike[str],
@@ -442,14 +419,12 @@ def render(
             ``<scene id>.ply`` (3DGS PLY at the frame's time; not part of the cache or its manifest).
 
     Returns a :class:`RenderResult`. Raises ValueError naming what is wrong (an unknown scene or
-    geometry, a missing checkpoint, an output folder holding something else), RigError for a bad
-    rig, CheckpointError for a checkpoint that is not Stage 1's, AssetError for an asset, pose or
-    track id that cannot be used.
+    geometry, a missing checkpoint), RigError for a bad rig, CheckpointError for a checkpoint that
+    is not Stage 1's, AssetError for an asset, pose or track id that cannot be used, PrepError when
+    another run is writing ``out`` or ``out`` holds a cache made otherwise (or anything else), and
+    CacheWriteError naming the file when one cannot be written (a full disk: the finished scenes
+    are kept and a rerun resumes).
     """
-    from tqdm import tqdm
-
-    from phigenesis.data.pipeline import fingerprint
-    from phigenesis.data.stages.aggregate import DEFAULT_EGO_BOXES
     from phigenesis.train.stage1 import load_stage1
 
     t0 = time.perf_counter()
@@ -509,13 +484,6 @@ def render(
     if inserts:  # only then: a run without assets keeps the fingerprint it always had
         arguments["insert"] = [{**s.to_dict(), "asset_sha256": _sha256(s.asset)} for s in inserts]
     pipeline = {"name": SOURCE_NAME, "output": {"camera_truth": [], "depth": True, "pseudo_semantics": True}}
-    fp = fingerprint(SOURCE_NAME, arguments, pipeline)
-    manifest = _open_output(out, fp)
-    if manifest is None:
-        manifest = Manifest(
-            SCHEMA_VERSION, SOURCE_NAME, arguments, pipeline, fp, phigenesis_version=__version__
-        )
-    out.mkdir(parents=True, exist_ok=True)
     if model is not None:
         group = int(model.config.frames)
         if history_frames % group:
@@ -527,99 +495,166 @@ def render(
         assert first is not None
         cal0 = first.cameras[0].calibration
         data = Stage1Clips(shards, (cal0.height, cal0.width), int(history_frames), "auto")
-    done, skipped, rigs, total = [], [], {}, 0
-    for scene_index, scene_id in enumerate(all_scenes):
-        if scene_id not in chosen:
-            continue
-        entry = manifest.scene(scene_id)
-        if entry is not None and entry.status == "complete":
-            skipped.append(scene_id)
-            log.info("%s: already rendered in %s; skipped", scene_id, out)
-            continue
-        indices = list(reader.frames_of(scene_id))
-        frames = [reader.frame(i, decode_truth=False) for i in indices]
-        n = len(frames) if max_frames is None else min(len(frames), max_frames)
-        metadata = _scene_metadata(reader, scene_id)
-        ego_boxes = metadata.get("ego_boxes", DEFAULT_EGO_BOXES)
-        scene_rig = resolve_rig(
-            rig,
-            base=source_rig(frames[0]),
-            height=int(height),
-            width=int(width),
-            seed=_scene_seed(seed, scene_index),
-            ranges=ranges,
-            ego_boxes=ego_boxes,
-        )
-        rigs[scene_id] = scene_rig.to_dict()
-        track = scene_pose_track(frames)
-        placements = [s.placement(frames[0].timestamp_micros, frames[0].world_from_ego) for s in inserts]
-        grids = [distortion_grid_of(cal) for cal in scene_rig.cameras]
-        schema = frame_schema(
-            CacheContents(
-                camera_truth=(),
-                lidar=any(f.lidar is not None for f in frames),
-                lidar_truth=False,
-                camera_labels=False,
-                depth=True,
-                pseudo_semantics=True,
-            ),
-            {
-                "phigenesis.source": SOURCE_NAME,
-                "phigenesis.scene_metadata": json.dumps({**metadata, "rendered_rig": rigs[scene_id]}),
-            },
-        )
-        window = data.frames
-        if len(frames) < window:
-            raise ValueError(
-                f"{shards}: scene {scene_id} has {len(frames)} frames, fewer than history_frames {window}"
-            )
-        with ShardWriter(out, scene_id, schema) as writer:
-            bar = tqdm(range(n), desc=scene_id, unit="frame", disable=not progress)
-            for k in bar:
-                frame = frames[k]
-                start = min(max(k - window + 1, 0), len(frames) - window)
-                clip = data.clip(scene_id, start, [], keep_frames=geometry == "truth")
-                gaussians = _gaussians(geometry, clip, model)
-                sky = None if model is not None else _sky_colour(clip)
-                if export_ply is not None and k == 0:
-                    _export(gaussians, assets, placements, frame.timestamp_micros, Path(export_ply), scene_id)
-                cameras = []
-                for cal, offset, grid in zip(
-                    scene_rig.cameras, scene_rig.time_offsets_micros, grids, strict=True
-                ):
-                    t_cam = frame.timestamp_micros + int(offset)
-                    if track.outside_micros(t_cam):
-                        log.debug(
-                            "%s frame %d camera %s: time outside the recorded poses", scene_id, k, cal.name
-                        )
-                    pose = track.at(t_cam)
-                    t_s = (t_cam - clip.time_origin_micros) * 1e-6
-                    occluder = None
-                    if assets:
-                        placed = _placed(assets, placements, t_cam, gaussians)
-                        shot = render_camera(
-                            GaussianScene.concatenate([gaussians, placed]), cal, pose, t_s, sky, model, grid
-                        )
-                        occluder = render_camera(placed, cal, pose, t_s, None, None, grid)
-                    else:
-                        shot = render_camera(gaussians, cal, pose, t_s, sky, model, grid)
-                    cameras.append(rendered_camera(frame, cal, t_cam, pose, shot, ego_boxes, occluder))
-                boxes = frame.boxes if frame.boxes is not None else Boxes.empty()
-                for asset, placement, spec in zip(assets, placements, inserts, strict=True):
-                    box = asset_box(asset, placement, frame.timestamp_micros, spec.track_id)
-                    boxes = with_inserted_box(boxes, box)
-                new = Frame(
-                    scene_id, k, frame.timestamp_micros, frame.world_from_ego, cameras, frame.lidar, boxes
-                )
-                writer.write(frame_to_batch(new, SOURCE_NAME, schema))
-                total += 1
-            written = writer.close()
-        manifest.record_scene(
-            SceneEntry(scene_id, SOURCE_NAME, n, "complete", [s.path for s in written]), written
-        )
-        manifest.save(out)
-        done.append(scene_id)
-        log.info("%s: %d frames rendered with rig %s", scene_id, n, scene_rig.name)
-    if not (out / MANIFEST_NAME).is_file():
-        manifest.save(out)
+    job = _RenderJob(
+        shards=shards,
+        reader=reader,
+        data=data,
+        model=model,
+        geometry=geometry,
+        rig=rig,
+        seed=int(seed),
+        ranges=ranges,
+        height=int(height),
+        width=int(width),
+        max_frames=max_frames,
+        inserts=inserts,
+        assets=assets,
+        export_ply=None if export_ply is None else Path(export_ply),
+        progress=progress,
+    )
+    ordered = [s for s in all_scenes if s in chosen]  # rendered in the source's order
+    # Every scene's rig and placements are checked before anything is written.
+    plans = {sid: _plan_scene(job, sid, all_scenes.index(sid)) for sid in ordered}
+    rigs = {sid: plan.rig.to_dict() for sid, plan in plans.items()}
+    done, skipped, total = [], [], 0
+    with writing_cache(out, SOURCE_NAME, arguments, pipeline, ordered, "render") as run:
+        for scene_id in ordered:
+            if run.is_complete(scene_id):
+                skipped.append(scene_id)
+                log.info("%s: already rendered in %s; skipped", scene_id, out)
+                continue
+            entry, written = _render_scene(job, run.target, scene_id, plans[scene_id])
+            run.commit(entry, written)
+            done.append(scene_id)
+            total += entry.frames
     return RenderResult(out, done, skipped, total, time.perf_counter() - t0, rigs)
+
+
+@dataclass(frozen=True)
+class _RenderJob:
+    """What every scene of one :func:`render` call shares (its arguments, resolved)."""
+
+    shards: Path
+    reader: CacheReader
+    data: Stage1Clips
+    model: Stage1Model | None
+    geometry: str
+    rig: str
+    seed: int
+    ranges: RandomRigRanges | None
+    height: int
+    width: int
+    max_frames: int | None
+    inserts: list[InsertSpec]
+    assets: list[Asset]
+    export_ply: Path | None
+    progress: bool
+
+
+@dataclass(frozen=True)
+class _ScenePlan:
+    """What one scene is rendered with, settled (and checked) before anything is written."""
+
+    rig: Rig
+    metadata: dict[str, Any]  # the source scene's metadata
+    ego_boxes: list[dict]
+    placements: list[AssetPlacement]  # one per inserted asset
+
+
+def _plan_scene(job: _RenderJob, scene_id: str, scene_index: int) -> _ScenePlan:
+    """The rig, metadata and asset placements of one scene; raises (ValueError, RigError,
+    AssetError) naming what is wrong. ``scene_index``: the scene's position in the source cache
+    (seeds a random rig)."""
+    from phigenesis.data.stages.aggregate import DEFAULT_EGO_BOXES
+
+    indices = job.reader.frames_of(scene_id)
+    if len(indices) < job.data.frames:
+        raise ValueError(
+            f"{job.shards}: scene {scene_id} has {len(indices)} frames, fewer than history_frames "
+            f"{job.data.frames}"
+        )
+    first = job.reader.frame(indices[0], decode_truth=False)
+    metadata = _scene_metadata(job.reader, scene_id)
+    ego_boxes = metadata.get("ego_boxes", DEFAULT_EGO_BOXES)
+    rig = resolve_rig(
+        job.rig,
+        base=source_rig(first),
+        height=job.height,
+        width=job.width,
+        seed=_scene_seed(job.seed, scene_index),
+        ranges=job.ranges,
+        ego_boxes=ego_boxes,
+    )
+    placements = [s.placement(first.timestamp_micros, first.world_from_ego) for s in job.inserts]
+    return _ScenePlan(rig, metadata, ego_boxes, placements)
+
+
+def _render_scene(
+    job: _RenderJob, target: Path, scene_id: str, plan: _ScenePlan
+) -> tuple[SceneEntry, list[ShardInfo]]:
+    """Renders one scene of the source cache as ``plan`` says into complete shards in ``target``:
+    (its manifest entry, its shards), which the caller commits."""
+    from tqdm import tqdm
+
+    reader, data, model, geometry = job.reader, job.data, job.model, job.geometry
+    inserts, assets, max_frames = job.inserts, job.assets, job.max_frames
+    scene_rig, ego_boxes, placements = plan.rig, plan.ego_boxes, plan.placements
+    frames = [reader.frame(i, decode_truth=False) for i in reader.frames_of(scene_id)]
+    n = len(frames) if max_frames is None else min(len(frames), max_frames)
+    track = scene_pose_track(frames)
+    grids = [distortion_grid_of(cal) for cal in scene_rig.cameras]
+    schema = frame_schema(
+        CacheContents(
+            camera_truth=(),
+            lidar=any(f.lidar is not None for f in frames),
+            lidar_truth=False,
+            camera_labels=False,
+            depth=True,
+            pseudo_semantics=True,
+        ),
+        {
+            "phigenesis.source": SOURCE_NAME,
+            "phigenesis.scene_metadata": json.dumps({**plan.metadata, "rendered_rig": scene_rig.to_dict()}),
+        },
+    )
+    window = data.frames
+    with ShardWriter(target, scene_id, schema) as writer:
+        bar = tqdm(range(n), desc=scene_id, unit="frame", disable=not job.progress)
+        for k in bar:
+            frame = frames[k]
+            start = min(max(k - window + 1, 0), len(frames) - window)
+            clip = data.clip(scene_id, start, [], keep_frames=geometry == "truth")
+            gaussians = _gaussians(geometry, clip, model)
+            sky = None if model is not None else _sky_colour(clip)
+            if job.export_ply is not None and k == 0:
+                _export(gaussians, assets, placements, frame.timestamp_micros, job.export_ply, scene_id)
+            cameras = []
+            for cal, offset, grid in zip(
+                scene_rig.cameras, scene_rig.time_offsets_micros, grids, strict=True
+            ):
+                t_cam = frame.timestamp_micros + int(offset)
+                if track.outside_micros(t_cam):
+                    log.debug("%s frame %d camera %s: time outside the recorded poses", scene_id, k, cal.name)
+                pose = track.at(t_cam)
+                t_s = (t_cam - clip.time_origin_micros) * 1e-6
+                occluder = None
+                if assets:
+                    placed = _placed(assets, placements, t_cam, gaussians)
+                    shot = render_camera(
+                        GaussianScene.concatenate([gaussians, placed]), cal, pose, t_s, sky, model, grid
+                    )
+                    occluder = render_camera(placed, cal, pose, t_s, None, None, grid)
+                else:
+                    shot = render_camera(gaussians, cal, pose, t_s, sky, model, grid)
+                cameras.append(rendered_camera(frame, cal, t_cam, pose, shot, ego_boxes, occluder))
+            boxes = frame.boxes if frame.boxes is not None else Boxes.empty()
+            for asset, placement, spec in zip(assets, placements, inserts, strict=True):
+                box = asset_box(asset, placement, frame.timestamp_micros, spec.track_id)
+                boxes = with_inserted_box(boxes, box)
+            new = Frame(
+                scene_id, k, frame.timestamp_micros, frame.world_from_ego, cameras, frame.lidar, boxes
+            )
+            writer.write(frame_to_batch(new, SOURCE_NAME, schema))
+        written = writer.close()
+    log.info("%s: %d frames rendered with rig %s", scene_id, n, scene_rig.name)
+    return SceneEntry(scene_id, SOURCE_NAME, n, "complete", [s.path for s in written]), written

@@ -18,12 +18,13 @@ cache, :func:`precompute_stage2` writes one row holding:
   [V, 3, 3] at the model's size, capture times [F, V] in seconds after the window's first history
   frame).
 
-The cache has the frame caches' layout (``manifest.json`` naming every shard with its SHA-256 and
-per-row, per-column CRC-32s; shards written under temporary names and renamed; one scene at a
-time, so a killed run resumes after the last finished scene), its manifest's ``source`` is
-``stage2-latents`` and its ``arguments`` say what made it; ``phigenesis-prep verify`` checks it as
-any cache. Latents are stored as flat float32 lists with their shape beside them (any Arrow
-reader can open them).
+The cache has the frame caches' layout (``manifest.json`` naming every shard with its checksums;
+shards written under temporary names and renamed; one scene at a time, each committed once its
+shards are complete, under the cache's lock, as every cache is written:
+:mod:`phigenesis.data.cache_run`; a killed run resumes after the last finished scene), its
+manifest's ``source`` is ``stage2-latents`` and its ``arguments`` say what made it;
+``phigenesis-prep verify`` checks it as any cache. Latents are stored as flat float32 lists with
+their shape beside them (any Arrow reader can open them).
 """
 
 from __future__ import annotations
@@ -41,8 +42,7 @@ import pyarrow as pa
 import torch
 from torch import Tensor
 
-from phigenesis import __version__
-from phigenesis.data.pipeline import fingerprint
+from phigenesis.data.cache_run import writing_cache
 from phigenesis.data.schema import SCHEMA_VERSION
 from phigenesis.data.shards import (
     MANIFEST_NAME,
@@ -50,8 +50,8 @@ from phigenesis.data.shards import (
     CacheReader,
     Manifest,
     SceneEntry,
+    ShardInfo,
     ShardWriter,
-    remove_unfinished_shards,
 )
 from phigenesis.infer.conditions import (
     UNCERTAINTY_KINDS,
@@ -403,6 +403,31 @@ class Stage2Latents:
 # The cache
 
 
+def _latent_scene(
+    model: Stage1Model,
+    data: Stage1Clips,
+    scene_id: str,
+    config: Stage2DataConfig,
+    schema: pa.Schema,
+    target: Path,
+) -> tuple[SceneEntry, list[ShardInfo]]:
+    """Writes the rows of every window of one scene into complete shards in ``target``: (its
+    manifest entry, its shards), for the caller to commit. A scene too short for a window is
+    ``skipped``, without shards."""
+    starts = window_starts(data.scene_length(scene_id), config)
+    if not starts:
+        need = config.history_frames + config.window_frames
+        log.info(
+            "scene %s: skipped (%d frames, a window needs %d)", scene_id, data.scene_length(scene_id), need
+        )
+        return SceneEntry(scene_id, LATENT_SOURCE, 0, "skipped", [], "too short"), []
+    with ShardWriter(target, scene_id, schema) as writer:
+        for start in starts:
+            writer.write(sample_to_batch(window_sample(model, data, scene_id, start, config), schema))
+        written = writer.close()
+    return SceneEntry(scene_id, LATENT_SOURCE, len(starts), "complete", [s.path for s in written]), written
+
+
 def precompute_stage2(
     shards: str | os.PathLike[str],
     out: str | os.PathLike[str],
@@ -414,8 +439,14 @@ def precompute_stage2(
 ) -> Path:
     """Writes the latent cache of every window of the frame cache at ``shards`` into ``out`` (see
     the module docstring), with ``model`` (the trained Stage 1 model: its frozen VAE encodes, its
-    adapter predicts ``geometry: stage1``). Resumable: a rerun into ``out`` with the same inputs
-    skips the scenes already finished; one with other inputs is refused. Returns ``out``."""
+    adapter predicts ``geometry: stage1``). Written as every cache is
+    (:mod:`phigenesis.data.cache_run`): under ``out``'s lock (PrepError while another run writes
+    it), each scene committed once its shards are complete, so a rerun into ``out`` with the same
+    inputs resumes after a kill or a full disk, skipping the scenes already finished; a folder
+    holding a cache made from other inputs, or anything else, is refused (PrepError). Returns
+    ``out``."""
+    from tqdm import tqdm
+
     out = Path(out)
     data = Stage1Clips(shards, model.config.image_size, config.history_frames, "auto")
     if config.history_frames % int(model.config.frames):
@@ -438,51 +469,11 @@ def precompute_stage2(
         "model": model.name,
         "image_hw": list(model.config.image_size),
     }
-    fp = fingerprint(LATENT_SOURCE, arguments, {})
-    manifest: Manifest | None = None
-    if (out / MANIFEST_NAME).exists():
-        manifest = Manifest.load(out)
-        if manifest.fingerprint != fp:
-            raise ValueError(
-                f"{out}: holds a latent cache made from other inputs (its arguments: "
-                f"{json.dumps(manifest.arguments, default=str)[:300]}); choose another --out"
-            )
-        remove_unfinished_shards(out)
-    else:
-        out.mkdir(parents=True, exist_ok=True)
-        manifest = Manifest(SCHEMA_VERSION, LATENT_SOURCE, arguments, {}, fp, phigenesis_version=__version__)
-        manifest.save(out)
     schema = latent_schema({"phigenesis.arguments": json.dumps(arguments, default=str)})
     scenes = data.reader.scene_ids()
-    todo = [s for s in scenes if (e := manifest.scene(s)) is None or e.status != "complete"]
-    log.info("stage2 latents: %d scene(s), %d to do, into %s", len(scenes), len(todo), out)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(todo), unit="scene", desc="stage2 latents")
-    for scene_id in todo:
-        starts = window_starts(data.scene_length(scene_id), config)
-        if not starts:
-            need = config.history_frames + config.window_frames
-            log.info(
-                "scene %s: skipped (%d frames, a window needs %d)",
-                scene_id,
-                data.scene_length(scene_id),
-                need,
-            )
-            manifest.record_scene(SceneEntry(scene_id, LATENT_SOURCE, 0, "skipped", [], "too short"), [])
-            manifest.save(out)
-            continue
-        with ShardWriter(out, scene_id, schema) as writer:
-            for start in starts:
-                writer.write(sample_to_batch(window_sample(model, data, scene_id, start, config), schema))
-            written = writer.close()
-        entry = SceneEntry(scene_id, LATENT_SOURCE, len(starts), "complete", [s.path for s in written])
-        manifest.record_scene(entry, written)
-        manifest.save(out)
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+    with writing_cache(out, LATENT_SOURCE, arguments, {}, scenes, LATENT_SOURCE) as run:
+        todo = [s for s in scenes if not run.is_complete(s)]
+        log.info("stage2 latents: %d scene(s), %d to do, into %s", len(scenes), len(todo), out)
+        for scene_id in tqdm(todo, unit="scene", desc="stage2 latents", disable=not progress):
+            run.commit(*_latent_scene(model, data, scene_id, config, schema, run.target))
     return out
