@@ -1424,7 +1424,9 @@ def _manifest_symlink(work: Work) -> Row:
     outside = d / "elsewhere.json"
     (cache / "manifest.json").rename(outside)
     (cache / "manifest.json").symlink_to(outside)
-    child = work.run("manifest-symlink-outside", [tool("prep"), "verify", cache])
+    # A reader (preview) must refuse it; verify, a checker, lists it as a problem (exit 1).
+    argv = [tool("prep"), "preview", cache, "--frame", 0, "--out", d / "x.png"]
+    child = work.run("manifest-symlink-outside", argv)
     return refusal_row(work, "manifest-symlink-outside", "9", child, ["manifest.json"])
 
 
