@@ -15,6 +15,7 @@ Hierarchy::
         CacheWriteError  a cache file cannot be written (a full disk; also an OSError; in shards.py)
       CacheError         a cache directory, manifest or shard is missing, malformed or corrupt
       CheckpointError    a checkpoint or a run folder cannot be used
+      TrainingDivergedError  a run reached a non-finite loss, gradient or weight (it stops there)
 
 The dataset and checkpoint errors are also ``ValueError`` s, as they were before this module.
 """
@@ -41,6 +42,12 @@ class CacheError(PhiGenesisError):
 
 class CheckpointError(PhiGenesisError, ValueError):
     """A checkpoint or run folder that cannot be read, or that does not match what was asked for."""
+
+
+class TrainingDivergedError(PhiGenesisError):
+    """A training run reached a non-finite loss term, gradient or weight and stopped there; the
+    message names the run folder, the step, the term (or parameter) and the config value most
+    likely at fault, and says which checkpoint is kept."""
 
 
 def describe(error: BaseException) -> str:

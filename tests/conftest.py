@@ -99,3 +99,14 @@ def two_step_stage1(cache: Path, tmp_path_factory: pytest.TempPathFactory) -> Pa
     )
     assert run.checkpoint is not None
     return run.checkpoint
+
+
+def stage2_latents(cache: Path, stage1: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The Stage 2 latent cache of ``cache`` (windows every 3 frames) under the Stage 1 checkpoint
+    ``stage1``."""
+    from phigenesis.train.stage1 import load_stage1
+    from phigenesis.train.stage2_data import Stage2DataConfig, precompute_stage2
+
+    out = tmp_path_factory.mktemp("lat") / "latents"
+    model = load_stage1(stage1)
+    return precompute_stage2(cache, out, model, Stage2DataConfig(stride=3), stage1_checkpoint=str(stage1))

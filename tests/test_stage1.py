@@ -686,7 +686,7 @@ def test_column_base_from_the_bottom_row_bounds_what_runs_off_the_image():
     assert bottom[:, 2].tolist() == pytest.approx([0.4] * 4)
     with pytest.raises(ValueError, match="floor must be one of"):
         column_base(prior, gate, "top")
-    with pytest.raises(ValueError, match="column_floor must be one of"):
+    with pytest.raises(ValueError, match="column_floor = 'top': must be one of 'far', 'bottom_row'"):
         AdapterConfig(ground_feature=True, column_base=True, column_floor="top")
 
 
@@ -772,7 +772,8 @@ def test_checkpoint_made_before_the_column_floor_loads_as_it_was(tmp_path):
     bad = _checkpoint_with_adapter(
         path, tmp_path / "bad.safetensors", lambda a: a.update(column_floor="sideways")
     )
-    with pytest.raises(CheckpointError, match=r"bad\.safetensors: .*column_floor must be one of"):
+    said = r"bad\.safetensors: .*column_floor = 'sideways': must be one of"
+    with pytest.raises(CheckpointError, match=said):
         load_stage1(bad)
 
 
@@ -814,7 +815,7 @@ def test_context_blocks_start_as_the_identity_and_widen_what_a_pixel_sees():
     wide, narrow = reach(adapter), reach(plain)
     assert float(wide[25]) > 0 and float(narrow[25]) == 0
     assert float(narrow[:2].sum()) > 0 and float(narrow[3:].sum()) == 0
-    with pytest.raises(ValueError, match="context_blocks must be >= 0"):
+    with pytest.raises(ValueError, match=r"context_blocks = -1: must be an integer in \[0, 64\]"):
         AdapterConfig(context_blocks=-1)
 
 
@@ -853,8 +854,11 @@ def test_checkpoint_made_before_the_head_kernel_loads_as_it_was(tmp_path):
     )
     with pytest.raises(CheckpointError, match=r"claims\.safetensors: weights do not fit .*adapter\.head"):
         load_stage1(claims)
-    for bad in (0, 2):
-        with pytest.raises(ValueError, match="head_kernel must be odd and >= 1"):
+    for bad, said in (
+        (0, r"head_kernel = 0: must be an integer in \[1, 31\]"),
+        (2, "head_kernel must be odd"),
+    ):
+        with pytest.raises(ValueError, match=said):
             AdapterConfig(head_kernel=bad)
 
 
@@ -908,8 +912,11 @@ def test_a_split_head_reads_depth_from_a_pixels_own_features_and_keeps_the_outpu
     fits = r"claims\.safetensors: weights do not fit .*adapter\.depth_out"
     with pytest.raises(CheckpointError, match=fits):
         load_stage1(claims)
-    for bad in (0, 2):
-        with pytest.raises(ValueError, match="depth_head_kernel must be odd and >= 1"):
+    for bad, said in (
+        (0, "depth_head_kernel = 0: must be an integer in"),
+        (2, "depth_head_kernel must be odd"),
+    ):
+        with pytest.raises(ValueError, match=said):
             AdapterConfig(depth_head_kernel=bad)
 
 

@@ -36,7 +36,7 @@ from phigenesis.train.stage2_data import (
     window_sample,
     window_starts,
 )
-from tests.conftest import one_scene_cache, two_step_stage1
+from tests.conftest import one_scene_cache, stage2_latents, two_step_stage1
 
 SIZE = (48, 72)
 FRAMES = 12
@@ -54,11 +54,7 @@ def stage1_checkpoint(cache: Path, tmp_path_factory: pytest.TempPathFactory) -> 
 
 @pytest.fixture(scope="module")
 def latents(cache: Path, stage1_checkpoint: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("lat") / "latents"
-    model = load_stage1(stage1_checkpoint)
-    return precompute_stage2(
-        cache, out, model, Stage2DataConfig(stride=3), stage1_checkpoint=str(stage1_checkpoint)
-    )
+    return stage2_latents(cache, stage1_checkpoint, tmp_path_factory)
 
 
 def _config(**overrides: object) -> Stage2TrainConfig:

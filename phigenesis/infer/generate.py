@@ -649,19 +649,19 @@ class GenerateResult:
 
 
 def _stage2_checkpoint(path: str | os.PathLike[str]) -> tuple[MultiViewDiT, dict[str, Any]]:
-    """(the denoiser, its training config) of a Stage 2 checkpoint; CheckpointError otherwise."""
-    from phigenesis.errors import CheckpointError
+    """(the denoiser, its training config as recorded) of a Stage 2 checkpoint, the config checked
+    by the training config's own checks (:func:`phigenesis.train.stage2.trained_config`);
+    CheckpointError otherwise."""
     from phigenesis.train.checkpoint import load_checkpoint
+    from phigenesis.train.stage2 import trained_config
 
     path = Path(path)
     if path.is_dir():
         path = path / "model.safetensors"
-    ckpt = load_checkpoint(path)
-    if not isinstance(ckpt.model, MultiViewDiT):
-        raise CheckpointError(f"{path}: a {ckpt.model_name!r} checkpoint, not a Stage 2 denoiser (stage2_*)")
+    ckpt = load_checkpoint(path, kind="dit")
+    assert isinstance(ckpt.model, MultiViewDiT), type(ckpt.model)  # every "dit" variant is one
     train = ckpt.meta.get("train")
-    if not isinstance(train, dict) or "window_frames" not in train:
-        raise CheckpointError(f"{path}: has no Stage 2 training config in its metadata (window_frames)")
+    trained_config(path, train)
     return ckpt.model, train
 
 

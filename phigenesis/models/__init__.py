@@ -17,6 +17,13 @@ ModelFactory = Callable[..., nn.Module]
 MODELS: dict[str, ModelFactory] = {}
 #: Modules of the built-in model families, imported (and so registered) on the first lookup.
 BUILTIN_MODEL_MODULES = ("segformer", "vae", "stage1", "dit")
+#: What each built-in family is, in the words of an error message ("not a VAE").
+FAMILY_NAMES = {
+    "segformer": "segmenter",
+    "vae": "VAE",
+    "stage1": "Stage 1 model",
+    "dit": "Stage 2 denoiser",
+}
 
 
 def register_model(fn: ModelFactory) -> ModelFactory:
@@ -40,6 +47,14 @@ def list_models(family: str | None = None) -> list[str]:
     if family is None:
         return sorted(MODELS)
     return sorted(n for n, fn in MODELS.items() if fn.__module__ == f"{__name__}.{family}")
+
+
+def model_family(name: str) -> str | None:
+    """The family (module name: ``"vae"``, ``"stage1"``, ``"dit"``, ``"segformer"``) of the
+    registered variant ``name``; None for a name no module registered."""
+    _load_builtins()
+    fn = MODELS.get(name)
+    return None if fn is None else fn.__module__.rsplit(".", 1)[-1]
 
 
 def create_model(name: str, **overrides: Any) -> nn.Module:

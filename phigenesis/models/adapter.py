@@ -46,12 +46,14 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from phigenesis.models.depth_bins import DepthBins
+from phigenesis.options import check_options, option
 
 #: Channels of the head's outputs, in order (``semantic`` has ``num_classes``).
 HEAD_CHANNELS = {"depth": 1, "opacity": 1, "scale": 3, "rotation": 4, "colour": 3, "motion": 3, "dynamic": 1}
@@ -78,7 +80,10 @@ CONTEXT_DILATIONS = (1, 2, 4, 8)
 
 #: Where :func:`column_base` starts below the bottom row: ``"far"``, the prior of the farthest ground
 #: (what checkpoints made before the choice used), or ``"bottom_row"``, the bottom row's own prior.
-COLUMN_FLOORS = ("far", "bottom_row")
+ColumnFloor = Literal["far", "bottom_row"]
+COLUMN_FLOORS: tuple[str, ...] = get_args(ColumnFloor)
+#: Most feature levels the adapter fuses (a VAE has at most ``vae.MAX_LEVELS``).
+MAX_FEATURE_LEVELS = 8
 
 
 def column_base(prior: Tensor, gate: Tensor, floor: str = "far") -> Tensor:
@@ -160,49 +165,46 @@ class AdapterConfig:
             with one 3x3 layer, input-view PSNR 0.1-0.8 dB lower (docs/ARCHITECTURE.md).
     """
 
-    feature_channels: tuple[int, ...] = (64, 32, 16)
-    width: int = 32
-    num_classes: int = 19
-    near_m: float = 0.5
-    far_m: float = 120.0
-    max_scale_m: float = 2.0
-    opacity_bias: float = 2.0
-    max_speed_mps: float = 30.0
-    norm_groups: int = 8
-    depth_bins: int = 0
-    ground_feature: bool = False
-    column_base: bool = False
-    column_floor: str = "far"
-    context_blocks: int = 0
-    head_kernel: int = 3
-    depth_head_kernel: int | None = None
+    feature_channels: tuple[int, ...] = option((64, 32, 16), ge=1, le=8192, help="decoder widths")
+    width: int = option(32, ge=1, le=8192, help="channels of the fused pyramid")
+    num_classes: int = option(19, ge=1, le=1024, help="semantic classes")
+    near_m: float = option(0.5, gt=0, le=1e5, help="nearest predicted depth (m)")
+    far_m: float = option(120.0, gt=0, le=1e5, help="farthest predicted depth (m)")
+    max_scale_m: float = option(2.0, gt=0, le=1e5, help="cap of every Gaussian scale (m)")
+    opacity_bias: float = option(2.0, ge=-100, le=100, help="added before the opacity sigmoid")
+    max_speed_mps: float = option(30.0, ge=0, le=1e4, help="bound of each velocity component (m/s)")
+    norm_groups: int = option(8, ge=1, le=1024, help="GroupNorm groups")
+    depth_bins: int = option(0, ge=0, le=4096, help="0: regression head; else log-spaced depth bins")
+    ground_feature: bool = option(False, help="the head sees each pixel's ground prior")
+    column_base: bool = option(False, help="the head sees the ground prior carried up each column")
+    column_floor: ColumnFloor = option("far", help="column_base below the bottom row")
+    context_blocks: int = option(0, ge=0, le=64, help="dilated residual blocks on the coarsest level")
+    head_kernel: int = option(3, ge=1, le=31, help="kernel of the head's last convolution (odd)")
+    depth_head_kernel: int | None = option(None, ge=1, le=31, help="kernel of the depth outputs' own layer")
 
     def __post_init__(self) -> None:
+        check_options(self, "AdapterConfig")
         if self.column_base and not self.ground_feature:
             raise ValueError("AdapterConfig: column_base needs ground_feature")
-        if self.column_floor not in COLUMN_FLOORS:
+        if not self.feature_channels or len(self.feature_channels) > MAX_FEATURE_LEVELS:
             raise ValueError(
-                f"AdapterConfig: column_floor must be one of {COLUMN_FLOORS}, got {self.column_floor!r}"
+                f"AdapterConfig: feature_channels must list 1 to {MAX_FEATURE_LEVELS} widths, "
+                f"got {list(self.feature_channels)}"
             )
-        object.__setattr__(self, "feature_channels", tuple(int(c) for c in self.feature_channels))
-        if not 0 < self.near_m < self.far_m:
+        if not self.near_m < self.far_m:
             raise ValueError(f"AdapterConfig: need 0 < near_m < far_m, got {self.near_m}, {self.far_m}")
         if self.width % self.norm_groups:
             raise ValueError(
                 f"AdapterConfig: width {self.width} does not divide by {self.norm_groups} groups"
             )
-        if self.context_blocks < 0:
-            raise ValueError(f"AdapterConfig: context_blocks must be >= 0, got {self.context_blocks}")
-        if self.head_kernel < 1 or self.head_kernel % 2 == 0:
+        if self.head_kernel % 2 == 0:
             raise ValueError(f"AdapterConfig: head_kernel must be odd and >= 1, got {self.head_kernel}")
-        if self.depth_head_kernel is not None and (
-            self.depth_head_kernel < 1 or self.depth_head_kernel % 2 == 0
-        ):
+        if self.depth_head_kernel is not None and self.depth_head_kernel % 2 == 0:
             raise ValueError(
                 "AdapterConfig: depth_head_kernel must be odd and >= 1 (or None), "
                 f"got {self.depth_head_kernel}"
             )
-        if self.depth_bins < 0 or self.depth_bins == 1:
+        if self.depth_bins == 1:
             raise ValueError(
                 f"AdapterConfig: depth_bins must be 0 (regression) or >= 2, got {self.depth_bins}"
             )

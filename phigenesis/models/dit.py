@@ -54,6 +54,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import torch
 import torch.nn.functional as F
@@ -61,6 +62,7 @@ from torch import Tensor, nn
 
 from phigenesis.models import register_model
 from phigenesis.models.stage1 import pixel_rays
+from phigenesis.options import check_options, option
 
 # --------------------------------------------------------------------------------------------
 # Helpers: Plücker rays, sinusoidal embeddings, patches
@@ -274,7 +276,8 @@ class FinalLayer(nn.Module):
 
 
 #: What the final layer predicts (see the module docstring).
-PREDICTIONS = ("velocity", "x0_skip")
+Prediction = Literal["velocity", "x0_skip"]
+PREDICTIONS: tuple[str, ...] = get_args(Prediction)
 #: ``x0_skip``: the smallest flow time the velocity divides by (keeps ``1 / t`` bounded).
 X0_MIN_TIME = 0.05
 
@@ -300,35 +303,25 @@ class DiTConfig:
             between the two, and callers (training, rollouts) apply them.
     """
 
-    latent_channels: int = 16
-    patch_size: int = 2
-    hidden: int = 768
-    depth: int = 12
-    heads: int = 12
-    mlp_ratio: float = 4.0
-    time_embed_dim: int = 256
-    prediction: str = "velocity"
-    latent_mean: tuple[float, ...] | None = None
-    latent_std: tuple[float, ...] | None = None
+    latent_channels: int = option(16, ge=1, le=1024, help="C, channels of the VAE latent")
+    patch_size: int = option(2, ge=1, le=64, help="p, latent cells per token side")
+    hidden: int = option(768, ge=4, le=8192, help="D, token width")
+    depth: int = option(12, ge=1, le=256, help="multi-view blocks")
+    heads: int = option(12, ge=1, le=256, help="attention heads")
+    mlp_ratio: float = option(4.0, gt=0, le=64, help="MLP hidden width over D")
+    time_embed_dim: int = option(256, ge=2, le=8192, help="channels of the flow-time features")
+    prediction: Prediction = option("velocity", help="what the final layer predicts")
+    latent_mean: tuple[float, ...] | None = option(None, ge=-1e6, le=1e6, help="per-channel latent mean")
+    latent_std: tuple[float, ...] | None = option(None, gt=0, le=1e6, help="per-channel latent std")
 
     def __post_init__(self) -> None:
+        check_options(self, "DiTConfig")
         for name in ("latent_mean", "latent_std"):
             value = getattr(self, name)
-            if value is not None:
-                value = tuple(float(x) for x in value)  # checkpoints store lists
-                object.__setattr__(self, name, value)
-                if len(value) != self.latent_channels or not all(math.isfinite(x) for x in value):
-                    raise ValueError(
-                        f"DiTConfig: {name} must be {self.latent_channels} finite values, got {value}"
-                    )
+            if value is not None and len(value) != self.latent_channels:
+                raise ValueError(f"DiTConfig: {name} must be {self.latent_channels} values, got {value}")
         if (self.latent_mean is None) != (self.latent_std is None):
             raise ValueError("DiTConfig: latent_mean and latent_std come together")
-        if self.latent_std is not None and min(self.latent_std) <= 0:
-            raise ValueError(f"DiTConfig: latent_std must be positive, got {self.latent_std}")
-        if self.prediction not in PREDICTIONS:
-            raise ValueError(f"DiTConfig: prediction must be one of {PREDICTIONS}, got {self.prediction!r}")
-        if min(self.latent_channels, self.patch_size, self.hidden, self.depth, self.heads) < 1:
-            raise ValueError(f"DiTConfig: sizes must be positive: {self}")
         if self.hidden % self.heads or self.hidden % 4:
             raise ValueError(f"DiTConfig: hidden={self.hidden} must divide by heads={self.heads} and by 4")
 

@@ -35,6 +35,7 @@ from torch import nn
 
 from phigenesis.data import taxonomy as tx
 from phigenesis.models import register_model
+from phigenesis.options import check_options, option
 from phigenesis.torch_files import read_torch_file
 
 #: ImageNet mean and standard deviation of RGB in [0, 1] (what pretrained encoders expect).
@@ -189,6 +190,10 @@ class AllMLPDecoder(nn.Module):
 # Model
 
 
+#: Most encoder stages a SegFormer has.
+MAX_STAGES = 8
+
+
 @dataclass(frozen=True)
 class SegFormerConfig:
     """Sizes of a SegFormer (per-stage tuples have one entry per stage, 4 stages).
@@ -207,22 +212,23 @@ class SegFormerConfig:
         dropout: dropout before the classifier.
     """
 
-    embed_dims: tuple[int, ...] = (32, 64, 160, 256)
-    depths: tuple[int, ...] = (2, 2, 2, 2)
-    num_heads: tuple[int, ...] = (1, 2, 5, 8)
-    sr_ratios: tuple[int, ...] = (8, 4, 2, 1)
-    patch_sizes: tuple[int, ...] = (7, 3, 3, 3)
-    strides: tuple[int, ...] = (4, 2, 2, 2)
-    mlp_ratio: float = 4.0
-    decoder_dim: int = 256
-    num_classes: int = tx.NUM_CLASSES
-    drop_path: float = 0.1
-    dropout: float = 0.1
+    embed_dims: tuple[int, ...] = option((32, 64, 160, 256), ge=1, le=8192, help="channels per stage")
+    depths: tuple[int, ...] = option((2, 2, 2, 2), ge=0, le=256, help="transformer blocks per stage")
+    num_heads: tuple[int, ...] = option((1, 2, 5, 8), ge=1, le=256, help="attention heads per stage")
+    sr_ratios: tuple[int, ...] = option((8, 4, 2, 1), ge=1, le=64, help="key/value reduction per side")
+    patch_sizes: tuple[int, ...] = option((7, 3, 3, 3), ge=1, le=64, help="patch-embedding kernels")
+    strides: tuple[int, ...] = option((4, 2, 2, 2), ge=1, le=64, help="patch-embedding strides")
+    mlp_ratio: float = option(4.0, gt=0, le=64, help="Mix-FFN hidden channels over stage channels")
+    decoder_dim: int = option(256, ge=1, le=8192, help="channels of the all-MLP decoder")
+    num_classes: int = option(tx.NUM_CLASSES, ge=1, le=1024, help="K output classes")
+    drop_path: float = option(0.1, ge=0, le=1, help="stochastic-depth rate of the last block")
+    dropout: float = option(0.1, ge=0, le=1, help="dropout before the classifier")
 
     def __post_init__(self) -> None:
-        for name in ("embed_dims", "depths", "num_heads", "sr_ratios", "patch_sizes", "strides"):
-            object.__setattr__(self, name, tuple(int(v) for v in getattr(self, name)))
+        check_options(self, "SegFormerConfig")
         n = len(self.embed_dims)
+        if not 1 <= n <= MAX_STAGES:
+            raise ValueError(f"SegFormerConfig: 1 to {MAX_STAGES} stages, got {n} embed_dims")
         lengths = {
             len(getattr(self, k)) for k in ("depths", "num_heads", "sr_ratios", "patch_sizes", "strides")
         }

@@ -20,7 +20,8 @@ frame, still differentiable); :meth:`Stage1Prediction.scene` turns one clip of i
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -34,6 +35,7 @@ from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.rasterizer import ALPHA_THRESHOLD
 from phigenesis.models.vae import CONFIGS as VAE_CONFIGS
 from phigenesis.models.vae import VideoVAE, VideoVAEConfig
+from phigenesis.options import check_options, from_mapping, option
 
 
 @dataclass(frozen=True)
@@ -51,29 +53,31 @@ class Stage1Config:
         dynamic_threshold: a Gaussian moves when its dynamic probability exceeds this.
     """
 
-    vae_name: str = "vae_tiny"
-    vae: dict = field(default_factory=dict)
-    adapter: dict = field(default_factory=dict)
-    image_size: tuple[int, int] = (48, 72)
-    frames: int = 1
-    sky_hidden: int = 32
-    dynamic_threshold: float = 0.5
+    vae_name: str = option("vae_tiny", help="registered VAE variant")
+    vae: dict[str, Any] = option(factory=dict, help="the VAE's config (VideoVAEConfig fields)")
+    adapter: dict[str, Any] = option(factory=dict, help="the adapter's config (AdapterConfig fields)")
+    image_size: tuple[int, int] = option((48, 72), ge=1, le=8192, help="(H, W) in pixels")
+    frames: int = option(1, ge=1, le=1024, help="input frames per clip")
+    sky_hidden: int = option(32, ge=1, le=8192, help="hidden width of the sky model")
+    dynamic_threshold: float = option(
+        0.5, ge=0, le=1, help="dynamic probability above which a Gaussian moves"
+    )
 
     def __post_init__(self) -> None:
+        check_options(self, "Stage1Config")
         if self.vae_name not in VAE_CONFIGS:
             raise ValueError(f"Stage1Config: unknown VAE {self.vae_name!r}; known: {sorted(VAE_CONFIGS)}")
-        vae = VAE_CONFIGS[self.vae_name].to_dict() | dict(self.vae)
-        vae_cfg = VideoVAEConfig.from_dict(vae)
+        vae = VAE_CONFIGS[self.vae_name].to_dict() | self.vae
+        vae_cfg = from_mapping(VideoVAEConfig, vae, "Stage1Config.vae")
         object.__setattr__(self, "vae", vae_cfg.to_dict())
         adapter = {"feature_channels": list(reversed(vae_cfg.channels)), "num_classes": NUM_CLASSES}
-        adapter_cfg = AdapterConfig(**(adapter | dict(self.adapter)))
+        adapter_cfg = from_mapping(AdapterConfig, adapter | self.adapter, "Stage1Config.adapter")
         if list(adapter_cfg.feature_channels) != list(reversed(vae_cfg.channels)):
             raise ValueError(
                 f"Stage1Config: adapter feature_channels {list(adapter_cfg.feature_channels)} do not match "
                 f"the VAE decoder's {list(reversed(vae_cfg.channels))}"
             )
         object.__setattr__(self, "adapter", adapter_cfg.to_dict())
-        object.__setattr__(self, "image_size", tuple(int(v) for v in self.image_size))
         s, r = vae_cfg.spatial_compression, vae_cfg.temporal_compression
         h, w = self.image_size
         if h % s or w % s:

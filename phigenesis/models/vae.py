@@ -42,6 +42,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from phigenesis.models import register_model
+from phigenesis.options import check_options, option
 
 # --------------------------------------------------------------------------------------------
 # Blocks
@@ -233,6 +234,10 @@ class VAEOutput(NamedTuple):
 # Model
 
 
+#: Most resolution levels a VAE has (a spatial compression of at most 2 ** (MAX_LEVELS - 1)).
+MAX_LEVELS = 8
+
+
 @dataclass(frozen=True)
 class VideoVAEConfig:
     """Sizes of a causal video VAE.
@@ -250,18 +255,21 @@ class VideoVAEConfig:
         logvar_max: upper clamp of the posterior log-variance (nats).
     """
 
-    in_channels: int = 3
-    latent_channels: int = 16
-    channels: tuple[int, ...] = (64, 128, 256, 256)
-    temporal_downsample: tuple[bool, ...] = (True, True, False)
-    num_res_blocks: int = 2
-    norm_groups: int = 32
-    logvar_min: float = -30.0
-    logvar_max: float = 20.0
+    in_channels: int = option(3, ge=1, le=64, help="colour channels of the video")
+    latent_channels: int = option(16, ge=1, le=1024, help="channels of the latent")
+    channels: tuple[int, ...] = option((64, 128, 256, 256), ge=1, le=8192, help="widths per level")
+    temporal_downsample: tuple[bool, ...] = option((True, True, False), help="time halved per transition")
+    num_res_blocks: int = option(2, ge=1, le=64, help="residual blocks per level")
+    norm_groups: int = option(32, ge=1, le=1024, help="GroupNorm groups")
+    logvar_min: float = option(-30.0, ge=-100, le=100, help="lower clamp of the log-variance (nats)")
+    logvar_max: float = option(20.0, ge=-100, le=100, help="upper clamp of the log-variance (nats)")
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "channels", tuple(int(v) for v in self.channels))
-        object.__setattr__(self, "temporal_downsample", tuple(bool(v) for v in self.temporal_downsample))
+        check_options(self, "VideoVAEConfig")
+        if not 1 <= len(self.channels) <= MAX_LEVELS:
+            raise ValueError(
+                f"VideoVAEConfig: channels must list 1 to {MAX_LEVELS} widths, got {list(self.channels)}"
+            )
         if len(self.temporal_downsample) != len(self.channels) - 1:
             raise ValueError(
                 f"VideoVAEConfig: temporal_downsample needs {len(self.channels) - 1} entries "
@@ -270,8 +278,10 @@ class VideoVAEConfig:
         bad = [w for w in self.channels if w % self.norm_groups]
         if bad:
             raise ValueError(f"VideoVAEConfig: widths {bad} do not divide by norm_groups={self.norm_groups}")
-        if self.num_res_blocks < 1 or self.logvar_min >= self.logvar_max:
-            raise ValueError(f"VideoVAEConfig: invalid num_res_blocks or logvar range: {self}")
+        if self.logvar_min >= self.logvar_max:
+            raise ValueError(
+                f"VideoVAEConfig: logvar_min {self.logvar_min} must be below logvar_max {self.logvar_max}"
+            )
 
     @property
     def spatial_compression(self) -> int:

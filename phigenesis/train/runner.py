@@ -10,6 +10,12 @@ A run folder ``runs/NAME`` holds::
     checkpoints/latest           the name of the newest complete checkpoint folder
     model.safetensors            the final weights (written when the run ends)
 
+A run stops at the first step whose loss (any term), gradient or updated weights are not finite
+(:class:`DivergenceCheck`): a :class:`~phigenesis.errors.TrainingDivergedError` names the run
+folder, the step, the term or parameter and the config value most likely at fault; nothing of that
+step is written, so the newest checkpoint is the last good one. A checkpoint that cannot be
+written (a full disk) is an error naming the file, with the earlier checkpoints intact.
+
 Resuming loads the newest complete checkpoint and truncates ``metrics.csv`` to its step, so a run
 killed or interrupted at any moment continues with the same loss curve as one never interrupted:
 every random draw of a step comes from a generator seeded by (seed, step), never from state that a
@@ -27,6 +33,7 @@ steps but no usable checkpoint is refused rather than restarted from step 0 over
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import logging
 import math
@@ -35,7 +42,7 @@ import re
 import shutil
 import signal
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,12 +51,14 @@ from typing import Any
 import torch
 import torch.distributed as dist
 import yaml
-from torch import nn
+from torch import Tensor, nn
 
-from phigenesis.errors import CheckpointError
+from phigenesis.data.shards import os_reason
+from phigenesis.errors import CheckpointError, TrainingDivergedError
 from phigenesis.options import ConfigError
 from phigenesis.train.checkpoint import (
     FORMAT,
+    CheckpointWriteError,
     TrainingState,
     atomic_path,
     read_safetensors_metadata,
@@ -65,6 +74,7 @@ __all__ = [
     "CHECKPOINTS",
     "LATEST",
     "CheckpointFolder",
+    "DivergenceCheck",
     "MetricsLog",
     "ProcessGroup",
     "TrainingState",
@@ -185,8 +195,11 @@ def write_text_atomic(path: str | os.PathLike[str], text: str) -> Path:
     """Writes ``text`` to ``path`` under a temporary name and renames it, so ``path`` never holds
     half a file (a run folder's ``config.yaml``, ``metrics.json``, ``summary.json``)."""
     path = Path(path)
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
+    try:
+        with atomic_path(path) as tmp:
+            tmp.write_text(text)
+    except OSError as e:
+        raise CheckpointWriteError(path, os_reason(e)) from e
     return path
 
 
@@ -247,8 +260,14 @@ class MetricsLog:
         both are written (an interrupt inside TensorBoard's writer can hang its close)."""
         row = {"step": step, **{k: f"{float(values[k]):.8g}" for k in self.columns[1:] if k in values}}
         with interrupts_held():
-            with self.path.open("a", newline="") as f:
-                csv.DictWriter(f, self.columns, extrasaction="ignore").writerow(row)
+            try:
+                with self.path.open("a", newline="") as f:
+                    csv.DictWriter(f, self.columns, extrasaction="ignore").writerow(row)
+            except OSError as e:
+                reason = os_reason(e)
+                raise CheckpointWriteError(
+                    self.path, reason, f"{self.path}: cannot add the row of step {step} ({reason})"
+                ) from e
             if self._tb is not None:
                 for k, v in values.items():
                     self._tb.add_scalar(k, float(v), step)
@@ -585,13 +604,37 @@ def save_training_state(
             write_trainer_state(tmp / TRAINER_FILE, step, optimizer.state_dict(), dict(extra or {}))
             _remove(final)  # a damaged folder of this step, from a run resumed before it
             os.replace(tmp, final)
+        except CheckpointWriteError as e:
+            _remove(tmp)
+            raise _not_written(out_dir, final / e.path.name, step, e.reason) from e
+        except OSError as e:
+            _remove(tmp)
+            raise _not_written(out_dir, final, step, os_reason(e)) from e
         except BaseException:
             _remove(tmp)
             raise
-        with atomic_path(root / LATEST) as pointer:
-            pointer.write_text(name + "\n")
+        try:
+            with atomic_path(root / LATEST) as pointer:
+                pointer.write_text(name + "\n")
+        except OSError as e:
+            raise CheckpointWriteError(
+                root / LATEST,
+                os_reason(e),
+                f"{root / LATEST}: cannot be written ({os_reason(e)}); the checkpoint of step {step} is "
+                f"complete in {final}, and a resume finds it without the pointer",
+            ) from e
     _prune(out_dir, step, keep)
     return final
+
+
+def _not_written(out_dir: Path, path: Path, step: int, reason: str) -> CheckpointWriteError:
+    """The error of a checkpoint of ``step`` that could not be written: the file, the system's
+    reason and what the run keeps."""
+    return CheckpointWriteError(
+        path,
+        reason,
+        f"{path}: the checkpoint of step {step} cannot be written ({reason}); {_kept_checkpoint(out_dir)}",
+    )
 
 
 def load_training_state(folder: str | os.PathLike[str]) -> TrainingState:
@@ -650,3 +693,131 @@ def process_group() -> Iterator[ProcessGroup]:
         yield ProcessGroup(dist.get_rank(), dist.get_world_size())
     finally:
         dist.destroy_process_group()
+
+
+# --------------------------------------------------------------------------------------------
+# Divergence
+
+
+def _first_non_finite(named: Iterable[tuple[str, Tensor | None]]) -> str | None:
+    """The name of the first tensor holding NaN or infinity (None entries are skipped); one
+    device synchronisation, however many tensors."""
+    items = [(name, tensor) for name, tensor in named if tensor is not None]
+    if not items:
+        return None
+    finite = torch.stack([torch.isfinite(tensor).all() for _, tensor in items])
+    if bool(finite.all()):
+        return None
+    return items[int((~finite).nonzero()[0, 0])][0]
+
+
+@dataclass(frozen=True)
+class DivergenceCheck:
+    """Stops a training run at the first non-finite loss term, gradient or weight, with a
+    :class:`TrainingDivergedError` naming the run folder, the step, the term (or parameter), the
+    config value most likely at fault and what is kept; nothing of that step is written.
+
+    After the backward pass call :meth:`losses`, then :meth:`clip_gradients` (in place of
+    ``clip_grad_norm_``), then step the optimiser and call :meth:`weights_after`. Under torchrun
+    pass every rank the same values (the losses averaged over the ranks; the gradients are
+    synchronised), so all ranks stop at the same step.
+
+    Attributes:
+        run: the run folder (messages name it).
+        lr: the config's peak learning rate; weight_decay: its weight decay.
+        weights: loss term -> (its config key, its weight), for terms that have a weight in the
+            config (``{"rgb": ("weights.rgb", 1.0)}``).
+        kept: what is kept for a resume, in words; None: the newest complete checkpoint of
+            ``run`` (:func:`kept_step`).
+    """
+
+    run: Path
+    lr: float
+    weight_decay: float = 0.0
+    weights: Mapping[str, tuple[str, float]] = dataclasses.field(default_factory=dict)
+    kept: Callable[[], str] | None = None
+
+    def losses(self, step: int, terms: Mapping[str, float], total: str = "loss") -> None:
+        """Raises when a loss term of ``step`` (1-based, as logged) is not finite: the first such
+        term, else the weighted ``total`` (the sum of finite terms overflowed)."""
+        bad = next((k for k, v in terms.items() if k != total and not math.isfinite(v)), None)
+        if bad is not None:
+            self._stop(step, f"the loss term {bad!r} is {terms[bad]}", self._term_suspect(step, bad))
+        if total in terms and not math.isfinite(terms[total]):
+            what = "the total loss" if len(terms) > 1 else "the loss"
+            self._stop(step, f"{what} is {terms[total]}", self._total_suspect(step, terms))
+
+    def clip_gradients(
+        self, step: int, named_parameters: Iterable[tuple[str, nn.Parameter]], max_norm: float
+    ) -> float:
+        """Clips the gradients of ``step`` to the total 2-norm ``max_norm`` exactly as
+        ``torch.nn.utils.clip_grad_norm_`` does, and returns their norm before clipping; raises
+        first when that norm is not finite, naming the first parameter whose gradient holds NaN
+        or infinity (clipping would spread the NaN to every gradient)."""
+        named = [(name, p) for name, p in named_parameters if p.grad is not None]
+        grads = [p.grad for _, p in named if p.grad is not None]
+        norm = torch.nn.utils.get_total_norm(grads)
+        if not bool(torch.isfinite(norm)):
+            name = _first_non_finite((n, p.grad) for n, p in named)
+            what = (
+                f"the gradient of {name!r} is not finite"
+                if name is not None
+                else f"the gradient norm is {float(norm)} (every gradient finite: their squares overflowed)"
+            )
+            self._stop(step, what, self._lr_suspect(step))
+        torch.nn.utils.clip_grads_with_norm_([p for _, p in named], max_norm, norm)
+        return float(norm)
+
+    def weights_after(self, step: int, named_parameters: Iterable[tuple[str, nn.Parameter]]) -> None:
+        """Raises when the optimiser's update of ``step`` left a parameter NaN or infinite."""
+        name = _first_non_finite(named_parameters)
+        if name is None:
+            return
+        suspect = f"lr = {self.lr:g} (lower it)"
+        factor = 1.0 - self.lr * self.weight_decay
+        if self.lr * self.weight_decay >= 1.0:
+            key = f"lr = {self.lr:g}" if self.lr > 1.0 else f"weight_decay = {self.weight_decay:g}"
+            suspect = (
+                f"{key} (AdamW scales each weight by 1 - lr x weight_decay = {factor:g} per step: lower it)"
+            )
+        self._stop(step, f"the update left {name!r} with NaN or infinite values", suspect)
+
+    def _term_suspect(self, step: int, term: str) -> str:
+        """A non-finite weight of ``term``, else what changes the model between steps."""
+        key, weight = self.weights.get(term, ("", 1.0))
+        if not math.isfinite(weight):
+            return f"{key} = {weight}"
+        return self._lr_suspect(step)
+
+    def _total_suspect(self, step: int, terms: Mapping[str, float]) -> str:
+        """A non-finite weight, else the weight of the largest weighted term (the sum of finite
+        terms overflowed), or the learning rate when the loss has no weighted terms."""
+        for key, weight in self.weights.values():
+            if not math.isfinite(weight):
+                return f"{key} = {weight}"
+        weighted = {k: abs(w * terms[k]) for k, (_, w) in self.weights.items() if k in terms}
+        if not weighted:
+            return self._lr_suspect(step)
+        term = max(weighted, key=lambda k: weighted[k])
+        key, weight = self.weights[term]
+        return f"{key} = {weight:g} (lower it)"
+
+    def _lr_suspect(self, step: int) -> str:
+        """The learning rate, after the first update; before it, no config value changed anything."""
+        if step <= 1:
+            return "the data or the initial weights (no update had been applied yet)"
+        return f"lr = {self.lr:g} (lower it)"
+
+    def _stop(self, step: int, what: str, suspect: str) -> None:
+        kept = self.kept() if self.kept is not None else _kept_checkpoint(self.run)
+        raise TrainingDivergedError(
+            f"{self.run}: training diverged at step {step}: {what}; most likely at fault: {suspect}; {kept}"
+        )
+
+
+def _kept_checkpoint(run: Path) -> str:
+    """What a diverged run keeps, in words: its newest complete checkpoint."""
+    step = kept_step(run)
+    if step is None:
+        return "no checkpoint was written before it"
+    return f"the checkpoint of step {step} is kept (nothing of this step was written)"

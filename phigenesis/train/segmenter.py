@@ -56,6 +56,7 @@ from phigenesis.train.runner import (
     MAX_STEPS,
     MAX_THREADS,
     MAX_WEIGHT_DECAY,
+    DivergenceCheck,
     check_model_name,
     write_text_atomic,
 )
@@ -298,17 +299,30 @@ def _train_step(
     images_u8: torch.Tensor,
     target: torch.Tensor,
     cfg: SegmenterTrainConfig,
+    divergence: DivergenceCheck,
+    step: int,
 ) -> float:
-    """One optimiser step on uint8 images [B, 3, H, W] and int64 labels [B, H, W] (255 ignored):
-    cross-entropy of the logits upsampled to the labels' size. Returns the loss."""
+    """Optimiser step ``step`` (1-based) on uint8 images [B, 3, H, W] and int64 labels [B, H, W]
+    (255 ignored): cross-entropy of the logits upsampled to the labels' size. A non-finite loss,
+    gradient or weight stops training (``divergence``). Returns the loss."""
     x = images_u8.to(cfg.device).float() / 255.0  # [B, 3, H, W]
     logits = F.interpolate(model(x), size=x.shape[-2:], mode="bilinear", align_corners=False)
     loss = F.cross_entropy(logits, target.to(cfg.device), ignore_index=tx.IGNORE_ID)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
-    torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+    divergence.losses(step, {"loss": float(loss.detach())})
+    divergence.clip_gradients(step, model.named_parameters(), cfg.grad_clip)
     optimizer.step()
+    divergence.weights_after(step, model.named_parameters())
     return float(loss.detach())
+
+
+def _kept_files(paths: dict[str, Path]) -> str:
+    """What a diverged segmenter run keeps, in words (it does not resume: ``--init`` starts from them)."""
+    kept = [p.name for p in paths.values() if p.is_file()]
+    if not kept:
+        return "nothing was written before it"
+    return f"{' and '.join(kept)} of the last evaluation are kept (--init starts a new run from them)"
 
 
 def train_segmenter(
@@ -381,6 +395,7 @@ def train_segmenter(
     history: list[dict[str, Any]] = []
     best_miou, best_scores = -1.0, {}
     paths = {"best": out / "best.pt", "last": out / "last.pt"}
+    divergence = DivergenceCheck(out, cfg.lr, cfg.weight_decay, kept=lambda: _kept_files(paths))
     start, step, losses = time.perf_counter(), 0, []
     while step < total:
         for images_u8, target in loader:
@@ -388,7 +403,7 @@ def train_segmenter(
                 break
             for group in optimizer.param_groups:
                 group["lr"] = _learning_rate(step, total, cfg)
-            losses.append(_train_step(model, optimizer, images_u8, target, cfg))
+            losses.append(_train_step(model, optimizer, images_u8, target, cfg, divergence, step + 1))
             step += 1
             if step % cfg.eval_every == 0 or step == total:
                 record = {

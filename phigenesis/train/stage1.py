@@ -26,7 +26,9 @@ no Gaussian covers) and minimises:
 
 Pixels labelled sky spawn no Gaussians. AdamW, warm-up + cosine learning rate, gradient clipping;
 checkpoints (safetensors) every ``checkpoint_every`` steps and exact resume (see
-:mod:`phigenesis.train.runner`); under ``torchrun`` the ranks share the batch over gloo.
+:mod:`phigenesis.train.runner`); under ``torchrun`` the ranks share the batch over gloo. A
+non-finite loss term, gradient or weight stops the run at that step, naming the term and the
+config value most likely at fault (``runner.DivergenceCheck``).
 """
 
 from __future__ import annotations
@@ -64,6 +66,7 @@ from phigenesis.train.runner import (
     MAX_STEPS,
     MAX_THREADS,
     MAX_WEIGHT_DECAY,
+    DivergenceCheck,
     MetricsLog,
     ProcessGroup,
     check_model_name,
@@ -219,7 +222,7 @@ def build_model(config: Stage1TrainConfig) -> Stage1Model:
     model = create_overridden(config.model, config.model_overrides, "Stage1TrainConfig")
     assert isinstance(model, Stage1Model)
     if config.vae_checkpoint:
-        vae = load_checkpoint(config.vae_checkpoint).model
+        vae = load_checkpoint(config.vae_checkpoint, kind="vae").model
         try:
             model.load_vae(vae)  # type: ignore[arg-type]
         except ValueError as e:
@@ -235,10 +238,9 @@ def load_stage1(path: str | os.PathLike[str]) -> Stage1Model:
     path = Path(path)
     if path.is_dir():
         path = path / "model.safetensors"
-    ckpt = load_checkpoint(path)
-    if not isinstance(ckpt.model, Stage1Model):
-        raise CheckpointError(f"{path}: a {ckpt.model_name!r} checkpoint, not a Stage 1 model")
-    return ckpt.model
+    model = load_checkpoint(path, kind="stage1").model
+    assert isinstance(model, Stage1Model), type(model)  # every "stage1" variant is one
+    return model
 
 
 def config_differences(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
@@ -528,7 +530,7 @@ def _train(
     optimizer = torch.optim.AdamW(model.trainable_parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0
     if resume_from is not None:
-        loaded = load_checkpoint(resume_from / "model.safetensors").model
+        loaded = load_checkpoint(resume_from / "model.safetensors", kind="stage1").model
         if loaded.config != model.config:
             changed = config_differences(loaded.config.to_dict(), model.config.to_dict())
             raise CheckpointError(
@@ -548,6 +550,10 @@ def _train(
     resume_step = start if resume_from is not None else None
     metrics = MetricsLog(out, LOG_COLUMNS, resume_step=resume_step) if group.is_main else None
     model.train()
+    trainable = [(n, p) for n, p in model.named_parameters() if p.requires_grad]
+    divergence = DivergenceCheck(
+        out, cfg.lr, cfg.weight_decay, {k: (f"weights.{k}", w) for k, w in cfg.weights.items()}
+    )
     last: dict[str, float] = {}
     stopped_by_time = False
     t_start = time.perf_counter()
@@ -569,8 +575,6 @@ def _train(
             loss = sum(cfg.weights[k] * v for k, v in terms.items())
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            grad_norm = torch.nn.utils.clip_grad_norm_(model.trainable_parameters(), cfg.grad_clip)
-            optimizer.step()
             late = time_limit_s is not None and time.perf_counter() - t_start >= time_limit_s
             values = torch.stack(
                 [loss.detach(), *[terms[k].detach() for k in LOSS_NAMES], torch.tensor(float(late))]
@@ -582,9 +586,13 @@ def _train(
                 "loss": float(values[0]),
                 **{k: float(v) for k, v in zip(LOSS_NAMES, values[1:], strict=True)},
             }
+            divergence.losses(step + 1, last)
+            grad_norm = divergence.clip_gradients(step + 1, trainable, cfg.grad_clip)
+            optimizer.step()
+            divergence.weights_after(step + 1, trainable)
             last |= {
                 "lr": lr,
-                "grad_norm": float(grad_norm),
+                "grad_norm": grad_norm,
                 "gaussians": gaussians,
                 "seconds": time.perf_counter() - t0,
             }

@@ -50,7 +50,7 @@ from phigenesis.infer.flow import flow_loss, interpolate, sample_time
 from phigenesis.infer.stereo_forcing import drop_condition, stereo_forcing
 from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LpTrust
 from phigenesis.models.dit import MultiViewDiT
-from phigenesis.options import check_options, from_mapping, option
+from phigenesis.options import ConfigError, check_options, from_mapping, option
 from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from phigenesis.train.runner import (
     MAX_BATCH,
@@ -60,6 +60,7 @@ from phigenesis.train.runner import (
     MAX_STEPS,
     MAX_THREADS,
     MAX_WEIGHT_DECAY,
+    DivergenceCheck,
     MetricsLog,
     ProcessGroup,
     check_model_name,
@@ -337,10 +338,25 @@ def load_stage2(path: str | os.PathLike[str]) -> MultiViewDiT:
     path = Path(path)
     if path.is_dir():
         path = path / "model.safetensors"
-    ckpt = load_checkpoint(path)
-    if not isinstance(ckpt.model, MultiViewDiT):
-        raise CheckpointError(f"{path}: a {ckpt.model_name!r} checkpoint, not a Stage 2 denoiser (stage2_*)")
-    return ckpt.model
+    model = load_checkpoint(path, kind="dit").model
+    assert isinstance(model, MultiViewDiT), type(model)  # every "dit" variant is one
+    return model
+
+
+def trained_config(path: str | os.PathLike[str], train: Any) -> Stage2TrainConfig:
+    """The training config a Stage 2 checkpoint's ``meta`` records (``train``), built by
+    :class:`Stage2TrainConfig` so that its checks apply: a checkpoint saying ``window_frames: 0``
+    is refused here, naming the file and the key, rather than dividing by zero in a rollout. Keys
+    the config no longer has (fields since removed) are left out; fields a checkpoint predates take
+    their defaults. Raises :class:`CheckpointError`."""
+    if not isinstance(train, dict) or "window_frames" not in train:
+        raise CheckpointError(f"{path}: has no Stage 2 training config in its metadata (window_frames)")
+    known = {f.name for f in dataclasses.fields(Stage2TrainConfig)}
+    values = {k: v for k, v in train.items() if k in known}
+    try:
+        return from_mapping(Stage2TrainConfig, values, f"{path}: its training config")
+    except ConfigError as e:
+        raise CheckpointError(str(e)) from None
 
 
 def train_stage2(
@@ -435,6 +451,7 @@ def _train(
         "stage2 %s: %d windows, %d parameters, steps %d..%d", cfg.model, len(data), params, start, cfg.steps
     )
     model.train()
+    divergence = DivergenceCheck(out, cfg.lr, cfg.weight_decay)
     last: dict[str, float] = {}
     t_start = time.perf_counter()
     end = cfg.steps if stop_after is None else min(cfg.steps, stop_after)
@@ -451,11 +468,13 @@ def _train(
             loss, extra = stage2_loss(trainee, batch, cfg, g)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-            optimizer.step()
             mean = group.mean(
                 torch.stack([loss.detach(), torch.tensor(extra["t_mean"]), torch.tensor(extra["dropped"])])
             )
+            divergence.losses(step + 1, {"loss": float(mean[0])})
+            grad_norm = divergence.clip_gradients(step + 1, model.named_parameters(), cfg.grad_clip)
+            optimizer.step()
+            divergence.weights_after(step + 1, model.named_parameters())
             last = {
                 "loss": float(mean[0]),
                 "lr": lr,
@@ -464,8 +483,6 @@ def _train(
                 "dropped": float(mean[2]),
                 "seconds": time.perf_counter() - t0,
             }
-            if not math.isfinite(last["loss"]):
-                raise FloatingPointError(f"stage2 step {step + 1}: the loss is {last['loss']}")
             if metrics is not None:
                 metrics.log(step + 1, last)
             bar.set_postfix(loss=f"{last['loss']:.4f}")

@@ -35,7 +35,7 @@ import os
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -63,6 +63,7 @@ from phigenesis.train.runner import (
     MAX_STEPS,
     MAX_THREADS,
     MAX_WEIGHT_DECAY,
+    DivergenceCheck,
     MetricsLog,
     ProcessGroup,
     check_model_name,
@@ -355,6 +356,10 @@ def make_optimizer(model: nn.Module, cfg: VAETrainConfig) -> torch.optim.Optimiz
     return torch.optim.AdamW(groups, lr=cfg.lr)
 
 
+#: What runs between a step's backward pass and its update (see :func:`train_step`).
+ClipGradients = Callable[[dict[str, torch.Tensor]], float]
+
+
 def train_step(
     model: nn.Module,
     optimizer: torch.optim.Optimizer,
@@ -362,9 +367,13 @@ def train_step(
     cfg: VAETrainConfig,
     lr: float,
     generator: torch.Generator,
+    clip: ClipGradients | None = None,
 ) -> dict[str, torch.Tensor]:
     """One optimiser step on ``video`` ``[B, 3, T, H, W]`` in [-1, 1]; the posterior sample is
-    drawn from ``generator``. Returns the (local) loss terms and the gradient norm before clipping."""
+    drawn from ``generator``. ``clip`` is called between the backward pass and the update with the
+    (local) loss terms: it clips the gradients to ``cfg.grad_clip`` and returns their norm before
+    clipping (default: ``clip_grad_norm_``; the trainer's, :class:`_CheckedClip`, first stops a
+    run that diverged). Returns the (local) loss terms and that gradient norm."""
     for group in optimizer.param_groups:
         group["lr"] = lr
     # The noise generator lives on the model's device; its seed is a draw of the step's generator.
@@ -373,9 +382,33 @@ def train_step(
     terms = vae_loss(output, video, beta=cfg.kl_weight, reconstruction=cfg.reconstruction)
     optimizer.zero_grad(set_to_none=True)
     terms["loss"].backward()
-    grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+    terms = {k: v.detach() for k, v in terms.items()}
+    if clip is None:
+        grad_norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip))
+    else:
+        grad_norm = clip(terms)
     optimizer.step()
-    return {k: v.detach() for k, v in terms.items()} | {"grad_norm": grad_norm.detach()}
+    return terms | {"grad_norm": torch.tensor(grad_norm)}
+
+
+@dataclass
+class _CheckedClip:
+    """The trainer's ``clip`` of :func:`train_step`: averages the loss terms over the processes
+    (kept in ``values`` for the log), stops the run at a non-finite term or gradient
+    (:class:`DivergenceCheck`), then clips the gradients. ``step`` (1-based) is set per step."""
+
+    pg: ProcessGroup
+    divergence: DivergenceCheck
+    model: nn.Module
+    max_norm: float
+    step: int = 0
+    values: dict[str, float] = field(default_factory=dict)
+
+    def __call__(self, terms: dict[str, torch.Tensor]) -> float:
+        mean = self.pg.mean(torch.stack([terms["loss"], terms["reconstruction"], terms["kl"]]).cpu())
+        self.values = dict(zip(("loss", "reconstruction", "kl"), mean.tolist(), strict=True))
+        self.divergence.losses(self.step, self.values)
+        return self.divergence.clip_gradients(self.step, self.model.named_parameters(), self.max_norm)
 
 
 def draw_batch(
@@ -511,6 +544,8 @@ def _train(
         cfg.steps, pg.world_size,
     )  # fmt: skip
     local_batch = cfg.batch_size // pg.world_size
+    divergence = DivergenceCheck(out, cfg.lr, cfg.weight_decay, {"kl": ("kl_weight", cfg.kl_weight)})
+    clip = _CheckedClip(pg, divergence, model, cfg.grad_clip)
     tic, val = time.perf_counter(), {}
     try:
         for step in range(start, stop):
@@ -518,10 +553,10 @@ def _train(
             batch, flips = draw_batch(train_clips, local_batch, cfg.flip, g)
             video = images.video(batch, flips).to(cfg.device)
             lr = cosine_lr(step, cfg.steps, cfg.lr, cfg.warmup)
-            terms = train_step(net, optimizer, video, cfg, lr, g)
-            mean = pg.mean(torch.stack([terms["loss"], terms["reconstruction"], terms["kl"]]).cpu())
-            values = dict(zip(("loss", "reconstruction", "kl"), mean.tolist(), strict=True))
-            values |= {"lr": lr, "grad_norm": float(terms["grad_norm"])}
+            clip.step = step + 1
+            terms = train_step(net, optimizer, video, cfg, lr, g, clip)
+            divergence.weights_after(step + 1, model.named_parameters())
+            values = clip.values | {"lr": lr, "grad_norm": float(terms["grad_norm"])}
             done = step + 1
             checkpoint = done % cfg.checkpoint_every == 0 or done == stop
             if checkpoint and pg.is_main:
