@@ -164,6 +164,15 @@ def create_overridden(name: str, overrides: dict[str, Any], label: str) -> nn.Mo
         raise ConfigError(f"{label}: model_overrides {overrides}: {' '.join(str(e).split())}") from None
 
 
+def check_model_overrides(name: str, overrides: dict[str, Any], label: str) -> None:
+    """Raises :class:`~phigenesis.options.ConfigError` naming ``label`` unless the registered model
+    ``name`` takes ``overrides`` (every field known, every value within its declared range); the
+    model is built on PyTorch's ``meta`` device, so the check allocates no weights."""
+    if overrides:
+        with torch.device("meta"):
+            create_overridden(name, overrides, label)
+
+
 def read_config_file(path: Path) -> dict[str, Any]:
     """The mapping of options in a YAML config file (an empty file: none). A missing file, one that
     is not a regular file or is over 1 MiB (:func:`~phigenesis.user_files.read_small_file`), invalid

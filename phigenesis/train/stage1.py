@@ -70,6 +70,7 @@ from phigenesis.train.runner import (
     MetricsLog,
     ProcessGroup,
     check_model_name,
+    check_model_overrides,
     checkpoint_to_resume,
     cosine_lr,
     create_overridden,
@@ -178,6 +179,7 @@ class Stage1TrainConfig:
         check_options(self, "Stage1TrainConfig")
         object.__setattr__(self, "weights", {k: self.weights.get(k, 0.0) for k in LOSS_NAMES})
         check_model_name(self.model, "stage1", "Stage1TrainConfig")
+        check_model_overrides(self.model, self.model_overrides, "Stage1TrainConfig")
         if self.target_offset and self.targets_per_clip > 2 * self.target_offset:
             raise ConfigError(
                 f"Stage1TrainConfig: targets_per_clip = {self.targets_per_clip}: must be at most "

@@ -64,6 +64,7 @@ from phigenesis.train.runner import (
     MetricsLog,
     ProcessGroup,
     check_model_name,
+    check_model_overrides,
     create_overridden,
     load_training_state,
     process_group,
@@ -151,6 +152,7 @@ class Stage2TrainConfig:
     def __post_init__(self) -> None:
         check_options(self, "Stage2TrainConfig")
         check_model_name(self.model, "dit", "Stage2TrainConfig")
+        check_model_overrides(self.model, self.model_overrides, "Stage2TrainConfig")
         self.data_config()  # checks the data fields
 
     def data_config(self) -> Stage2DataConfig:
