@@ -55,6 +55,7 @@ __all__ = [
     "from_mapping",
     "option",
     "option_bounds",
+    "same_as",
 ]
 
 T = TypeVar("T")
@@ -143,6 +144,17 @@ def option(
     if factory is not MISSING:
         return dataclasses.field(default_factory=factory, metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
+
+
+def same_as(cls: type, name: str) -> Any:
+    """A field declared as the field ``name`` of the config ``cls`` is (its default, range and
+    help): for a config that passes an option on to another, so the option is declared once."""
+    source = next((f for f in dataclasses.fields(cls) if f.name == name), None)
+    if source is None:
+        raise AttributeError(f"{cls.__name__} declares no option {name!r}")
+    if source.default_factory is not MISSING:
+        return dataclasses.field(default_factory=source.default_factory, metadata=source.metadata)
+    return dataclasses.field(default=source.default, metadata=source.metadata)
 
 
 def option_bounds(field: dataclasses.Field) -> Bounds:

@@ -8,7 +8,7 @@ from typing import Literal
 
 import pytest
 
-from phigenesis.options import ConfigError, check_options, check_values, from_mapping, option
+from phigenesis.options import ConfigError, check_options, check_values, from_mapping, option, same_as
 
 Kind = Literal["a", "b"]
 
@@ -124,3 +124,21 @@ def test_an_unknown_key_names_the_known_key_it_is_closest_to():
     guessed = "x: unknown keys ['stpes'] (did you mean 'steps'?); known: ["
     assert _error(_Config, {"stpes": 3}).startswith(guessed)
     assert _error(_Config, {"zzz": 3}).startswith("x: unknown keys ['zzz']; known: [")
+
+
+@dataclass(frozen=True)
+class _Passes:
+    steps: int = same_as(_Config, "steps")
+    weights: dict[str, float] = same_as(_Config, "weights")
+
+    def __post_init__(self) -> None:
+        check_options(self, "_Passes")
+
+
+def test_an_option_passed_on_is_declared_once_with_the_same_default_and_range():
+    assert _Passes().steps == 10 and _Passes().weights == {"rgb": 1.0}
+    assert _Passes().weights is not _Passes().weights  # a factory default stays a factory
+    with pytest.raises(ConfigError, match=r"^_Passes: steps = 0: must be an integer in \[1, inf\)$"):
+        _Passes(steps=0)
+    with pytest.raises(AttributeError, match="declares no option 'nope'"):
+        same_as(_Config, "nope")

@@ -84,7 +84,7 @@ from phigenesis.data.records import (
 from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
 from phigenesis.data.shards import MANIFEST_NAME, SceneEntry, ShardInfo, ShardWriter, atomic_write_bytes
 from phigenesis.errors import PhiGenesisError
-from phigenesis.infer.buffer import GaussianBuffer
+from phigenesis.infer.buffer import BufferConfig, GaussianBuffer
 from phigenesis.infer.conditions import (
     GEOMETRY_SOURCES,
     ConditionKind,
@@ -104,7 +104,7 @@ from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LEGACY_LP_TRUST, LpTr
 from phigenesis.models.dit import MultiViewDiT
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.stage1 import Stage1Model
-from phigenesis.options import check_options, option
+from phigenesis.options import check_options, option, same_as
 from phigenesis.user_files import check_keys, matrix_problem, read_small_file
 
 log = logging.getLogger(__name__)
@@ -167,8 +167,8 @@ class GenerateOptions:
     geometry: GeometrySource | None = option(
         None, help="window 0's history Gaussians: stage1 | cache | truth; None: as trained"
     )
-    voxel_m: float = option(0.2, gt=0, le=100, help="the buffer's de-duplication voxel (metres)")
-    max_gaussians: int = option(200_000, ge=1, le=100_000_000, help="the buffer's bound")
+    voxel_m: float = same_as(BufferConfig, "voxel_m")
+    max_gaussians: int = same_as(BufferConfig, "max_gaussians")
     seed: int = option(0, ge=0, le=2**32 - 1)
 
     def __post_init__(self) -> None:

@@ -123,25 +123,6 @@ def cosine_lr(
     return peak * (final_ratio + (1.0 - final_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress)))
 
 
-#: Upper bounds shared by the trainers' declared options (phigenesis.options): generous, but a value
-#: past them is a typo or an attack, not a training run.
-MAX_STEPS = 10**9
-MAX_BATCH = 65_536
-#: AdamW's learning rate: past 1 every run diverges in its first steps.
-MAX_LR = 1.0
-#: AdamW's decoupled weight decay (each step multiplies weights by 1 - lr * weight_decay).
-MAX_WEIGHT_DECAY = 1.0
-MAX_GRAD_CLIP = 1e6
-MAX_LOSS_WEIGHT = 1e4
-#: Seeds combine as (seed * 1_000_003 + step) * 131 + rank (:func:`step_generator`), which must fit
-#: torch's 64-bit seed.
-MAX_SEED = 2**32 - 1
-MAX_THREADS = 1024
-#: The longest side of an image a trainer resizes to (pixels).
-MAX_IMAGE_SIDE = 16_384
-MAX_CACHE_MB = 1e7
-
-
 def check_model_name(name: str, family: str, label: str) -> None:
     """Raises :class:`~phigenesis.options.ConfigError` unless ``name`` is a registered model of
     ``family`` (``"stage1"``, ``"dit"``, ``"vae"``, ``"segformer"``), naming the known ones."""

@@ -45,17 +45,10 @@ from phigenesis.data.shards import CacheReader
 from phigenesis.errors import CacheError
 from phigenesis.models import create_model
 from phigenesis.options import check_options, option
+from phigenesis.train import limits
 from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
 from phigenesis.train.metrics import confusion_matrix, segmentation_scores
 from phigenesis.train.runner import (
-    MAX_BATCH,
-    MAX_GRAD_CLIP,
-    MAX_IMAGE_SIDE,
-    MAX_LR,
-    MAX_SEED,
-    MAX_STEPS,
-    MAX_THREADS,
-    MAX_WEIGHT_DECAY,
     DivergenceCheck,
     check_model_name,
     write_text_atomic,
@@ -98,21 +91,21 @@ class SegmenterTrainConfig:
     """
 
     model: str = option("segformer_tiny")
-    steps: int | None = option(None, ge=1, le=MAX_STEPS)
+    steps: int | None = option(None, ge=1, le=limits.MAX_STEPS)
     epochs: float = option(10.0, gt=0, le=1e6)
-    batch_size: int = option(8, ge=1, le=MAX_BATCH)
-    lr: float = option(2e-3, gt=0, le=MAX_LR)
-    weight_decay: float = option(1e-2, ge=0, le=MAX_WEIGHT_DECAY)
-    warmup_steps: int = option(50, ge=0, le=MAX_STEPS)
-    grad_clip: float = option(1.0, gt=0, le=MAX_GRAD_CLIP)
+    batch_size: int = option(8, ge=1, le=limits.MAX_BATCH)
+    lr: float = option(2e-3, gt=0, le=limits.MAX_LR)
+    weight_decay: float = option(1e-2, ge=0, le=limits.MAX_WEIGHT_DECAY)
+    warmup_steps: int = option(50, ge=0, le=limits.MAX_STEPS)
+    grad_clip: float = option(1.0, gt=0, le=limits.MAX_GRAD_CLIP)
     val_fraction: float = option(0.2, ge=0, lt=1)
     labels: LabelKind = option("auto")
-    image_height: int | None = option(None, ge=1, le=MAX_IMAGE_SIDE)
-    crop: tuple[int, int] | None = option(None, ge=1, le=MAX_IMAGE_SIDE)
+    image_height: int | None = option(None, ge=1, le=limits.MAX_IMAGE_SIDE)
+    crop: tuple[int, int] | None = option(None, ge=1, le=limits.MAX_IMAGE_SIDE)
     flip: bool = option(True)
-    eval_every: int = option(250, ge=1, le=MAX_STEPS)
-    seed: int = option(0, ge=0, le=MAX_SEED)
-    threads: int | None = option(None, ge=1, le=MAX_THREADS)
+    eval_every: int = option(250, ge=1, le=limits.MAX_STEPS)
+    seed: int = option(0, ge=0, le=limits.MAX_SEED)
+    threads: int | None = option(None, ge=1, le=limits.MAX_THREADS)
     device: str = option("cpu")
     init: str | None = option(None)
     pretrained: str | None = option(None)

@@ -54,18 +54,10 @@ from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.losses import edge_aware_smoothness, log_depth_loss, photometric_loss, semantic_loss
 from phigenesis.models.stage1 import Stage1Model, Stage1Prediction
 from phigenesis.options import ConfigError, check_options, from_mapping, option
+from phigenesis.train import limits
 from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from phigenesis.train.memory_cache import BoundedCache, tensor_bytes
 from phigenesis.train.runner import (
-    MAX_BATCH,
-    MAX_CACHE_MB,
-    MAX_GRAD_CLIP,
-    MAX_LOSS_WEIGHT,
-    MAX_LR,
-    MAX_SEED,
-    MAX_STEPS,
-    MAX_THREADS,
-    MAX_WEIGHT_DECAY,
     DivergenceCheck,
     MetricsLog,
     ProcessGroup,
@@ -140,13 +132,13 @@ class Stage1TrainConfig:
     model: str = option("stage1_tiny")
     model_overrides: dict[str, Any] = option(factory=dict)
     vae_checkpoint: str | None = option(None)
-    steps: int = option(1000, ge=1, le=MAX_STEPS)
-    batch_size: int = option(1, ge=1, le=MAX_BATCH)
-    lr: float = option(2e-3, gt=0, le=MAX_LR)
-    weight_decay: float = option(0.01, ge=0, le=MAX_WEIGHT_DECAY)
-    warmup_steps: int = option(50, ge=0, le=MAX_STEPS)
+    steps: int = option(1000, ge=1, le=limits.MAX_STEPS)
+    batch_size: int = option(1, ge=1, le=limits.MAX_BATCH)
+    lr: float = option(2e-3, gt=0, le=limits.MAX_LR)
+    weight_decay: float = option(0.01, ge=0, le=limits.MAX_WEIGHT_DECAY)
+    warmup_steps: int = option(50, ge=0, le=limits.MAX_STEPS)
     final_lr_ratio: float = option(0.05, ge=0, le=1)
-    grad_clip: float = option(1.0, gt=0, le=MAX_GRAD_CLIP)
+    grad_clip: float = option(1.0, gt=0, le=limits.MAX_GRAD_CLIP)
     target_offset: int = option(3, ge=0, le=1000)
     targets_per_clip: int = option(1, ge=0, le=2000)
     semantic_target: SemanticTarget = option("auto")
@@ -165,14 +157,14 @@ class Stage1TrainConfig:
             "opacity": 0.1,
         },
         ge=0,
-        le=MAX_LOSS_WEIGHT,
+        le=limits.MAX_LOSS_WEIGHT,
         keys=LOSS_NAMES,
     )
-    checkpoint_every: int = option(100, ge=1, le=MAX_STEPS)
-    log_every: int = option(10, ge=1, le=MAX_STEPS)
-    seed: int = option(0, ge=0, le=MAX_SEED)
-    threads: int | None = option(None, ge=1, le=MAX_THREADS)
-    cache_mb: float = option(1024.0, ge=0, le=MAX_CACHE_MB)
+    checkpoint_every: int = option(100, ge=1, le=limits.MAX_STEPS)
+    log_every: int = option(10, ge=1, le=limits.MAX_STEPS)
+    seed: int = option(0, ge=0, le=limits.MAX_SEED)
+    threads: int | None = option(None, ge=1, le=limits.MAX_THREADS)
+    cache_mb: float = option(1024.0, ge=0, le=limits.MAX_CACHE_MB)
     depth_confidence_floor: float = option(0.0, ge=0, le=1)
 
     def __post_init__(self) -> None:

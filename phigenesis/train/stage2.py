@@ -48,18 +48,12 @@ from tqdm import tqdm
 from phigenesis.infer.conditions import ConditionKind, GeometrySource, TargetCameras, sequence_plucker
 from phigenesis.infer.flow import flow_loss, interpolate, sample_time
 from phigenesis.infer.stereo_forcing import drop_condition, stereo_forcing
-from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LpTrust
+from phigenesis.infer.uncertainty import LpTrust
 from phigenesis.models.dit import MultiViewDiT
-from phigenesis.options import ConfigError, check_options, from_mapping, option
+from phigenesis.options import ConfigError, check_options, from_mapping, option, same_as
+from phigenesis.train import limits
 from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from phigenesis.train.runner import (
-    MAX_BATCH,
-    MAX_GRAD_CLIP,
-    MAX_LR,
-    MAX_SEED,
-    MAX_STEPS,
-    MAX_THREADS,
-    MAX_WEIGHT_DECAY,
     DivergenceCheck,
     MetricsLog,
     ProcessGroup,
@@ -76,7 +70,6 @@ from phigenesis.train.runner import (
 )
 from phigenesis.train.stage1 import check_run_folder, load_stage1
 from phigenesis.train.stage2_data import (
-    MAX_WINDOW_FRAMES,
     UNCERTAINTY_KINDS,
     Stage2DataConfig,
     Stage2Latents,
@@ -101,23 +94,14 @@ class Stage2TrainConfig:
     stage1_checkpoint: str = option(
         "runs/stage1-tiny/model.safetensors", help="the Stage 1 model whose VAE encodes; --stage1 overrides"
     )
-    history_frames: int = option(1, ge=1, le=MAX_WINDOW_FRAMES, help="frames of history per window")
-    window_frames: int = option(
-        5,
-        ge=1,
-        le=MAX_WINDOW_FRAMES,
-        help="frames generated per window (1 + k x the VAE's temporal compression)",
-    )
-    stride: int = option(
-        5, ge=1, le=MAX_WINDOW_FRAMES, help="frames between window starts in the latent cache"
-    )
-    geometry: GeometrySource = option("stage1", help="where the history's Gaussians come from")
+    history_frames: int = same_as(Stage2DataConfig, "history_frames")
+    window_frames: int = same_as(Stage2DataConfig, "window_frames")
+    stride: int = same_as(Stage2DataConfig, "stride")
+    geometry: GeometrySource = same_as(Stage2DataConfig, "geometry")
     uncertainty: ConditionKind = option(
         "localization_potential", help="Stereo Forcing's map; none: no geometric condition"
     )
-    lp_trust: LpTrust = option(
-        DEFAULT_LP_TRUST, help="localization potential: u trusts pixels a depth error barely moves"
-    )
+    lp_trust: LpTrust = same_as(Stage2DataConfig, "lp_trust")
     condition_dropout: float = option(
         0.1, ge=0, le=1, help="probability of dropping the whole condition (guidance)"
     )
@@ -128,26 +112,26 @@ class Stage2TrainConfig:
     latent_norm: bool = option(
         False, help="flow on per-channel standardised latents (stats of the latent cache)"
     )
-    steps: int = option(2000, ge=1, le=MAX_STEPS)
-    batch_size: int = option(4, ge=1, le=MAX_BATCH, help="windows per step, over all processes")
-    lr: float = option(1e-3, gt=0, le=MAX_LR)
-    weight_decay: float = option(5e-5, ge=0, le=MAX_WEIGHT_DECAY)
-    warmup_steps: int = option(50, ge=0, le=MAX_STEPS)
+    steps: int = option(2000, ge=1, le=limits.MAX_STEPS)
+    batch_size: int = option(4, ge=1, le=limits.MAX_BATCH, help="windows per step, over all processes")
+    lr: float = option(1e-3, gt=0, le=limits.MAX_LR)
+    weight_decay: float = option(5e-5, ge=0, le=limits.MAX_WEIGHT_DECAY)
+    warmup_steps: int = option(50, ge=0, le=limits.MAX_STEPS)
     restart_steps: int = option(
-        0, ge=0, le=MAX_STEPS, help="cosine annealing restarts every this many steps (0: one cosine)"
+        0, ge=0, le=limits.MAX_STEPS, help="cosine annealing restarts every this many steps (0: one cosine)"
     )
     final_lr_ratio: float = option(0.1, ge=0, le=1)
-    grad_clip: float = option(1.0, gt=0, le=MAX_GRAD_CLIP)
-    checkpoint_every: int = option(250, ge=1, le=MAX_STEPS)
-    log_every: int = option(10, ge=1, le=MAX_STEPS)
-    seed: int = option(0, ge=0, le=MAX_SEED, help="seeds the initialisation and every step's draws")
+    grad_clip: float = option(1.0, gt=0, le=limits.MAX_GRAD_CLIP)
+    checkpoint_every: int = option(250, ge=1, le=limits.MAX_STEPS)
+    log_every: int = option(10, ge=1, le=limits.MAX_STEPS)
+    seed: int = option(0, ge=0, le=limits.MAX_SEED, help="seeds the initialisation and every step's draws")
     data_seed: int = option(
         0,
         ge=0,
-        le=MAX_SEED,
+        le=limits.MAX_SEED,
         help="seeds the latent cache's random maps (runs of several seeds share one cache)",
     )
-    threads: int | None = option(None, ge=1, le=MAX_THREADS)
+    threads: int | None = option(None, ge=1, le=limits.MAX_THREADS)
 
     def __post_init__(self) -> None:
         check_options(self, "Stage2TrainConfig")

@@ -52,17 +52,9 @@ from phigenesis.errors import CacheError
 from phigenesis.models import create_model
 from phigenesis.models.vae import VideoVAE, vae_loss
 from phigenesis.options import check_options, option
+from phigenesis.train import limits
 from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
 from phigenesis.train.runner import (
-    MAX_BATCH,
-    MAX_GRAD_CLIP,
-    MAX_IMAGE_SIDE,
-    MAX_LOSS_WEIGHT,
-    MAX_LR,
-    MAX_SEED,
-    MAX_STEPS,
-    MAX_THREADS,
-    MAX_WEIGHT_DECAY,
     DivergenceCheck,
     MetricsLog,
     ProcessGroup,
@@ -122,22 +114,22 @@ class VAETrainConfig:
 
     model: str = option("vae_tiny")
     frames: int = option(5, ge=1, le=1024)
-    size: tuple[int, int] = option((48, 72), ge=1, le=MAX_IMAGE_SIDE)
-    steps: int = option(2000, ge=1, le=MAX_STEPS)
-    batch_size: int = option(8, ge=1, le=MAX_BATCH)
-    lr: float = option(1e-3, gt=0, le=MAX_LR)
-    weight_decay: float = option(0.0, ge=0, le=MAX_WEIGHT_DECAY)
-    warmup_steps: int | None = option(None, ge=0, le=MAX_STEPS)
-    grad_clip: float = option(1.0, gt=0, le=MAX_GRAD_CLIP)
-    kl_weight: float = option(1e-6, ge=0, le=MAX_LOSS_WEIGHT)
+    size: tuple[int, int] = option((48, 72), ge=1, le=limits.MAX_IMAGE_SIDE)
+    steps: int = option(2000, ge=1, le=limits.MAX_STEPS)
+    batch_size: int = option(8, ge=1, le=limits.MAX_BATCH)
+    lr: float = option(1e-3, gt=0, le=limits.MAX_LR)
+    weight_decay: float = option(0.0, ge=0, le=limits.MAX_WEIGHT_DECAY)
+    warmup_steps: int | None = option(None, ge=0, le=limits.MAX_STEPS)
+    grad_clip: float = option(1.0, gt=0, le=limits.MAX_GRAD_CLIP)
+    kl_weight: float = option(1e-6, ge=0, le=limits.MAX_LOSS_WEIGHT)
     reconstruction: Literal["l1", "l2"] = option("l1")
     flip: bool = option(True)
     val_fraction: float = option(0.2, ge=0, lt=1)
     val_clips: int = option(32, ge=1, le=1_000_000)
-    checkpoint_every: int = option(500, ge=1, le=MAX_STEPS)
-    log_every: int = option(10, ge=1, le=MAX_STEPS)
-    seed: int = option(0, ge=0, le=MAX_SEED)
-    threads: int | None = option(None, ge=1, le=MAX_THREADS)
+    checkpoint_every: int = option(500, ge=1, le=limits.MAX_STEPS)
+    log_every: int = option(10, ge=1, le=limits.MAX_STEPS)
+    seed: int = option(0, ge=0, le=limits.MAX_SEED)
+    threads: int | None = option(None, ge=1, le=limits.MAX_THREADS)
     device: str = option("cpu")
     init: str | None = option(None)
     image_cache_bytes: int = option(1 << 30, ge=0, le=1 << 50)
