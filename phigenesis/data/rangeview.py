@@ -38,12 +38,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
+from phigenesis.data.camera_tables import pixel_rays_cam
+from phigenesis.data.camera_tables import undistorted_pixel_rays as undistorted_pixel_rays  # re-exported
 from phigenesis.data.range_records import NO_VIEW, RangeViewLayout, ViewPlacement
 from phigenesis.data.records import CameraCalibration, CameraImage, Frame
 
@@ -85,40 +86,10 @@ def camera_rays_ego(cal: CameraCalibration) -> NDArray[np.float32]:
     return _rays(_Key([cal]))
 
 
-#: OpenCV's undistortion iterations; pixels it leaves off by more than UNDISTORT_TOLERANCE
-#: (normalised units) are solved again with the toolkit's Newton solver.
-_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-15)
-UNDISTORT_TOLERANCE = 1e-12
-
-
-def undistorted_pixel_rays(cal: CameraCalibration) -> NDArray[np.float64]:
-    """(H * W, 3) float64 camera-frame rays (z = 1) of every pixel centre, row-major.
-
-    Equal to ``geometry.unproject_pixels`` of the pixel grid to ~1e-15, several times faster:
-    OpenCV's C++ fixed-point undistortion first, then every pixel whose ray does not distort back
-    to it within :data:`UNDISTORT_TOLERANCE` (strong distortion, where the fixed point stalls) is
-    solved again with the toolkit's Newton solver.
-    """
-    uv = geometry.pixel_grid(cal.width, cal.height)
-    if not cal.distortion.any():
-        return geometry.unproject_pixels(uv, cal.intrinsics)
-    k = cal.intrinsics
-    xy = cv2.undistortPoints(
-        uv.reshape(-1, 1, 2), k, cal.distortion, None, np.eye(3), np.eye(3), _UNDISTORT_CRITERIA
-    ).reshape(-1, 2)
-    y_d = (uv[:, 1] - k[1, 2]) / k[1, 1]
-    target = np.stack([(uv[:, 0] - k[0, 2] - k[0, 1] * y_d) / k[0, 0], y_d], axis=-1)
-    off = np.abs(geometry.distort_normalized(xy, cal.distortion) - target).max(axis=1)
-    redo = ~(off <= UNDISTORT_TOLERANCE)  # NaN included
-    if redo.any():
-        xy[redo] = geometry.unproject_pixels(uv[redo], k, cal.distortion)[:, :2]
-    return np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
-
-
 @functools.lru_cache(maxsize=16)
 def _rays(key: _Key) -> NDArray[np.float32]:
     (cal,) = key.cals
-    rays = undistorted_pixel_rays(cal) @ cal.ego_from_camera[:3, :3].T  # (H*W, 3) ego axes
+    rays = pixel_rays_cam(cal) @ cal.ego_from_camera[:3, :3].T  # (H*W, 3) ego axes
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     out = rays.astype(np.float32).reshape(cal.height, cal.width, 3)
     out.setflags(write=False)

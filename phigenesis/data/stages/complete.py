@@ -1900,8 +1900,7 @@ def complete_depth(scene: Scene, p: CompletionParams) -> Scene:
     def camera_tables(cam: CameraImage) -> _CameraTables:
         key = cam.calibration.key()
         if key not in tables:
-            rays = pixel_rays(cam)
-            tables[key] = _CameraTables(rays, np.isfinite(ego_body_depth(cam, ego_boxes, rays)))
+            tables[key] = _CameraTables(pixel_rays(cam), np.isfinite(ego_body_depth(cam, ego_boxes)))
         return tables[key]
 
     def complete_camera(cam: CameraImage) -> CameraImage:

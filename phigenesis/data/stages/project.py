@@ -45,8 +45,9 @@ from numpy.typing import NDArray
 
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
+from phigenesis.data.camera_tables import ego_body_depth_from_rays, ego_body_depth_of, pixel_rays_cam
+from phigenesis.data.camera_tables import ray_box_depths as ray_box_depths  # re-exported
 from phigenesis.data.ego_body import camera_centres, check_sensors_outside
-from phigenesis.data.rangeview import undistorted_pixel_rays
 from phigenesis.data.records import DEPTH_ORIGINS, CameraDepth, CameraImage, Frame, LazyFrames, Scene
 from phigenesis.data.stages import register_stage
 from phigenesis.data.stages.aggregate import (
@@ -440,43 +441,20 @@ def scene_points(
 
 
 def pixel_rays(camera: CameraImage) -> NDArray[np.float64]:
-    """(H * W, 3) camera-frame rays through the pixel centres with z = 1 (distortion undone)."""
-    return undistorted_pixel_rays(camera.calibration)
-
-
-def ray_box_depths(
-    rays_cam: NDArray[np.float64], camera_from_box: NDArray[np.float64], half_size: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Where rays from the camera centre (z = 1, so the parameter is the z-depth) enter and leave
-    a box (slab test in the box frame). Returns (P,) entry and exit depths, inf where a ray
-    misses or the box is behind the camera; an entry of 0 means the camera is inside."""
-    box_from_camera = geometry.invert_transform(camera_from_box)
-    d = rays_cam @ box_from_camera[:3, :3].T
-    o = box_from_camera[:3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (-half_size - o) / d, (half_size - o) / d
-        lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
-        # fmax/fmin skip the NaN of a ray parallel to a slab with its origin on the slab's plane.
-        t_near = np.fmax(np.fmax(lo[:, 0], lo[:, 1]), lo[:, 2])
-        t_far = np.fmin(np.fmin(hi[:, 0], hi[:, 1]), hi[:, 2])
-    hit = np.isfinite(t_near) & np.isfinite(t_far) & (t_far >= np.maximum(t_near, 0.0))
-    return np.where(hit, np.maximum(t_near, 0.0), np.inf), np.where(hit, t_far, np.inf)
+    """(H * W, 3) camera-frame rays through the pixel centres with z = 1 (distortion undone),
+    read-only, computed once per calibration (:func:`~phigenesis.data.camera_tables.pixel_rays_cam`)."""
+    return pixel_rays_cam(camera.calibration)
 
 
 def ego_body_depth(
     camera: CameraImage, ego_boxes: list[dict], rays: NDArray[np.float64] | None = None
 ) -> NDArray[np.float32]:
     """(H, W) z-depth at which each pixel's ray enters the ego body boxes (ego frame), inf where
-    it misses."""
-    cal = camera.calibration
-    rays = pixel_rays(camera) if rays is None else rays
-    camera_from_ego = geometry.invert_transform(cal.ego_from_camera)
-    entry = np.full(len(rays), np.inf)
-    for b in ego_boxes:
-        camera_from_box = camera_from_ego @ geometry.make_transform(np.eye(3), b["center_ego"])
-        t_in, _ = ray_box_depths(rays, camera_from_box, 0.5 * np.asarray(b["size_lwh"], np.float64))
-        np.minimum(entry, t_in, out=entry)
-    return entry.reshape(cal.height, cal.width).astype(np.float32)
+    it misses: read-only and computed once per calibration and body without ``rays``
+    (:func:`~phigenesis.data.camera_tables.ego_body_depth_of`), from ``rays`` otherwise."""
+    if rays is None:
+        return ego_body_depth_of(camera.calibration, ego_boxes)
+    return ego_body_depth_from_rays(camera.calibration, ego_boxes, rays)
 
 
 def vehicle_far_depth(
@@ -955,8 +933,7 @@ class _Projector:
         if key not in self._rays:
             sensors = camera_centres([camera.calibration])
             check_sensors_outside(self.scene_id, self.ego_boxes, sensors, self.boxes_from)
-            rays = pixel_rays(camera)
-            self._rays[key] = (rays, ego_body_depth(camera, self.ego_boxes, rays))
+            self._rays[key] = (pixel_rays(camera), ego_body_depth(camera, self.ego_boxes))
         return self._rays[key]
 
     def sweep_step(self, frame: Frame) -> float:
