@@ -18,6 +18,7 @@ import logging
 import os
 import time
 import traceback
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -28,7 +29,9 @@ from phigenesis.data.cache_lock import CacheLock
 from phigenesis.data.cache_run import POLICY_ARGUMENTS as POLICY_ARGUMENTS  # re-exported
 from phigenesis.data.cache_run import CacheRun, check_out_dir, start_run, swap_in
 from phigenesis.data.cache_run import fingerprint as fingerprint  # re-exported
+from phigenesis.data.coverage import SceneCoverage
 from phigenesis.data.executors import ExecutorName, ProgressHandle, ProgressMessage, run_tasks
+from phigenesis.data.records import Frame, LazyFrames, Scene
 from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
 from phigenesis.data.shards import (
     DEFAULT_SHARD_MAX_BYTES,
@@ -38,7 +41,7 @@ from phigenesis.data.shards import (
     ShardWriter,
 )
 from phigenesis.data.sources import given, make_source, source_config
-from phigenesis.data.stages import get_stage, stage_params
+from phigenesis.data.stages import get_stage, run_stage, stage_params
 from phigenesis.errors import PhiGenesisError, PrepError, describe
 from phigenesis.options import ConfigError, check_options, check_values, from_mapping, option
 from phigenesis.user_files import read_small_file
@@ -269,29 +272,43 @@ class SceneResult:
     #: log (:meth:`~phigenesis.data.records.DroppedValues.describe`; "" if nothing).
     dropped: dict[str, int] = field(default_factory=dict)
     dropped_description: str = ""
+    #: CPU seconds of the scene's parts (:meth:`StageTimings.as_dict`); empty on failure.
+    timings: dict[str, Any] = field(default_factory=dict)
 
 
 def process_scene(task: SceneTask, progress: ProgressHandle | None = None) -> SceneResult:
     """Loads one scene, runs the pipeline's stages and writes its shards. Never raises: a failure
     comes back as ``SceneResult.error`` (with nothing of the scene left on disk under final names
-    that the manifest would list)."""
+    that the manifest would list). The CPU time of each part (the stages' per-scene work, each
+    stage's per-frame work, the read and the write) comes back in ``SceneResult.timings`` and goes
+    to the log at INFO, with what the written rows hold (:class:`~phigenesis.data.coverage.SceneCoverage`)."""
     t0 = time.perf_counter()
     try:
         spec = PipelineSpec.from_dict(task.pipeline)
         source = make_source(task.source, task.arguments)
-        scene = source.load(task.scene_id)
+        timings = StageTimings()
+        scene = timings.scene_work("load", lambda: source.load(task.scene_id))
+        scene.frames = timings.marked(scene.frames, "read")
         for st in spec.stages:
-            scene = get_stage(st.name)(scene, st.params)
+            scene = timings.scene_work(
+                st.name, lambda st=st, scene=scene: run_stage(st.name, scene, st.params)
+            )
+            scene.frames = timings.marked(scene.frames, st.name)
         schema = frame_schema(
             spec.contents,
             {"phigenesis.source": scene.source, "phigenesis.scene_metadata": json.dumps(scene.metadata)},
         )
         total = len(scene.frames)
+        coverage = SceneCoverage(scene.scene_id)
         with ShardWriter(Path(task.cache_dir), scene.scene_id, schema, spec.shard_max_bytes) as writer:
-            for i, frame in enumerate(scene.frames):
+            for i, frame in enumerate(timings.frames(scene.frames)):
                 writer.write(frame_to_batch(frame, scene.source, schema))
+                coverage.add(frame)
+                timings.written()
                 if progress is not None:
                     progress.put((task.scene_id, i + 1, total))
+        coverage.report()
+        log.info("scene %s: %s", scene.scene_id, timings.describe())
         return SceneResult(
             task.scene_id,
             scene.source,
@@ -301,6 +318,7 @@ def process_scene(task: SceneTask, progress: ProgressHandle | None = None) -> Sc
             time.perf_counter() - t0,
             dropped=scene.dropped.totals(),
             dropped_description=scene.dropped.describe(),
+            timings=timings.as_dict(),
         )
     except Exception as e:  # reported per scene; the coordinator applies the error policy
         log.debug("scene %s failed:\n%s", task.scene_id, traceback.format_exc())
@@ -311,6 +329,77 @@ def process_scene(task: SceneTask, progress: ProgressHandle | None = None) -> Sc
             seconds=time.perf_counter() - t0,
             error_is_input=isinstance(e, PhiGenesisError),
             error_stops_run=isinstance(e, CacheWriteError),
+        )
+
+
+class StageTimings:
+    """CPU seconds (this process, all threads: ``time.process_time``) of each part of a scene's
+    conversion: the per-scene work of the source and of each stage (its setup and whatever it does
+    when called, such as the LiDAR aggregation reading every frame's geometry), and per frame the
+    read, each stage and the write of the row.
+
+    Stages wrap the frames lazily, one layer each, so loading a frame runs the read, then each
+    stage in order; a marker layer after each records the clock as the frame leaves it, and the
+    time between two markers is that stage's. Markers count only while the rows are written
+    (:meth:`frames`), not in the scene-wide passes of stages like ``aggregate_lidar``. A stage
+    that works eagerly on a list of frames counts as per-scene work.
+    """
+
+    def __init__(self) -> None:
+        self.scene_s: dict[str, float] = {}
+        self.frame_s: dict[str, float] = {}
+        self.frame_count = 0
+        self._writing = False
+        self._last = 0.0
+
+    def scene_work(self, name: str, work: Callable[[], Scene]) -> Scene:
+        start = time.process_time()
+        result = work()
+        self.scene_s[name] = self.scene_s.get(name, 0.0) + time.process_time() - start
+        return result
+
+    def marked(self, frames: Sequence[Frame], name: str) -> Sequence[Frame]:
+        """``frames`` with a marker layer after the part ``name`` (lazy frames only)."""
+        if not isinstance(frames, LazyFrames):
+            return frames
+        self.frame_s.setdefault(name, 0.0)
+
+        def mark(frame: Frame) -> Frame:
+            if self._writing:
+                now = time.process_time()
+                self.frame_s[name] += now - self._last
+                self._last = now
+            return frame
+
+        return frames.map(mark)
+
+    def frames(self, frames: Sequence[Frame]) -> Iterator[Frame]:
+        """Iterates ``frames`` for writing, the clock started before each frame is loaded."""
+        self._writing = True
+        self._last = time.process_time()
+        try:
+            yield from frames
+        finally:
+            self._writing = False
+
+    def written(self) -> None:
+        """Marks a row written: the time since the last stage's marker is the write's."""
+        now = time.process_time()
+        self.frame_s["write"] = self.frame_s.get("write", 0.0) + now - self._last
+        self._last = now
+        self.frame_count += 1
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"frames": self.frame_count, "scene_s": dict(self.scene_s), "frame_s": dict(self.frame_s)}
+
+    def describe(self) -> str:
+        n = max(self.frame_count, 1)
+        per_frame = ", ".join(f"{k} {v / n:.2f}" for k, v in self.frame_s.items())
+        per_scene = ", ".join(f"{k} {v:.2f}" for k, v in self.scene_s.items())
+        total = (sum(self.frame_s.values()) + sum(self.scene_s.values())) / n
+        return (
+            f"{total:.2f} CPU-s per frame over {self.frame_count} frames; per frame: {per_frame}; "
+            f"per scene: {per_scene}"
         )
 
 
@@ -329,6 +418,8 @@ class PrepSummary:
     frames_written: int = 0
     bytes_written: int = 0
     seconds: float = 0.0
+    #: CPU seconds of each written scene's parts, by scene id (:meth:`StageTimings.as_dict`).
+    timings: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def describe(self) -> str:
         lines = [
@@ -530,6 +621,7 @@ def _record(run: CacheRun, result: SceneResult, summary: PrepSummary, on_error: 
         summary.scenes_written.append(result.scene_id)
         summary.frames_written += result.frames
         summary.bytes_written += sum(s.bytes for s in result.shards)
+        summary.timings[result.scene_id] = result.timings
         if result.dropped_description:
             log.warning("scene %s: the source left out %s", result.scene_id, result.dropped_description)
     else:

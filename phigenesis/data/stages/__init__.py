@@ -6,13 +6,18 @@ pipeline spec (``pipelines/*.yaml``). A stage declares its parameters as a datac
 for the stage is built into it when the spec loads (:func:`stage_params`), so a typo or a value
 out of range fails before any scene is read, and the stage function gets the built parameters.
 Stages that work frame by frame should wrap the scene's frames lazily (``LazyFrames.map``) so a
-scene never sits in memory whole.
+scene never sits in memory whole. What depends only on the scene or its calibrations (pixel rays,
+the ego body's depth, a range-view layout) is not per-frame work: a stage declares it as its
+per-scene ``setup`` (:func:`register_stage`), which the pipeline runs once per scene before the
+stage (:func:`run_stage`), and keeps it in a shared table
+(:mod:`phigenesis.data.camera_tables`) or in ``Scene.products``.
 """
 
 from __future__ import annotations
 
 import functools
 import importlib
+from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
@@ -20,7 +25,13 @@ from phigenesis.data.records import Scene
 from phigenesis.options import from_mapping
 
 Stage = Callable[[Scene, Any], Scene]
+#: A stage's per-scene setup: ``setup(scene, params)``, run once per scene before the stage.
+Setup = Callable[[Scene, Any], None]
 STAGES: dict[str, Stage] = {}
+#: The per-scene setup of each registered stage that declares one.
+STAGE_SETUPS: dict[str, Setup] = {}
+#: How many times each stage's setup ran (in this process): once per scene and stage.
+SETUP_RUNS: Counter[str] = Counter()
 #: The parameter class of each registered stage (None: the stage takes its spec mapping as is).
 STAGE_PARAMS: dict[str, type | None] = {}
 #: Modules of the built-in stages, imported (and so registered) on the first lookup.
@@ -35,8 +46,14 @@ BUILTIN_STAGE_MODULES = (
 )
 
 
-def register_stage(name: str, params: type | None = None) -> Callable[[Stage], Stage]:
+def register_stage(
+    name: str, params: type | None = None, setup: Setup | None = None
+) -> Callable[[Stage], Stage]:
     """Decorator registering a stage function under ``name``.
+
+    ``setup`` is the stage's per-scene setup, ``setup(scene, params)`` with the built
+    parameters: the work that depends only on the scene or its calibrations, which
+    :func:`run_stage` runs once per scene before the stage (and counts in :data:`SETUP_RUNS`).
 
     ``params`` is the dataclass of the stage's parameters, declared with
     :func:`phigenesis.options.option`; the registered stage then takes either an instance of it
@@ -57,6 +74,8 @@ def register_stage(name: str, params: type | None = None) -> Callable[[Stage], S
 
         STAGES[name] = stage
         STAGE_PARAMS[name] = params
+        if setup is not None:
+            STAGE_SETUPS[name] = setup
         return stage
 
     return wrap
@@ -87,3 +106,15 @@ def get_stage(name: str) -> Stage:
     if name not in STAGES:
         raise KeyError(f"unknown stage {name!r}; registered stages: {sorted(STAGES) or 'none'}")
     return STAGES[name]
+
+
+def run_stage(name: str, scene: Scene, values: Any) -> Scene:
+    """Runs the stage registered as ``name`` on ``scene``: its per-scene setup first (if it
+    declares one), then the stage, with the parameters built from ``values``."""
+    stage = get_stage(name)
+    params = stage_params(name, values)
+    setup = STAGE_SETUPS.get(name)
+    if setup is not None:
+        setup(scene, params)
+        SETUP_RUNS[name] += 1
+    return stage(scene, params)

@@ -63,7 +63,14 @@ def _map_frames(scene: Scene, fn: Callable[[Frame], Frame]) -> Scene:
     return scene
 
 
-@register_stage("range_view", params=RangeViewParams)
+def _layout_once(scene: Scene, p: RangeViewParams) -> None:
+    """Per-scene setup: the layout of the rig's cameras (cached per calibrations), so no frame
+    pays for it."""
+    if scene.calibrations:
+        range_view_layout(scene.calibrations, p.align)
+
+
+@register_stage("range_view", params=RangeViewParams, setup=_layout_once)
 def range_view(scene: Scene, p: RangeViewParams) -> Scene:
     """Sets ``Frame.range_view`` (the layout of the frame's cameras) on every frame.
 
