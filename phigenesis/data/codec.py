@@ -1,4 +1,4 @@
-"""Lossless encodings of per-pixel maps: a byte-shuffled, zstd-compressed array behind a small header.
+"""Lossless encodings of per-pixel maps: a filtered, zstd-compressed array behind a small header.
 
 What a map's integers mean (the quantisation; unchanged since the PNG encoding):
 
@@ -11,11 +11,12 @@ What a map's integers mean (the quantisation; unchanged since the PNG encoding):
   +-128 m/s.
 
 How they are stored (``docs/ARCHITECTURE.md``, "Maps as zstd-compressed arrays", says why): a
-:data:`HEADER_SIZE`-byte header (:data:`MAGIC`, format version, element size in bytes, channels, filter,
-height, width, payload length; little-endian) then one zstd frame of the array's bytes, 16-bit maps
-byte-shuffled first (all low bytes, then all high bytes: the high bytes of depths and ids are long runs
-that zstd packs tightly). Caches written before hold the same integers as 16-bit / 8-bit grey (flow:
-RGB) PNGs; decoding dispatches on the blob's first bytes (PNG signature or :data:`MAGIC`), so both read.
+:data:`HEADER_SIZE`-byte header (:data:`MAGIC`, format version, bytes per value, channels, filter bits,
+height, width, payload length; little-endian) then one zstd frame of the filtered array: rows
+delta-coded (each minus the row above) where that compresses smaller, and 16-bit values split into a
+plane of low bytes then a plane of high bytes (the high bytes of depths and ids are long runs). Caches
+written before schema version 7 hold the same integers as grey (flow: RGB) PNGs; decoding dispatches on
+the blob's first bytes (PNG signature or :data:`MAGIC`), so both read.
 
 A decoder checks the declared height and width against the expected shape (the ``out`` array's, or
 ``shape``) and against :data:`MAX_PIXELS` before it allocates anything, so a damaged or hostile header
