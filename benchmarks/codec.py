@@ -263,13 +263,13 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="codec-bench-") as tmp:
         cache = args.cache or make_cache(Path(tmp))
         maps = read_maps(cache, args.frames)
+        n_frames = min(args.frames, len(CacheReader(cache)))
     kinds: dict[str, list[np.ndarray]] = {}
     columns_of: dict[str, list[str]] = {}
     for column, kind, _, _ in COLUMNS:
         if column in maps:
             kinds.setdefault(kind, []).extend(maps[column])
             columns_of.setdefault(kind, []).append(column)
-    n_frames = min(args.frames, len(CacheReader(cache)))
     sizes = sorted({f"{a.shape[1]}x{a.shape[0]}" for arrays in kinds.values() for a in arrays})
     report = Report(
         "map-codec",
