@@ -16,7 +16,7 @@ import pytest
 from numpy.testing import assert_array_equal
 
 from phigenesis import prep
-from phigenesis.data import shards
+from phigenesis.data import codec, shards
 from phigenesis.data.codec import DEPTH_MAX_M, DEPTH_SCALE
 from phigenesis.data.loader import FIELD_GROUPS, FrameDataset
 from phigenesis.data.pipeline import load_pipeline
@@ -107,7 +107,7 @@ def corrupt_cache(tiny_cache: Path, tmp_path_factory: pytest.TempPathFactory) ->
 # Readable without phigenesis
 
 PLAIN_READER = r"""
-import json, sys
+import json, struct, sys
 from pathlib import Path
 
 import cv2
@@ -129,7 +129,13 @@ for sh in manifest["shards"]:
     df = pd.read_feather(path)
     camera = df["cameras"].iloc[0][0]
     rgb = cv2.imdecode(np.frombuffer(camera["image"], np.uint8), cv2.IMREAD_COLOR)
-    depth = cv2.imdecode(np.frombuffer(camera["truth_depth_png"], np.uint8), cv2.IMREAD_UNCHANGED)
+    # A map blob (phigenesis/data/codec.py): 20-byte header, one zstd frame, 16-bit values as byte planes,
+    # rows delta-coded if filter bit 2 is set.
+    blob = camera["truth_depth_png"]
+    magic, version, itemsize, channels, filt, h, w, n = struct.unpack_from("<4sBBBBIII", blob)
+    raw = np.frombuffer(pa.decompress(blob[20:], h * w * channels * itemsize, codec="zstd"), np.uint8)
+    depth = raw.reshape(2, -1).T.copy().view("<u2").reshape(h, w) if filt & 1 else raw.reshape(h, w)
+    depth = np.cumsum(depth, axis=0, dtype=depth.dtype) if filt & 2 else depth
     result["shards"].append({
         "path": sh["path"],
         "arrow_rows": table.num_rows,
@@ -145,6 +151,8 @@ for sh in manifest["shards"]:
         "image_size": [camera["height"], camera["width"]],
         "depth_dtype": str(depth.dtype),
         "depth_shape": list(depth.shape),
+        "depth_sum": int(depth.sum(dtype=np.int64)),
+        "depth_magic": magic.hex(),
     })
 result["phigenesis_imported"] = sorted(m for m in sys.modules if m.split(".")[0] == "phigenesis")
 print(json.dumps(result))
@@ -182,6 +190,10 @@ def test_cache_opens_with_plain_pyarrow_and_pandas_without_importing_phigenesis(
         )
         assert got["depth_dtype"] == "uint16"
         assert got["depth_shape"] == got["image_size"]
+        assert got["depth_magic"] == codec.MAGIC.hex()
+        with pa.memory_map(str(tiny_cache / info.path)) as source:
+            blob = pa.ipc.open_file(source).get_batch(0).column("cameras")[0][0]["truth_depth_png"].as_py()
+        assert got["depth_sum"] == int(codec.decode_array(blob, np.uint16).sum(dtype=np.int64)) > 0
 
 
 # --------------------------------------------------------------------------------------------

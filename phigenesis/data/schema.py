@@ -36,7 +36,7 @@ from phigenesis.data.records import (
 )
 from phigenesis.options import ConfigError, check_options, option
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 TruthMap = Literal["depth", "semantic", "instance", "flow"]
 TRUTH_MAPS: tuple[TruthMap, ...] = get_args(TruthMap)
 
@@ -676,9 +676,9 @@ def row_to_frame(batch: pa.RecordBatch, row: int = 0, decode_truth: bool = True)
                 images[i],
                 formats[i] or "jpeg",
                 truth=_camera_truth(cf, i, heights[i], widths[i]) if decode_truth else None,
-                labels=_camera_labels(cf, i) if decode_truth else None,
-                depth=_camera_depth(cf, i) if decode_truth else None,
-                pseudo=_camera_pseudo(cf, i) if decode_truth else None,
+                labels=_camera_labels(cf, i, (heights[i], widths[i])) if decode_truth else None,
+                depth=_camera_depth(cf, i, (heights[i], widths[i])) if decode_truth else None,
+                pseudo=_camera_pseudo(cf, i, (heights[i], widths[i])) if decode_truth else None,
                 trigger_micros=triggers[i],
                 shutter_micros=shutters[i],
                 readout_micros=readouts[i],
@@ -711,24 +711,24 @@ def _camera_boxes(cf: dict[str, pa.Array], i: int) -> Boxes | None:
     return _boxes(_fields(cf["boxes"][i].values))
 
 
-def _camera_labels(cf: dict[str, pa.Array], i: int) -> CameraLabels | None:
+def _camera_labels(cf: dict[str, pa.Array], i: int, shape: tuple[int, int]) -> CameraLabels | None:
     if "label_semantic_png" not in cf:
         return None
     sem, inst = cf["label_semantic_png"][i].as_py(), cf["label_instance_png"][i].as_py()
     if sem is None:
         return None
-    semantic = codec.decode_semantic(sem)
-    instance = codec.decode_instance(inst) if inst is not None else np.zeros(semantic.shape, np.uint16)
+    semantic = codec.decode_semantic(sem, shape=shape)
+    instance = codec.decode_instance(inst, shape=shape) if inst is not None else np.zeros(shape, np.uint16)
     return CameraLabels(semantic, instance)
 
 
-def _camera_depth(cf: dict[str, pa.Array], i: int) -> CameraDepth | None:
+def _camera_depth(cf: dict[str, pa.Array], i: int, shape: tuple[int, int]) -> CameraDepth | None:
     if "depth_sparse_png" not in cf or cf["depth_sparse_png"][i].as_py() is None:
         return None
 
     def get(name: str, decode: Any) -> np.ndarray | None:
         data = cf[name][i].as_py()
-        return None if data is None else decode(data)
+        return None if data is None else decode(data, shape=shape)
 
     return CameraDepth(
         sparse_m=get("depth_sparse_png", codec.decode_depth),
@@ -740,13 +740,13 @@ def _camera_depth(cf: dict[str, pa.Array], i: int) -> CameraDepth | None:
     )
 
 
-def _camera_pseudo(cf: dict[str, pa.Array], i: int) -> CameraSemantics | None:
+def _camera_pseudo(cf: dict[str, pa.Array], i: int, shape: tuple[int, int]) -> CameraSemantics | None:
     if "pseudo_semantic_png" not in cf or cf["pseudo_semantic_png"][i].as_py() is None:
         return None
     return CameraSemantics(
-        semantic=codec.decode_semantic(cf["pseudo_semantic_png"][i].as_py()),
-        confidence=codec.decode_confidence(cf["pseudo_semantic_confidence_png"][i].as_py()),
-        source=codec.decode_semantic(cf["pseudo_semantic_source_png"][i].as_py()),
+        semantic=codec.decode_semantic(cf["pseudo_semantic_png"][i].as_py(), shape=shape),
+        confidence=codec.decode_confidence(cf["pseudo_semantic_confidence_png"][i].as_py(), shape=shape),
+        source=codec.decode_semantic(cf["pseudo_semantic_source_png"][i].as_py(), shape=shape),
     )
 
 
@@ -757,11 +757,16 @@ def _camera_truth(cf: dict[str, pa.Array], i: int, h: int, w: int) -> CameraTrut
     depth, sem, inst, flow = (get(f"truth_{m}_png") for m in TRUTH_MAPS)
     if depth is None and sem is None and inst is None and flow is None:
         return None
+    shape = (h, w)
     return CameraTruth(
-        depth_m=codec.decode_depth(depth) if depth is not None else np.zeros((h, w), np.float32),
-        semantic=codec.decode_semantic(sem) if sem is not None else np.full((h, w), tx.IGNORE_ID, np.uint8),
-        instance=codec.decode_instance(inst) if inst is not None else np.zeros((h, w), np.uint16),
-        flow_world_mps=codec.decode_flow(flow) if flow is not None else np.zeros((h, w, 3), np.float32),
+        depth_m=np.zeros(shape, np.float32) if depth is None else codec.decode_depth(depth, shape=shape),
+        semantic=np.full(shape, tx.IGNORE_ID, np.uint8)
+        if sem is None
+        else codec.decode_semantic(sem, shape=shape),
+        instance=np.zeros(shape, np.uint16) if inst is None else codec.decode_instance(inst, shape=shape),
+        flow_world_mps=np.zeros((h, w, 3), np.float32)
+        if flow is None
+        else codec.decode_flow(flow, shape=shape),
     )
 
 
@@ -837,12 +842,13 @@ def range_view_of(batch: pa.RecordBatch, row: int = 0) -> RangeViewLayout | None
         ViewPlacement(**dict(zip(_PLACEMENT_FIELDS, values, strict=True)))
         for values in zip(*(vf[name].to_pylist() for name in _PLACEMENT_FIELDS), strict=True)
     )
+    height, width = rf["height"][0].as_py(), rf["width"][0].as_py()
     return RangeViewLayout(
-        height=rf["height"][0].as_py(),
-        width=rf["width"][0].as_py(),
+        height=height,
+        width=width,
         views=views,
-        owner=codec.decode_semantic(rf["owner_png"][0].as_py()),
-        coverage=codec.decode_semantic(rf["coverage_png"][0].as_py()),
+        owner=codec.decode_semantic(rf["owner_png"][0].as_py(), shape=(height, width)),
+        coverage=codec.decode_semantic(rf["coverage_png"][0].as_py(), shape=(height, width)),
     )
 
 
