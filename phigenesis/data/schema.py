@@ -179,7 +179,7 @@ class CameraColumns:
     image: bytes = col(pa.binary(), "the image as stored (RGB), null if the frame has none", nullable=True)
     truth_depth_png: bytes = col(
         pa.binary(),
-        "exact z-depth, 16-bit PNG, metres = value / 256, 0 = none",
+        "exact z-depth, 16-bit map, metres = value / 256, 0 = none",
         "m/256",
         "camera",
         "truth_depth",
@@ -187,7 +187,7 @@ class CameraColumns:
     )
     truth_semantic_png: bytes = col(
         pa.binary(),
-        "exact class per pixel, 8-bit PNG, unified taxonomy, 255 = ignore",
+        "exact class per pixel, 8-bit map, unified taxonomy, 255 = ignore",
         "",
         "",
         "truth_semantic",
@@ -195,7 +195,7 @@ class CameraColumns:
     )
     truth_instance_png: bytes = col(
         pa.binary(),
-        "exact instance id per pixel (boxes' instance_id), 16-bit PNG, 0 = none",
+        "exact instance id per pixel (boxes' instance_id), 16-bit map, 0 = none",
         "",
         "",
         "truth_instance",
@@ -203,7 +203,7 @@ class CameraColumns:
     )
     truth_flow_png: bytes = col(
         pa.binary(),
-        "exact world-frame velocity of the visible surface, 16-bit RGB PNG, m/s = (value - 32768) / 256",
+        "exact world-frame velocity of the visible surface, 16-bit 3-channel map, m/s = (value - 32768) / 256",
         "m/s",
         "world",
         "truth_flow",
@@ -211,7 +211,7 @@ class CameraColumns:
     )
     label_semantic_png: bytes = col(
         pa.binary(),
-        "the dataset's human class labels (unified taxonomy), 8-bit PNG, 255 = unlabelled; null if none",
+        "the dataset's human class labels (unified taxonomy), 8-bit map, 255 = unlabelled; null if none",
         "",
         "",
         "camera_labels",
@@ -220,7 +220,7 @@ class CameraColumns:
     depth_sparse_png: bytes = col(
         pa.binary(),
         "LiDAR projected at this image's time and pose (nearest visible point per pixel), z-depth, "
-        "16-bit PNG, metres = value / 256, 0 = unknown; null if not computed",
+        "16-bit map, metres = value / 256, 0 = unknown; null if not computed",
         "m/256",
         "camera",
         "depth",
@@ -228,7 +228,7 @@ class CameraColumns:
     )
     depth_sparse_confidence_png: bytes = col(
         pa.binary(),
-        "confidence of depth_sparse_png, 8-bit PNG, value / 255, 0 where unknown",
+        "confidence of depth_sparse_png, 8-bit map, value / 255, 0 where unknown",
         "1/255",
         "",
         "depth",
@@ -236,7 +236,7 @@ class CameraColumns:
     )
     depth_sparse_origin_png: bytes = col(
         pa.binary(),
-        "what each sparse depth came from, 8-bit PNG: 0 none, 1 static map, 2 rigid object model, "
+        "what each sparse depth came from, 8-bit map: 0 none, 1 static map, 2 rigid object model, "
         "3 non-rigid object (own sweep), 4 single sweep",
         "",
         "",
@@ -245,7 +245,7 @@ class CameraColumns:
     )
     depth_dense_png: bytes = col(
         pa.binary(),
-        "densified depth ground truth, z-depth, 16-bit PNG, metres = value / 256, 0 = unknown",
+        "densified depth ground truth, z-depth, 16-bit map, metres = value / 256, 0 = unknown",
         "m/256",
         "camera",
         "depth",
@@ -253,7 +253,7 @@ class CameraColumns:
     )
     depth_dense_confidence_png: bytes = col(
         pa.binary(),
-        "confidence of depth_dense_png, 8-bit PNG, value / 255, 0 where unknown",
+        "confidence of depth_dense_png, 8-bit map, value / 255, 0 where unknown",
         "1/255",
         "",
         "depth",
@@ -261,7 +261,7 @@ class CameraColumns:
     )
     depth_dense_origin_png: bytes = col(
         pa.binary(),
-        "what each dense depth came from, 8-bit PNG (records.DENSE_ORIGINS): 0 none, 1 lidar (a trusted "
+        "what each dense depth came from, 8-bit map (records.DENSE_ORIGINS): 0 none, 1 lidar (a trusted "
         "measurement kept as measured), 2 densified, 3 plane of its image segment, 4 thin vertical "
         "structure at its base's depth (3 and 4: stage complete_depth), 5 rendered from generated Gaussians "
         "(phigenesis-generate)",
@@ -272,7 +272,7 @@ class CameraColumns:
     )
     label_instance_png: bytes = col(
         pa.binary(),
-        "the dataset's human instance labels, 16-bit PNG, 0 = none; null if none",
+        "the dataset's human instance labels, 16-bit map, 0 = none; null if none",
         "",
         "",
         "camera_labels",
@@ -280,7 +280,7 @@ class CameraColumns:
     )
     pseudo_semantic_png: bytes = col(
         pa.binary(),
-        "pseudo-semantic class per pixel (segmenter refined by geometry), 8-bit PNG, unified taxonomy, "
+        "pseudo-semantic class per pixel (segmenter refined by geometry), 8-bit map, unified taxonomy, "
         "255 = no label; null if the stage did not run",
         "",
         "",
@@ -289,7 +289,7 @@ class CameraColumns:
     )
     pseudo_semantic_confidence_png: bytes = col(
         pa.binary(),
-        "confidence of pseudo_semantic_png, 8-bit PNG, value / 255, 0 where no label",
+        "confidence of pseudo_semantic_png, 8-bit map, value / 255, 0 where no label",
         "1/255",
         "",
         "pseudo_semantics",
@@ -297,7 +297,7 @@ class CameraColumns:
     )
     pseudo_semantic_source_png: bytes = col(
         pa.binary(),
-        "where each pseudo label came from, 8-bit PNG: 0 none, 1 segmenter, 2 box, 3 ground plane, "
+        "where each pseudo label came from, 8-bit map: 0 none, 1 segmenter, 2 box, 3 ground plane, "
         "4 sky rule",
         "",
         "",
@@ -367,11 +367,11 @@ class RangeViewColumns:
     )
     owner_png: bytes = col(
         pa.binary(),
-        "8-bit PNG (height x width): index into views of the view owning the cell's direction (optical "
+        "8-bit map (height x width): index into views of the view owning the cell's direction (optical "
         "axis nearest among the views that see it), 255 = no view",
     )
     coverage_png: bytes = col(
-        pa.binary(), "8-bit PNG (height x width): number of views that see the cell's direction, 0 = no view"
+        pa.binary(), "8-bit map (height x width): number of views that see the cell's direction, 0 = no view"
     )
 
 
@@ -527,13 +527,13 @@ def _boxes_array(t: pa.ListType, boxes: list[Boxes | None]) -> pa.ListArray:
 
 
 def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBatch:
-    """One frame as a one-row RecordBatch of ``schema`` (encodes truth maps as PNG)."""
+    """One frame as a one-row RecordBatch of ``schema`` (encodes per-pixel maps with codec.py)."""
     cams = frame.cameras
     cam_type = schema.field("cameras").type
     cam_names = {f.name for f in cam_type.value_type}
 
     def png(name: str, encode: Any, maps: str, attr: str) -> list[bytes | None] | None:
-        """Column ``name`` (None if not in the schema): each camera's ``c.<maps>.<attr>`` as PNG."""
+        """Column ``name`` (None if not in the schema): each camera's ``c.<maps>.<attr>`` encoded."""
         if name not in cam_names:
             return None
         values = [None if getattr(c, maps) is None else getattr(getattr(c, maps), attr) for c in cams]
