@@ -4,7 +4,9 @@ The static world is one Open3D ``RaycastingScene`` built once; moving agents and
 into a small scene rebuilt for each capture time, and each ray keeps the nearer of the two hits.
 Camera rays are cast with a direction whose camera-z component is 1, so the hit distance is the
 z-depth itself. A spinning LiDAR is cast in time slices (sectors), each with its own ego pose and
-agent positions; a point's time is its sector's time.
+agent positions; a point's time is its sector's time. Several LiDARs of one revolution share the
+moving bodies of each capture time. A second return is the next surface behind foliage: the ray
+is cast again from a little behind its first hit (see :meth:`Renderer._second_returns`).
 """
 
 from __future__ import annotations
