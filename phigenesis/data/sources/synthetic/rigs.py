@@ -179,7 +179,8 @@ class LidarSpec:
 
     def ego_from_sensor(self) -> np.ndarray:
         """(4, 4) the sensor's mounting: its yaw and position in the ego frame."""
-        return geometry.make_transform(geometry.rotation_z(np.radians(self.yaw_deg)), self.position_m)
+        rotation = geometry.rotation_z(np.radians(self.yaw_deg)) + 0.0  # + 0.0: no -0.0 entries
+        return geometry.make_transform(rotation, self.position_m)
 
     def column_azimuths_rad(self) -> np.ndarray:
         """(columns,) azimuth of each column in the ego frame: column 0 just left of the rear,
