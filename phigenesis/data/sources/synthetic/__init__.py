@@ -11,6 +11,7 @@ as Waymo's and nuScenes' cameras do), so every image has its own timestamp and e
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from functools import cached_property
 from typing import Any
@@ -37,7 +38,7 @@ from phigenesis.data.sources.synthetic.rigs import (
     camera_calibrations,
 )
 from phigenesis.data.sources.synthetic.world import World, build_world
-from phigenesis.options import check_options, from_mapping, option
+from phigenesis.options import ConfigError, check_options, from_mapping, option
 
 SOURCE_NAME = "synthetic"
 #: The ego car's body as boxes in the ego frame (what the cameras and LiDAR may see of it),
@@ -68,7 +69,14 @@ class SyntheticConfig:
         height, width: image size in pixels.
         uniform_image_size: False gives Waymo's side cameras their real, shorter aspect.
         frame_rate_hz: frame (LiDAR sweep) rate; None = the rig's (10 Hz Waymo, 12 Hz nuScenes).
-        lidar: the LiDAR's parameters.
+        lidar: the (first) LiDAR's parameters.
+        extra_lidars: further LiDARs (Waymo's short-range ones), each with its own parameters;
+            a sweep's points carry ``lidar_id`` 0 for ``lidar`` and i + 1 for ``extra_lidars[i]``.
+        render_scale: images and their per-pixel truth are ray cast at 1/render_scale of the
+            size in each axis and resized to the full size (images bilinear, depth, labels and
+            flow nearest); the LiDAR is always cast at full density. For cost benchmarks, where
+            the size of the data matters and its pixel content little: at edges the truth is
+            then that of the nearest coarse pixel, not of the pixel itself.
         jpeg_quality: quality of the stored JPEG images.
         ego_body: render the ego car's own body (seen by low cameras and the LiDAR).
         shadows: cast sun shadows.
@@ -85,6 +93,8 @@ class SyntheticConfig:
     uniform_image_size: bool = option(True)
     frame_rate_hz: float | None = option(None, gt=0, le=1000)
     lidar: LidarSpec = option(factory=LidarSpec)
+    extra_lidars: tuple[LidarSpec, ...] = option(())
+    render_scale: int = option(1, ge=1, le=64)
     jpeg_quality: int = option(95, ge=1, le=100)
     ego_body: bool = option(True)
     shadows: bool = option(True)
@@ -92,7 +102,30 @@ class SyntheticConfig:
     start_micros: int = option(1_600_000_000_000_000, ge=0, le=2**62)
 
     def __post_init__(self) -> None:
+        if isinstance(self.extra_lidars, list | tuple):  # mappings (a spec's YAML) -> LidarSpec
+            specs = tuple(
+                from_mapping(LidarSpec, s, f"SyntheticConfig: extra_lidars[{i}]")
+                if isinstance(s, Mapping)
+                else s
+                for i, s in enumerate(self.extra_lidars)
+            )
+            object.__setattr__(self, "extra_lidars", specs)
         check_options(self, "SyntheticConfig")
+
+    @classmethod
+    def from_preset(cls, name: str, **overrides: Any) -> SyntheticConfig:
+        """The config of preset ``name`` (see :mod:`.presets`: ``waymo``, ``nuscenes``), with
+        ``overrides`` (further fields, or fields that replace the preset's)."""
+        from phigenesis.data.sources.synthetic.presets import PRESETS
+
+        if name not in PRESETS:
+            raise ConfigError(f"unknown synthetic preset {name!r}; choose one of {', '.join(PRESETS)}")
+        return cls.from_dict({**PRESETS[name], **overrides}, where=f"synthetic preset {name!r}")
+
+    @property
+    def lidars(self) -> tuple[LidarSpec, ...]:
+        """Every LiDAR, ``lidar`` first; a point's ``lidar_id`` is its LiDAR's index here."""
+        return (self.lidar, *self.extra_lidars)
 
     @property
     def rate_hz(self) -> float:
@@ -191,10 +224,11 @@ class SyntheticScene:
 
     def render_frame_and_lidar(
         self, frame_index: int, images: bool = True
-    ) -> tuple[Frame, dict[str, np.ndarray]]:
-        """The frame, and its LiDAR sweep as the renderer returned it (with each point's beam,
-        column and measured range: what a range-image writer needs). ``images=False`` skips the
-        cameras' images and truth maps (their times and poses stay): the frame's geometry only."""
+    ) -> tuple[Frame, list[dict[str, np.ndarray]]]:
+        """The frame, and its LiDAR sweeps as the renderer returned them, one dict per LiDAR of
+        ``config.lidars`` (with each point's beam, column, measured range and return: what a
+        range-image writer needs). ``images=False`` skips the cameras' images and truth maps
+        (their times and poses stay): the frame's geometry only."""
         cfg = self.config
         t_micros = self.frame_micros[frame_index]
         world_from_ego = self.world_from_ego(t_micros)
@@ -205,7 +239,9 @@ class SyntheticScene:
             cam_pose = self.world_from_ego(cam_micros)
             image_bytes, truth = None, None
             if images:
-                rgb, truth = self.renderer.render_camera(cal, cam_pose, self.seconds(cam_micros))
+                rgb, truth = self.renderer.render_camera(
+                    cal, cam_pose, self.seconds(cam_micros), render_scale=cfg.render_scale
+                )
                 image_bytes = encode_rgb(rgb, "jpeg", cfg.jpeg_quality)
             cameras.append(
                 CameraImage(
@@ -217,8 +253,8 @@ class SyntheticScene:
                     truth=truth,
                 )
             )
-        raw = self.renderer.render_lidar(cfg.lidar, t_micros, cfg.start_micros, self.spin_period_s, rng)
-        lidar = self._lidar(raw, t_micros, world_from_ego)
+        raws = self.renderer.render_lidars(cfg.lidars, t_micros, cfg.start_micros, self.spin_period_s, rng)
+        lidar = self._lidar(raws, t_micros, world_from_ego)
         boxes = self.boxes_at(t_micros, cfg.box_range_m)
         if lidar.instance is not None and len(boxes):
             counts = np.bincount(lidar.instance, minlength=int(boxes.instance_id.max()) + 1)
@@ -232,26 +268,37 @@ class SyntheticScene:
             lidar=lidar,
             boxes=boxes,
         )
-        return frame, raw
+        return frame, raws
 
     def render_geometry(self, frame_index: int) -> Frame:
         """Frame ``frame_index`` without images or truth maps (poses, LiDAR, boxes): about 5x
         cheaper than :meth:`render_frame`, for scene-wide stages."""
         return self.render_frame_and_lidar(frame_index, images=False)[0]
 
-    def _lidar(self, raw: dict[str, np.ndarray], t_micros: int, world_from_ego: np.ndarray) -> LidarSweep:
+    def _lidar(
+        self, raws: list[dict[str, np.ndarray]], t_micros: int, world_from_ego: np.ndarray
+    ) -> LidarSweep:
+        """The sweep of every LiDAR (``lidar_id`` its index in ``config.lidars``), in order;
+        ``return_index`` only where some LiDAR has second returns (None: all first returns)."""
         ego_from_world = geometry.invert_transform(world_from_ego)
+
+        def cat(key: str) -> np.ndarray:
+            return raws[0][key] if len(raws) == 1 else np.concatenate([r[key] for r in raws])
+
+        lidar_id = np.concatenate([np.full(len(r["beam"]), i, np.uint8) for i, r in enumerate(raws)])
+        two_returns = any(spec.returns > 1 for spec in self.config.lidars)
         return LidarSweep(
             timestamp_micros=t_micros,
             world_from_ego=world_from_ego,
-            points_ego=geometry.transform_points(ego_from_world, raw["points_world"]).astype(np.float32),
-            intensity=raw["intensity"],
-            beam_index=raw["beam"],
-            origins_ego=geometry.transform_points(ego_from_world, raw["origins_world"]).astype(np.float32),
-            time_offset_micros=(raw["time_micros"] - t_micros).astype(np.int32),
-            lidar_id=np.zeros(len(raw["beam"]), np.uint8),
-            semantic=raw["semantic"],
-            instance=raw["instance"],
+            points_ego=geometry.transform_points(ego_from_world, cat("points_world")).astype(np.float32),
+            intensity=cat("intensity"),
+            beam_index=cat("beam"),
+            origins_ego=geometry.transform_points(ego_from_world, cat("origins_world")).astype(np.float32),
+            time_offset_micros=(cat("time_micros") - t_micros).astype(np.int32),
+            lidar_id=lidar_id,
+            semantic=cat("semantic"),
+            instance=cat("instance"),
+            return_index=cat("return_index") if two_returns else None,
         )
 
     def scene(self) -> Scene:

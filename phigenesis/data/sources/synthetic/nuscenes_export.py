@@ -288,7 +288,8 @@ class _SceneWriter:
                 if (cal.name, step) in dropped:
                     continue
                 stamp = camera_timestamp(scene, step, i)
-                rgb, _ = scene.renderer.render_camera(cal, scene.world_from_ego(stamp), scene.seconds(stamp))
+                pose, t_s = scene.world_from_ego(stamp), scene.seconds(stamp)
+                rgb, _ = scene.renderer.render_camera(cal, pose, t_s, render_scale=scene.config.render_scale)
                 jpeg = encode_rgb(rgb, "jpeg", scene.config.jpeg_quality)
                 size = (cal.height, cal.width)
                 cam_records.append(self._sample_data(cal.name, stamp, key, jpeg, "jpg", size, cs))
@@ -411,6 +412,9 @@ def export_nuscenes(
     Returns:
         The files written (tables, map, images, LiDAR).
     """
+    if config.extra_lidars:
+        names = [s.name for s in config.extra_lidars]
+        raise ValueError(f"nuScenes export writes one LiDAR (LIDAR_TOP); the config has extra LiDARs {names}")
     out = Path(out)
     cfg = nuscenes_scene_config(config, keyframes)
     dropped_set = {(str(c), int(s)) for c, s in dropped}

@@ -4,13 +4,16 @@ The static world is one Open3D ``RaycastingScene`` built once; moving agents and
 into a small scene rebuilt for each capture time, and each ray keeps the nearer of the two hits.
 Camera rays are cast with a direction whose camera-z component is 1, so the hit distance is the
 z-depth itself. A spinning LiDAR is cast in time slices (sectors), each with its own ego pose and
-agent positions; a point's time is its sector's time.
+agent positions; a point's time is its sector's time. Several LiDARs of one revolution share the
+moving bodies of each capture time. A second return is the next surface behind foliage: the ray
+is cast again from a little behind its first hit (see :meth:`Renderer._second_returns`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -168,8 +171,18 @@ class Renderer:
         world_from_ego: NDArray[np.float64],
         t_s: float,
         bodies: Bodies | None = None,
+        render_scale: int = 1,
     ) -> tuple[NDArray[np.uint8], CameraTruth]:
-        """RGB image (H, W, 3) uint8 and exact truth of one camera at time ``t_s``."""
+        """RGB image (H, W, 3) uint8 and exact truth of one camera at time ``t_s``.
+
+        ``render_scale`` > 1: cast at 1/render_scale of the size in each axis (rounded up) and
+        resized to (H, W): the image bilinearly, depth, labels and flow by nearest neighbour (so
+        truth is the nearest coarse pixel's; inexact at edges). For cost benchmarks.
+        """
+        if render_scale > 1:
+            coarse = scaled_calibration(calibration, render_scale)
+            rgb, truth = self.render_camera(coarse, world_from_ego, t_s, bodies)
+            return upsample(rgb, truth, calibration.width, calibration.height)
         h, w = calibration.height, calibration.width
         rays_cam = self.camera_rays(calibration)  # (H*W, 3), z = 1
         world_from_camera = world_from_ego @ calibration.ego_from_camera
@@ -263,13 +276,45 @@ class Renderer:
         Returns a dict with ``points_world`` (N, 3) float64, ``origins_world`` (N, 3),
         ``time_micros`` (N,) int64, ``beam`` (N,) uint16, ``column`` (N,) uint16 (azimuth step),
         ``range_m`` (N,) float64 measured range, ``intensity`` (N,) float32, ``semantic`` (N,)
-        uint8, ``instance`` (N,) uint16; and ``sector_micros`` (sectors,) int64 with
-        ``sector_of_column`` (columns,) int64 (when each column was measured).
+        uint8, ``instance`` (N,) uint16, ``return_index`` (N,) uint8 (0 first, 1 second return;
+        the first returns in row-major cell order, then the second returns); and
+        ``sector_micros`` (sectors,) int64 with ``sector_of_column`` (columns,) int64 (when each
+        column was measured).
         """
+        return self.render_lidars([spec], frame_time_micros, start_micros, spin_period_s, rng)[0]
+
+    def render_lidars(
+        self,
+        specs: list[LidarSpec] | tuple[LidarSpec, ...],
+        frame_time_micros: int,
+        start_micros: int,
+        spin_period_s: float,
+        rng: np.random.Generator,
+    ) -> list[dict[str, NDArray]]:
+        """:meth:`render_lidar` of each of ``specs`` in one revolution (the moving bodies of each
+        capture time built once for all of them); the random draws are made LiDAR by LiDAR."""
+        reach = max(s.max_range_m for s in specs) + 8.0  # bodies whose centre can be in range
+        cache: dict[int, Bodies] = {}  # capture time -> bodies
+        return [
+            self._render_one_lidar(spec, frame_time_micros, start_micros, spin_period_s, rng, cache, reach)
+            for spec in specs
+        ]
+
+    def _render_one_lidar(
+        self,
+        spec: LidarSpec,
+        frame_time_micros: int,
+        start_micros: int,
+        spin_period_s: float,
+        rng: np.random.Generator,
+        bodies_cache: dict[int, Bodies],
+        reach: float,
+    ) -> dict[str, NDArray]:
         incl = spec.inclinations_rad()
         az = spec.column_azimuths_rad()
         beams, cols = len(incl), len(az)
-        # Directions in the sensor frame (= ego axes), rows = beams, columns = azimuth order.
+        # Directions in the ego axes (a mounting yaw changes no ray: columns are fixed in the ego
+        # frame), rows = beams, columns = azimuth order.
         ci, si = np.cos(incl)[:, None], np.sin(incl)[:, None]
         d_sensor = np.stack(
             [ci * np.cos(az)[None], ci * np.sin(az)[None], np.broadcast_to(si, (beams, cols))], axis=-1
@@ -296,36 +341,103 @@ class Renderer:
         ray_sector = np.broadcast_to(sector_of_col[None], (beams, cols)).reshape(-1)
         # Static world for all rays at once, then each sector's moving bodies at its own time.
         hits = self.cast_static(origins, dirs)
-        # Only bodies that can be within range (centre within the max range + half a bus length).
-        reach = spec.max_range_m + 8.0
+        sector_bodies = []
+        ego_hit = np.zeros(len(dirs), bool)
         for k in range(spec.sectors):
-            bodies = self.bodies_at(sector_s[k], sector_poses[k, :2, 3], reach)
-            self.merge_bodies(hits, origins, dirs, bodies, np.flatnonzero(ray_sector == k))
+            key = int(sector_micros[k])
+            if key not in bodies_cache:
+                bodies_cache[key] = self.bodies_at(sector_s[k], sector_poses[k, :2, 3], reach)
+            bodies = bodies_cache[key]
+            sector_bodies.append(bodies)
+            rays_k = np.flatnonzero(ray_sector == k)
+            self.merge_bodies(hits, origins, dirs, bodies, rays_k)
+            if not spec.ego_returns and self.world.ego_mesh is not None:
+                ego_hit[rays_k] = hits.body[rays_k] == len(bodies.meshes) - 1
         hits = finish_hits(hits, dirs)
+        first = self._returns(spec, hits, dirs, ~ego_hit, rng)
+        beam = np.repeat(np.arange(beams, dtype=np.uint16), cols)
+        column = np.tile(np.arange(cols, dtype=np.uint16), beams)
+        keep, rng_range, intensity = first
+        sel = np.flatnonzero(keep)
+        parts = [(sel, rng_range[sel], intensity[sel], hits.semantic[sel], hits.instance[sel])]
+        if spec.returns == 2:
+            parts.append(
+                self._second_returns(
+                    spec, hits, keep, rng_range, origins, dirs, ray_sector, sector_bodies, rng
+                )
+            )
+        idx = np.concatenate([p[0] for p in parts])
+        ranges = np.concatenate([p[1] for p in parts])
+        return {
+            "column": column[idx],
+            "range_m": ranges,
+            "sector_micros": sector_micros,
+            "sector_of_column": sector_of_col,
+            "points_world": origins[idx] + dirs[idx] * ranges[:, None],
+            "origins_world": origins[idx],
+            "time_micros": sector_micros[ray_sector[idx]],
+            "beam": beam[idx],
+            "intensity": np.concatenate([p[2] for p in parts]),
+            "semantic": np.concatenate([p[3] for p in parts]),
+            "instance": np.concatenate([p[4] for p in parts]),
+            "return_index": np.concatenate([np.full(len(p[0]), i, np.uint8) for i, p in enumerate(parts)]),
+        }
+
+    def _returns(
+        self, spec: LidarSpec, hits: Hits, dirs: NDArray, allowed: NDArray[np.bool_], rng: np.random.Generator
+    ) -> tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float32]]:
+        """(kept, measured range, intensity) of every ray's hit: the noise, range gate and losses
+        of ``spec`` applied (rays not ``allowed`` are never kept)."""
         cos_inc = np.abs(np.sum(hits.normal * dirs, axis=1))
         intensity = (mt.REFLECTIVITY[hits.material] * cos_inc).astype(np.float32)
         rng_range = hits.t + rng.normal(0.0, spec.range_noise_m, size=len(dirs))
         # Gate on the measured (noisy) range, as the returned points are at that range.
-        keep = hits.hit & (rng_range >= spec.min_range_m) & (rng_range <= spec.max_range_m)
+        keep = hits.hit & (rng_range >= spec.min_range_m) & (rng_range <= spec.max_range_m) & allowed
         keep &= rng.uniform(size=len(dirs)) >= spec.dropout
         # Weak returns (dark or grazing surfaces, far away) are lost more often.
         p_loss = 0.5 * np.exp(-25.0 * intensity / (1.0 + (np.where(keep, hits.t, 0.0) / 40.0) ** 2))
         keep &= rng.uniform(size=len(dirs)) >= p_loss
-        beam = np.repeat(np.arange(beams, dtype=np.uint16), cols)
-        column = np.tile(np.arange(cols, dtype=np.uint16), beams)
-        return {
-            "column": column[keep],
-            "range_m": rng_range[keep],
-            "sector_micros": sector_micros,
-            "sector_of_column": sector_of_col,
-            "points_world": origins[keep] + dirs[keep] * rng_range[keep, None],
-            "origins_world": origins[keep],
-            "time_micros": sector_micros[ray_sector[keep]],
-            "beam": beam[keep],
-            "intensity": intensity[keep],
-            "semantic": hits.semantic[keep],
-            "instance": hits.instance[keep],
-        }
+        return keep, rng_range, intensity
+
+    def _second_returns(
+        self,
+        spec: LidarSpec,
+        hits: Hits,
+        keep: NDArray[np.bool_],
+        rng_range: NDArray[np.float64],
+        origins: NDArray,
+        dirs: NDArray,
+        ray_sector: NDArray,
+        sector_bodies: list[Bodies],
+        rng: np.random.Generator,
+    ) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+        """Second returns: a ``second_return_fraction`` of the kept returns on vegetation pass
+        through the foliage and return from the next surface at least ``second_return_gap_m``
+        behind the first hit (cast again from there, against the same sector's bodies). Returns
+        (ray index, measured range, intensity, semantic, instance) of the second returns."""
+        through = keep & (hits.semantic == tx.VEGETATION)
+        through &= rng.uniform(size=len(dirs)) < spec.second_return_fraction
+        rays = np.flatnonzero(through)
+        start = hits.t[rays] + spec.second_return_gap_m
+        o2 = origins[rays] + dirs[rays] * start[:, None]
+        d2 = dirs[rays]
+        behind = self.cast_static(o2, d2)
+        sector = ray_sector[rays]
+        for k in np.unique(sector):
+            self.merge_bodies(behind, o2, d2, sector_bodies[k], np.flatnonzero(sector == k))
+        behind = finish_hits(behind, d2)
+        behind.t = behind.t + start  # range from the sensor
+        allowed = np.ones(len(rays), bool)
+        if not spec.ego_returns and self.world.ego_mesh is not None:
+            for k in np.unique(sector):
+                m = sector == k
+                allowed[m] = behind.body[m] != len(sector_bodies[k].meshes) - 1
+        kept2, range2, intensity2 = self._returns(spec, behind, d2, allowed, rng)
+        kept2 &= range2 > rng_range[rays]  # the noise never puts the second return first
+        sel = np.flatnonzero(kept2)
+        # The pulse lost part of its energy in the foliage.
+        intensity2 = (0.5 * intensity2[sel]).astype(np.float32)
+        return rays[sel], range2[sel], intensity2, behind.semantic[sel], behind.instance[sel]
 
 
 # --------------------------------------------------------------------------------------------
@@ -337,6 +449,38 @@ def finish_hits(hits: Hits, dirs: NDArray) -> Hits:
     flip = np.sum(hits.normal * dirs, axis=1) > 0
     hits.normal = np.where(flip[:, None], -hits.normal, hits.normal).astype(np.float32)
     return hits
+
+
+def scaled_calibration(calibration: CameraCalibration, scale: int) -> CameraCalibration:
+    """``calibration`` at 1/scale of its size in each axis (rounded up), seeing the same field of
+    view: focal lengths and principal point scaled by the size ratio of each axis (pixel centres
+    at integer coordinates, so the image edges stay where they were)."""
+    w = -(-calibration.width // scale)
+    h = -(-calibration.height // scale)
+    sx, sy = w / calibration.width, h / calibration.height
+    k = calibration.intrinsics.copy()
+    k[0, 0] *= sx
+    k[0, 1] *= sx
+    k[0, 2] = (k[0, 2] + 0.5) * sx - 0.5
+    k[1, 1] *= sy
+    k[1, 2] = (k[1, 2] + 0.5) * sy - 0.5
+    return replace(calibration, width=w, height=h, intrinsics=k)
+
+
+def upsample(
+    rgb: NDArray[np.uint8], truth: CameraTruth, width: int, height: int
+) -> tuple[NDArray[np.uint8], CameraTruth]:
+    """A coarse render resized to (height, width): the image bilinearly (area-weighted where it
+    shrinks), depth, labels and flow by nearest neighbour (no blended classes or depths)."""
+    size = (width, height)
+    nearest = cv2.INTER_NEAREST
+    big = CameraTruth(
+        depth_m=cv2.resize(truth.depth_m, size, interpolation=nearest),
+        semantic=cv2.resize(truth.semantic, size, interpolation=nearest),
+        instance=cv2.resize(truth.instance, size, interpolation=nearest),
+        flow_world_mps=cv2.resize(truth.flow_world_mps, size, interpolation=nearest),
+    )
+    return cv2.resize(rgb, size, interpolation=cv2.INTER_LINEAR), big
 
 
 def camera_rays(calibration: CameraCalibration) -> NDArray[np.float64]:

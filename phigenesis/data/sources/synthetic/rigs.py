@@ -95,6 +95,13 @@ def _rotation_y(angle_rad: float) -> np.ndarray:
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
+#: How a LiDAR's beam elevations are laid out and stored in Waymo's calibration: "explicit" rows
+#: follow :attr:`LidarSpec.inclination_warp` and are written as ``beam_inclinations`` (Waymo's
+#: TOP); "min_max" rows are uniformly spaced, cell-centred, between the bottom and top elevation
+#: and written as ``beam_inclination_min``/``max`` only (Waymo's short-range LiDARs).
+InclinationLayout = Literal["explicit", "min_max"]
+
+
 @dataclass(frozen=True)
 class LidarSpec:
     """A spinning multi-beam LiDAR (Waymo-TOP-like by default).
@@ -102,13 +109,26 @@ class LidarSpec:
     Attributes:
         beams: number of lasers (rows); row 0 is the highest beam.
         columns: azimuth steps per revolution.
-        inclination_top_deg, inclination_bottom_deg: elevation of the highest/lowest beam.
-        inclination_warp: >1 packs beams more densely near the top (horizon), as real sensors do.
+        inclination_top_deg, inclination_bottom_deg: elevation of the highest/lowest beam
+            ("explicit" layout) or the top/bottom edge of the field of view ("min_max").
+        inclination_warp: >1 packs beams more densely near the top (horizon), as real sensors do
+            ("explicit" layout only).
+        inclinations: the beam layout, see :data:`InclinationLayout`.
         position_m: sensor origin in the ego frame.
+        yaw_deg: mounting yaw about the ego z axis (0 = facing forward, +90 = left). Columns keep
+            Waymo's range-image convention (column 0 at the ego's rear, whatever the yaw), so the
+            yaw changes no ray, only the stored extrinsic.
         max_range_m, min_range_m: returns outside are dropped.
         range_noise_m: standard deviation of Gaussian range noise.
         dropout: probability of losing any return, before the reflectance-dependent losses.
         sectors: the sweep is ray cast in this many time slices; a point's time is its slice's time.
+            One sector is a snapshot at the frame time (ego pose and agents at that time).
+        returns: 1, or 2 for a second return behind semi-transparent surfaces (vegetation).
+        second_return_fraction: with ``returns`` 2, the fraction of kept returns on vegetation
+            whose pulse passes through and returns again from the next surface behind.
+        second_return_gap_m: the least separation of the two returns along the ray (metres).
+        ego_returns: False: rays that hit the ego car's own body give no return (an empty cell).
+        name: the sensor's name in the dataset's files (Waymo: TOP, FRONT, SIDE_LEFT, ...).
     """
 
     beams: int = option(64, ge=1, le=1024)
@@ -122,6 +142,13 @@ class LidarSpec:
     range_noise_m: float = option(0.02, ge=0, le=10)
     dropout: float = option(0.01, ge=0, le=1)
     sectors: int = option(16, ge=1, le=100_000)
+    inclinations: InclinationLayout = option("explicit")
+    yaw_deg: float = option(0.0, ge=-180, le=180)
+    returns: int = option(1, ge=1, le=2)
+    second_return_fraction: float = option(0.5, ge=0, le=1)
+    second_return_gap_m: float = option(0.5, gt=0, le=100)
+    ego_returns: bool = option(True)
+    name: str = option("TOP")
 
     def __post_init__(self) -> None:
         check_options(self, "LidarSpec")
@@ -134,15 +161,29 @@ class LidarSpec:
                 f"LidarSpec: min_range_m = {self.min_range_m}: must be below max_range_m ({self.max_range_m})"
             )
 
+    @property
+    def cells(self) -> int:
+        """Range-image cells per return (beams x columns)."""
+        return self.beams * self.columns
+
     def inclinations_rad(self) -> np.ndarray:
-        """(beams,) elevation angles, row 0 highest."""
+        """(beams,) elevation angles, row 0 highest (for "min_max", exactly as Waymo's readers
+        compute them from the minimum and maximum: cell-centred, uniform)."""
+        if self.inclinations == "min_max":
+            lo, hi = np.radians(self.inclination_bottom_deg), np.radians(self.inclination_top_deg)
+            return (lo + (np.arange(self.beams) + 0.5) / self.beams * (hi - lo))[::-1].copy()
         u = np.linspace(0.0, 1.0, self.beams)
         warped = u**self.inclination_warp
         deg = self.inclination_top_deg + (self.inclination_bottom_deg - self.inclination_top_deg) * warped
         return np.radians(deg)
 
+    def ego_from_sensor(self) -> np.ndarray:
+        """(4, 4) the sensor's mounting: its yaw and position in the ego frame."""
+        rotation = geometry.rotation_z(np.radians(self.yaw_deg)) + 0.0  # + 0.0: no -0.0 entries
+        return geometry.make_transform(rotation, self.position_m)
+
     def column_azimuths_rad(self) -> np.ndarray:
-        """(columns,) azimuth of each column in the sensor frame: column 0 just left of the rear,
+        """(columns,) azimuth of each column in the ego frame: column 0 just left of the rear,
         decreasing (clockwise seen from above) through the front at the middle column, as Waymo."""
         c = np.arange(self.columns)
         return np.pi * (1.0 - (2.0 * c + 1.0) / self.columns)

@@ -2,8 +2,10 @@
 
 The exported files carry what real Waymo files carry, encoded as Waymo does: JPEG images with
 per-image poses and shutter timing, camera calibrations in Waymo axes and pixel conventions, the
-LiDAR as a TOP range image (float32 range, intensity, elongation, no-label-zone) with per-pixel
-vehicle poses and explicit beam inclinations, laser labels in the vehicle frame, and panoptic
+LiDARs as range images (float32 range, intensity, elongation, no-label-zone; both returns,
+range 0 where a cell has none): TOP with per-pixel vehicle poses and explicit beam inclinations,
+the short-range LiDARs (with the ``waymo`` preset) with uniform inclinations from their minimum
+and maximum and no poses, as real files hold them; laser labels in the vehicle frame, and panoptic
 camera labels. Poses are moved into a "global" frame by :data:`GLOBAL_OFFSET_M`, so readers must
 re-origin them as they must for real data. Reading the files back must reproduce the synthetic
 truth: that is what the Waymo readers are tested against.
@@ -22,9 +24,11 @@ from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import CameraImage, Frame
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene
+from phigenesis.data.sources.synthetic.rigs import LidarSpec
 from phigenesis.data.sources.waymo.convert import POSE_TIME_OFFSET_MICROS
 from phigenesis.data.sources.waymo.raw import (
     CAMERA_CODES,
+    LASER_CODES,
     READOUT_CODES,
     TOP_LASER,
     RawCameraCalibration,
@@ -147,35 +151,53 @@ def _camera_calibration(cam: CameraImage) -> RawCameraCalibration:
     )
 
 
-def _top_laser(scene: SyntheticScene, lidar: dict[str, np.ndarray]) -> tuple[RawLaserCalibration, RawLaser]:
-    """The sweep as Waymo's TOP range image, with per-pixel poses and explicit inclinations."""
-    spec = scene.config.lidar
+def _laser(
+    scene: SyntheticScene, spec: LidarSpec, lidar: dict[str, np.ndarray]
+) -> tuple[RawLaserCalibration, RawLaser]:
+    """One LiDAR's sweep as Waymo's range images (return 1, return 2; cells without a return
+    hold range 0), with its calibration: explicit beam inclinations (lowest first) or, for the
+    "min_max" layout, only the minimum and maximum from which readers space the rows uniformly.
+    TOP, and any LiDAR cast in several sectors, gets per-pixel vehicle poses (Waymo stores them
+    for TOP only; the short-range LiDARs of the presets are snapshots at the frame pose)."""
+    if spec.name not in LASER_CODES:
+        raise ValueError(f"LiDAR {spec.name!r} is not a Waymo laser; name it one of {sorted(LASER_CODES)}")
+    code = LASER_CODES[spec.name]
     incl = spec.inclinations_rad()
+    explicit = spec.inclinations == "explicit"
+    if explicit:
+        lo, hi = float(incl.min()), float(incl.max())
+    else:
+        lo, hi = float(np.radians(spec.inclination_bottom_deg)), float(np.radians(spec.inclination_top_deg))
     calibration = RawLaserCalibration(
-        name=TOP_LASER,
-        vehicle_from_laser=geometry.make_transform(np.eye(3), spec.position_m),
-        beam_inclinations=incl[::-1].copy(),  # Waymo lists the lowest beam first
-        beam_inclination_min=float(incl.min()),
-        beam_inclination_max=float(incl.max()),
+        name=code,
+        vehicle_from_laser=spec.ego_from_sensor(),
+        beam_inclinations=incl[::-1].copy() if explicit else None,  # Waymo lists the lowest beam first
+        beam_inclination_min=lo,
+        beam_inclination_max=hi,
     )
-    image = np.zeros((spec.beams, spec.columns, 4), np.float32)
-    rows, cols = lidar["beam"].astype(np.int64), lidar["column"].astype(np.int64)
-    image[rows, cols, 0] = lidar["range_m"]
-    image[rows, cols, 1] = lidar["intensity"]
-    sector_poses = _to_global(scene.world_from_ego_many(lidar["sector_micros"]))
-    roll, pitch, yaw = geometry.matrix_to_euler_zyx(sector_poses[:, :3, :3])
-    per_sector = np.stack([roll, pitch, yaw, *sector_poses[:, :3, 3].T], axis=1)
-    pose = np.broadcast_to(per_sector[lidar["sector_of_column"]][None], (spec.beams, spec.columns, 6))
-    laser = RawLaser(
-        name=TOP_LASER,
-        return1=image,
-        return2=np.zeros_like(image),  # the synthetic LiDAR has no second returns
-        pixel_pose=np.ascontiguousarray(pose, dtype=np.float32),
-    )
+    returns = lidar.get("return_index", np.zeros(len(lidar["beam"]), np.uint8))
+    images = []
+    for r in (0, 1):
+        image = np.zeros((spec.beams, spec.columns, 4), np.float32)
+        m = returns == r
+        rows, cols = lidar["beam"][m].astype(np.int64), lidar["column"][m].astype(np.int64)
+        image[rows, cols, 0] = lidar["range_m"][m]
+        image[rows, cols, 1] = lidar["intensity"][m]
+        images.append(image)
+    pose = None
+    if code == TOP_LASER or spec.sectors > 1:
+        sector_poses = _to_global(scene.world_from_ego_many(lidar["sector_micros"]))
+        roll, pitch, yaw = geometry.matrix_to_euler_zyx(sector_poses[:, :3, :3])
+        per_sector = np.stack([roll, pitch, yaw, *sector_poses[:, :3, 3].T], axis=1)
+        pose = np.broadcast_to(per_sector[lidar["sector_of_column"]][None], (spec.beams, spec.columns, 6))
+        pose = np.ascontiguousarray(pose, dtype=np.float32)
+    laser = RawLaser(name=code, return1=images[0], return2=images[1], pixel_pose=pose)
     return calibration, laser
 
 
-def _labels(frame: Frame) -> RawLabels:
+def _labels(frame: Frame, top_points: np.ndarray | None = None) -> RawLabels:
+    """The frame's boxes as laser labels; ``top_points`` (M,): the TOP LiDAR's points per box
+    where it is not the only LiDAR (else all points are TOP's)."""
     b = frame.boxes
     vehicle_from_world = geometry.invert_transform(frame.world_from_ego)
     rot = vehicle_from_world[:3, :3]
@@ -189,7 +211,7 @@ def _labels(frame: Frame) -> RawLabels:
         speed=b.velocity_world @ rot.T,
         accel=np.nan_to_num(b.acceleration_world) @ rot.T,
         num_lidar_points=b.num_lidar_points.copy(),
-        num_top_lidar_points=b.num_lidar_points.copy(),
+        num_top_lidar_points=(b.num_lidar_points if top_points is None else top_points).copy(),
     )
 
 
@@ -197,17 +219,21 @@ def raw_frame(scene: SyntheticScene, frame_index: int) -> RawFrame:
     """Synthetic frame ``frame_index`` as a Waymo raw frame (rendered now)."""
     if scene.config.rig != "waymo5":
         raise ValueError(f"Waymo export needs the waymo5 rig, not {scene.config.rig!r}")
-    frame, lidar = scene.render_frame_and_lidar(frame_index)
-    laser_cal, laser = _top_laser(scene, lidar)
+    frame, raws = scene.render_frame_and_lidar(frame_index)
+    lasers = [_laser(scene, spec, raw) for spec, raw in zip(scene.config.lidars, raws, strict=True)]
+    top_points = None
+    if len(raws) > 1 and len(frame.boxes):
+        counts = np.bincount(raws[0]["instance"], minlength=int(frame.boxes.instance_id.max()) + 1)
+        top_points = counts[frame.boxes.instance_id].astype(np.int32)
     return RawFrame(
         segment=scene.scene_id,
         timestamp_micros=frame.timestamp_micros - POSE_TIME_OFFSET_MICROS,
         global_from_vehicle=_to_global(frame.world_from_ego),
         camera_calibrations=[_camera_calibration(c) for c in frame.cameras],
-        laser_calibrations=[laser_cal],
+        laser_calibrations=[cal for cal, _ in lasers],
         images=[_camera(scene, c) for c in frame.cameras],
-        lasers=[laser],
-        labels=_labels(frame),
+        lasers=[laser for _, laser in lasers],
+        labels=_labels(frame, top_points),
         stats={"time_of_day": "Day", "location": "synthetic", "weather": "sunny"},
         where=f"synthetic scene {scene.scene_id} frame {frame_index}",
     )

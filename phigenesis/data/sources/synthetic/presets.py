@@ -1,0 +1,112 @@
+"""Named presets of the synthetic source: the real datasets' sensor sizes, in one place.
+
+A preset is a mapping of :class:`~phigenesis.data.sources.synthetic.SyntheticConfig` fields;
+``SyntheticConfig.from_preset(name, **overrides)`` builds it (explicit fields win). The sizes are
+those collected, with their sources, in the project's sensor reference (``shared/reference/
+sensors.md``): each value below cites the section it comes from.
+
+- ``waymo``: Waymo Open Dataset Perception (v1.4 TFRecord / v2 Parquet). Five cameras, FRONT,
+  FRONT_LEFT and FRONT_RIGHT at 1920 x 1280 and SIDE_LEFT, SIDE_RIGHT at 1920 x 886; five LiDARs
+  with two returns each: TOP 64 x 2650 cells (75 m, -17.6 .. +2.4 deg) and four short-range
+  LiDARs of 200 x 600 cells (20 m, -90 .. +30 deg). 169,600 + 4 x 120,000 = 649,600 cells per
+  return.
+- ``nuscenes``: nuScenes v1.0. Six cameras at 1600 x 900, 12 Hz; LIDAR_TOP a Velodyne HDL-32E
+  (32 beams, +10 .. -30 deg, 20 Hz spin, 70 m).
+
+The short-range LiDARs' mounts are plausible places on the synthetic ego car (front bumper, the
+two front wings, rear bumper, 10 cm outside the body, 0.55 m above the ground), not Waymo's
+measured extrinsics, which the reference does not give. They are cast as one snapshot at the
+frame time (``sectors`` 1): Waymo stores no per-pixel poses for them, so a reader puts their
+points in the frame's vehicle frame, which is where a snapshot's points are exactly. They do not
+return from the ego car's own body (``ego_returns`` False): those cells stay empty.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from phigenesis.data.sources.synthetic.rigs import LidarSpec
+
+#: Waymo TOP (mid-range) LiDAR: 64 beams x 2650 columns, 75 m, -17.6 .. +2.4 deg (sensors.md
+#: 1.2: shape from WOD v2/perception/compat_v1/lidar_test.py, range from the Waymo site text, FOV
+#: from the WOD paper's Table 1). Explicit (warped) beam inclinations, as Waymo stores TOP's.
+WAYMO_TOP = LidarSpec(
+    beams=64,
+    columns=2650,
+    inclination_top_deg=2.4,
+    inclination_bottom_deg=-17.6,
+    max_range_m=75.0,
+    returns=2,
+    name="TOP",
+)
+
+
+def waymo_short_range(name: str, position_m: tuple[float, float, float], yaw_deg: float) -> LidarSpec:
+    """A Waymo short-range LiDAR: 200 beams x 600 columns, 20 m, -90 .. +30 deg (sensors.md 1.2:
+    shape from WOD compat_v1/lidar_test.py, range "20 meters" from the Waymo site text, FOV from
+    the WOD paper), uniform inclinations stored as min/max, two returns, cast as a snapshot."""
+    return LidarSpec(
+        beams=200,
+        columns=600,
+        inclination_top_deg=30.0,
+        inclination_bottom_deg=-90.0,
+        inclinations="min_max",
+        position_m=position_m,
+        yaw_deg=yaw_deg,
+        max_range_m=20.0,
+        min_range_m=0.3,
+        sectors=1,
+        returns=2,
+        ego_returns=False,
+        name=name,
+    )
+
+
+#: Waymo's four short-range LiDARs, mounted on the synthetic ego body (front 3.5 m, rear -0.6 m,
+#: sides +-0.9 m; see meshes.ego_body), in Waymo's laser order FRONT, SIDE_LEFT, SIDE_RIGHT, REAR.
+WAYMO_SHORT_RANGE: tuple[LidarSpec, ...] = (
+    waymo_short_range("FRONT", (3.6, 0.0, 0.55), 0.0),
+    waymo_short_range("SIDE_LEFT", (2.9, 1.0, 0.55), 90.0),
+    waymo_short_range("SIDE_RIGHT", (2.9, -1.0, 0.55), -90.0),
+    waymo_short_range("REAR", (-0.7, 0.0, 0.55), 180.0),
+)
+
+#: nuScenes LIDAR_TOP, a Velodyne HDL-32E: 32 beams, +10 .. -30 deg, 20 Hz (the nuscenes6 rig's
+#: spin), 70 m (sensors.md 2.1: nuScenes paper sensor table), mounted at nuScenes' roof position.
+#: The real sweep holds about 34-35k points (sensors.md 2.1: devkit issue #133, NVIDIA NCore doc)
+#: out of ~2170 firings per beam (1.39 M points/s at 20 Hz). The synthetic streets return ~85 % of
+#: the rays (real ones about half), so the columns are chosen for the valid count instead: 1084
+#: columns gave 26.7-31.0k valid points (9 sweeps, seeds 0-2; 26.5 per column), so 1300 columns
+#: give ~34.5k.
+NUSCENES_LIDAR_TOP = LidarSpec(
+    beams=32,
+    columns=1300,
+    inclination_top_deg=10.0,
+    inclination_bottom_deg=-30.0,
+    inclination_warp=1.0,
+    position_m=(0.94, 0.0, 1.84),
+    max_range_m=70.0,
+    name="LIDAR_TOP",
+)
+
+#: Named presets: SyntheticConfig fields per preset name.
+PRESETS: dict[str, dict[str, Any]] = {
+    "waymo": {
+        "rig": "waymo5",  # sensors.md 1.1: five cameras
+        "height": 1280,  # sensors.md 1.1: FRONT, FRONT_LEFT, FRONT_RIGHT 1920 x 1280
+        "width": 1920,
+        "uniform_image_size": False,  # sensors.md 1.1: SIDE_LEFT, SIDE_RIGHT 1920 x 886
+        "frame_rate_hz": 10.0,  # sensors.md 1.3: 10 Hz
+        "lidar": WAYMO_TOP,
+        "extra_lidars": WAYMO_SHORT_RANGE,
+    },
+    "nuscenes": {
+        "rig": "nuscenes6",  # sensors.md 2.1: six cameras
+        "height": 900,  # sensors.md 2.1: 1600 x 900
+        "width": 1600,
+        "uniform_image_size": True,
+        "frame_rate_hz": 12.0,  # sensors.md 2.1: cameras at 12 Hz
+        "lidar": NUSCENES_LIDAR_TOP,
+    },
+}
+PRESET_NAMES: tuple[str, ...] = tuple(PRESETS)
