@@ -240,15 +240,21 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--work", required=True, help="datasets and caches (datasets are reused)")
     parser.add_argument("--waymo-frames", type=int, nargs="+", default=[20, 50, 200])
     parser.add_argument(
-        "--nuscenes-keyframes", type=int, default=5, help="2 Hz keyframes (12 Hz frames follow)"
+        "--nuscenes-keyframes", type=int, default=9, help="2 Hz keyframes (12 Hz frames follow)"
     )
     parser.add_argument("--render-scale", type=int, default=4, help="image render scale of the datasets")
     parser.add_argument("--error-frames", type=int, default=3, help="real-size frames scored against truth")
     parser.add_argument("--baseline", help="an older checkout: its package gives the 'before' error column")
     parser.add_argument("--update", action="store_true", help="write the section into BENCHMARKS.md")
+    parser.add_argument("--data-only", action="store_true", help="only write the datasets, then stop")
     args = parser.parse_args(argv)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
+    if args.data_only:
+        for frames in args.waymo_frames:
+            synth_dataset(work, "waymo-v1", "waymo", frames, args.render_scale)
+        synth_dataset(work, "nuscenes", "nuscenes", 0, args.render_scale, args.nuscenes_keyframes)
+        return
 
     report = Report(
         "scale",
@@ -340,17 +346,18 @@ def main(argv: Sequence[str] | None = None) -> None:
         "machine's per-core speed.",
     )
 
-    error_job = {
-        "source": "synthetic",
-        "pipeline": "synthetic",
-        "source_params": _baseline_source_params(args.error_frames),
-    }
-    run_child({**error_job, "out": str(work / "truth-after")})
-    after = truth_errors(work / "truth-after")
-    before = None
+    error_job = {"source": "synthetic", "pipeline": "synthetic"}
+    errors: dict[str, dict[str, float]] = {}
     if args.baseline:
-        run_child({**error_job, "out": str(work / "truth-before")}, pythonpath=args.baseline)
-        before = truth_errors(work / "truth-before")
+        job = {**error_job, "source_params": _source_params(args.error_frames, preset=False)}
+        run_child({**job, "out": str(work / "truth-before")}, pythonpath=args.baseline)
+        errors["before: TOP only"] = truth_errors(work / "truth-before")
+    job = {**error_job, "source_params": _source_params(args.error_frames, preset=False)}
+    run_child({**job, "out": str(work / "truth-common")})
+    errors["now: TOP only"] = truth_errors(work / "truth-common")
+    job = {**error_job, "source_params": _source_params(args.error_frames, preset=True)}
+    run_child({**job, "out": str(work / "truth-preset")})
+    errors["now: five LiDARs, two returns"] = truth_errors(work / "truth-preset")
     labels = {
         "sparse_absrel": "sparse depth AbsRel",
         "dense_coverage": "dense depth coverage of surface pixels",
@@ -359,16 +366,16 @@ def main(argv: Sequence[str] | None = None) -> None:
         "pseudo_coverage": "pseudo labels: share of labelled-truth pixels",
         "pseudo_accuracy": "pseudo labels: accuracy where given",
     }
-    rows = [
-        [label, *([fmt(before[k], 4)] if before else []), fmt(after[k], 4)] for k, label in labels.items()
-    ]
+    rows = [[label, *(fmt(e[k], 4) for e in errors.values())] for k, label in labels.items()]
     report.table(
         f"Error against the synthetic truth, {args.error_frames} real-size Waymo frames",
-        ["figure", *(["before"] if before else []), "now"],
+        ["figure", *errors],
         rows,
-        "The synthetic source with the Waymo preset (full-size images rendered exactly, five LiDARs, two "
-        "returns) through the synthetic pipeline's stages; every camera pixel with a truth surface counts "
-        "(the ego body excluded)." + (f" Before: the package of `{args.baseline}`." if before else ""),
+        "The synthetic source at the Waymo preset's image sizes, rendered exactly (no render scale), through "
+        "the synthetic pipeline's stages; every camera pixel with a truth surface counts (the ego body "
+        "excluded). TOP only: the 64 x 2650 TOP LiDAR with one return, which an older checkout also reads"
+        + (f" (before: the package of `{args.baseline}`)" if args.baseline else "")
+        + "; five LiDARs: the whole preset.",
     )
 
     goals = []
@@ -418,11 +425,32 @@ def main(argv: Sequence[str] | None = None) -> None:
         print(f"wrote {report.write()}")
 
 
-def _baseline_source_params(frames: int) -> dict[str, Any]:
-    """The Waymo preset's synthetic source values spelled out (an older checkout has no presets)."""
-    from phigenesis.data.sources.synthetic.presets import preset_values
+#: The synthetic source at real size that an older checkout also reads: the Waymo preset's cameras
+#: and TOP LiDAR (64 x 2650) with one return, no short-range LiDARs (older checkouts have none).
+COMMON_SOURCE = {
+    "rig": "waymo5",
+    "height": 1280,
+    "width": 1920,
+    "uniform_image_size": False,
+    "lidar": {
+        "beams": 64,
+        "columns": 2650,
+        "inclination_top_deg": 2.4,
+        "inclination_bottom_deg": -17.6,
+        "max_range_m": 75.0,
+    },
+}
 
-    return {**preset_values("waymo"), "scenes": 1, "frames": frames}
+
+def _source_params(frames: int, preset: bool) -> dict[str, Any]:
+    """Synthetic source values: the whole Waymo preset (five LiDARs, two returns) or
+    :data:`COMMON_SOURCE`, one scene of ``frames`` frames."""
+    if not preset:
+        return {**COMMON_SOURCE, "scenes": 1, "frames": frames}
+    from phigenesis.data.sources.synthetic import SyntheticConfig
+
+    values = SyntheticConfig.from_preset("waymo", scenes=1, frames=frames).to_dict()
+    return json.loads(json.dumps(values))  # tuples as lists, as a spec file holds them
 
 
 if __name__ == "__main__":
