@@ -906,3 +906,20 @@ def test_the_stage_without_pseudo_labels_warns_once(caplog):
     warnings = [r for r in caplog.records if "no pseudo-semantic labels" in r.getMessage()]
     assert len(warnings) == 1
     assert all(c.depth.dense_origin is not None for f in frames for c in f.cameras)
+
+
+def test_a_read_only_rays_table_gives_the_same_completion_as_fresh_rays_every_call():
+    """complete_depth_map keeps the checks, lengths and coarse grid of a read-only rays array (a
+    per-calibration table) across calls; the answer is bit-identical to fresh writeable rays."""
+    depth, conf, rgb, _, sky, *_ = facade_scene(windows=True, noise_m=0.01)
+    table = rays()
+    table.setflags(write=False)
+    for params in (CompletionParams(), CompletionParams(max_side_px=90)):  # full grid, coarse grid
+        fresh = complete(depth, conf, rgb, sky=sky, params=params)
+        for _ in range(2):  # the second call reuses what the first one kept
+            cached = complete_depth_map(
+                depth, conf, rgb, rays_cam=table, up_cam=UP, focal_px=F, sky=sky, params=params
+            )
+            for name in ("depth_m", "confidence", "origin", "segments"):
+                assert np.array_equal(getattr(cached, name), getattr(fresh, name)), name
+        assert np.sum(fresh.origin == PLANE) > 2000

@@ -46,6 +46,7 @@ from numpy.typing import NDArray
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
 from phigenesis.data.camera_tables import RayComponents, pixel_rays_cam, ray_components_of
+from phigenesis.data.native import load_box_labels
 from phigenesis.data.records import (
     PSEUDO_SOURCES,
     Boxes,
@@ -765,33 +766,61 @@ def box_labels_in_rectangles(
     boxes: Boxes,
     margin_m: float,
     clearance_m: float,
+    native: bool = True,
 ) -> tuple[NDArray[np.intp], NDArray[np.uint8]]:
     """The pixels whose point (the pixel's ray at ``depth``, (H, W) z-depth in metres, 0 unknown)
     lies in a thing box, and the box's class: :func:`box_labels` on the image's points, but each
     box tested only on the pixels of its rectangle (:func:`box_rectangles`) whose depth lies in
     the z range of its corners, with the same float64 arithmetic. Returns (flat row-major pixel
     indices, their classes); where boxes overlap, the one whose centre is nearest the point wins
-    (the first of equally near ones)."""
+    (the first of equally near ones).
+
+    ``native``: use the C kernel (``csrc/box_labels.c``, one pass over each rectangle) where it
+    can be built; the numpy path (``native=False``, or without a compiler) is its reference."""
     w = depth.shape[1]
+    kernel = load_box_labels() if native else None
+    flat_depth = depth.reshape(-1)
     rays = pixel_rays_cam(camera.calibration)
     rot, t = camera.world_from_camera[:3, :3], camera.world_from_camera[:3, 3]
     rotations = geometry.quaternion_to_matrix(boxes.orientation_world).reshape(-1, 3, 3)
-    hits: list[tuple[NDArray[np.intp], NDArray[np.float64], int, int]] = []
+    labels: NDArray[np.uint8] | None = None
+    best: NDArray[np.float64] | None = None
     for k, found in enumerate(_box_footprints(camera, boxes, margin_m)):
         cls = int(boxes.class_id[k])
         if found is None or cls not in BOX_CLASSES:
             continue
         (v0, v1, u0, u1), z_lo, z_hi = found
         pad = 1e-3 * max(1.0, abs(z_hi))  # rounding of the corners' z
+        half = 0.5 * boxes.size_lwh[k]
+        if kernel is not None:
+            if labels is None or best is None:
+                labels = np.full(depth.size, tx.IGNORE_ID, np.uint8)
+                best = np.full(depth.size, np.inf)
+            limits = np.array(
+                [half[0] + margin_m, half[1] + margin_m, half[2] + margin_m, -half[2] + clearance_m]
+            )
+            kernel(
+                np.ascontiguousarray(depth, np.float32),
+                rays,
+                (v0, v1, u0, u1),
+                (z_lo - pad, z_hi + pad),
+                camera.world_from_camera,
+                boxes.center_world[k],
+                rotations[k],
+                limits,
+                cls,
+                labels,
+                best,
+            )
+            continue
         window = depth[v0:v1, u0:u1]
         rows, cols = np.nonzero((window > 0) & (window >= z_lo - pad) & (window <= z_hi + pad))
         if rows.size == 0:
             continue
         index = (rows + v0) * w + (cols + u0)
-        points = t + (rays[index] @ rot.T) * window[rows, cols].reshape(-1, 1)  # [P', 3] world
-        half = 0.5 * boxes.size_lwh[k]
+        del rows, cols
+        points = t + (rays[index] @ rot.T) * flat_depth[index, None].astype(np.float64)  # [P', 3] world
         offset = points - boxes.center_world[k]
-        dist2 = np.einsum("ij,ij->i", offset, offset)
         local = offset @ rotations[k]  # box frame: R^T p
         inside = (
             (np.abs(local[:, 0]) <= half[0] + margin_m)
@@ -799,20 +828,20 @@ def box_labels_in_rectangles(
             & (local[:, 2] <= half[2] + margin_m)
             & (local[:, 2] >= -half[2] + clearance_m)
         )
-        if inside.any():
-            hits.append((index[inside], dist2[inside], k, cls))
-    if not hits:
+        if not inside.any():
+            continue
+        index, offset = index[inside], offset[inside]
+        dist2 = np.einsum("ij,ij->i", offset, offset)
+        if labels is None or best is None:
+            labels = np.full(depth.size, tx.IGNORE_ID, np.uint8)
+            best = np.full(depth.size, np.inf)
+        closer = dist2 < best[index]  # the nearest centre wins; the first of equally near ones
+        labels[index[closer]] = cls
+        best[index[closer]] = dist2[closer]
+    if labels is None:
         return np.zeros(0, np.intp), np.zeros(0, np.uint8)
-    index = np.concatenate([i for i, _, _, _ in hits])
-    dist2 = np.concatenate([d for _, d, _, _ in hits])
-    order = np.concatenate([np.full(len(i), k) for i, _, k, _ in hits])
-    classes = np.concatenate([np.full(len(i), c, np.uint8) for i, _, _, c in hits])
-    # nearest centre first, then the first box; keep each pixel's first entry
-    sort = np.lexsort((order, dist2, index))
-    index, classes = index[sort], classes[sort]
-    first = np.ones(len(index), bool)
-    first[1:] = index[1:] != index[:-1]
-    return index[first], classes[first]
+    index = np.flatnonzero(labels != tx.IGNORE_ID)
+    return index, labels[index]
 
 
 def label_frame(
@@ -844,11 +873,88 @@ def label_frame(
     return dataclasses.replace(frame, cameras=cameras)
 
 
+#: A camera whose pseudo labels cover less than this share of its pixels over a scene is warned
+#: about (:class:`LabelCoverage`).
+MIN_LABEL_COVERAGE = 0.01
+
+
+class LabelCoverage:
+    """Per-camera share of pixels given a pseudo label (source other than none) over a scene.
+
+    Each frame counts once however often a lazy frame is loaded (the last load wins). Once every
+    frame of the scene has been seen, :meth:`add` logs the shares in one INFO line and a WARNING
+    per camera under ``min_share`` (once per scene): nearly empty labels usually mean no
+    segmenter and neither boxes, ground nor open sky in view (a camera facing the ego body, a
+    frame without LiDAR or boxes), so the semantic targets of that view are missing.
+    """
+
+    def __init__(self, scene_id: str, frames: int, segmenter: bool, min_share: float = MIN_LABEL_COVERAGE):
+        self.scene_id = scene_id
+        self.frames = frames
+        self.segmenter = segmenter
+        self.min_share = min_share
+        self.reported = False
+        self._counts: dict[int, dict[str, tuple[int, int]]] = {}
+
+    def add(self, frame: Frame) -> None:
+        """Counts the frame's labelled cameras' (pixels, labelled pixels); reports when the
+        scene is complete."""
+        self._counts[frame.frame_index] = {
+            c.name: (int(c.pseudo.source.size), int(np.count_nonzero(c.pseudo.source)))
+            for c in frame.cameras
+            if c.pseudo is not None
+        }
+        if len(self._counts) >= self.frames:
+            self.report()
+
+    def shares(self) -> dict[str, float]:
+        """Share of pixels labelled, by camera (in the order first seen), over the frames seen."""
+        totals: dict[str, list[int]] = {}
+        for counts in self._counts.values():
+            for name, (pixels, labelled) in counts.items():
+                t = totals.setdefault(name, [0, 0])
+                t[0] += pixels
+                t[1] += labelled
+        return {name: labelled / max(pixels, 1) for name, (pixels, labelled) in totals.items()}
+
+    def report(self) -> None:
+        """Logs the shares once (INFO), and a WARNING per camera below ``min_share``."""
+        if self.reported:
+            return
+        self.reported = True
+        shares = self.shares()
+        if not shares:
+            return
+        log.info(
+            "scene %s: pseudo labels over %d frames, share of pixels labelled: %s",
+            self.scene_id,
+            len(self._counts),
+            ", ".join(f"{name} {100 * share:.1f} %" for name, share in shares.items()),
+        )
+        for name, share in shares.items():
+            if share < self.min_share:
+                log.warning(
+                    "scene %s camera %s: pseudo labels cover only %.2f %% of its pixels over the scene "
+                    "(under %.0f %%): %s, so its semantic targets are (nearly) empty. Does the view show "
+                    "no boxed things, no ground and no open sky (the ego body, a wall), or does the "
+                    "scene lack LiDAR or boxes?",
+                    self.scene_id,
+                    name,
+                    100 * share,
+                    100 * self.min_share,
+                    "a segmenter labelled it"
+                    if self.segmenter
+                    else "no segmenter checkpoint, geometric rules only",
+                )
+
+
 @register_stage("pseudo_semantics", params=PseudoSemanticsParams)
 def pseudo_semantics(scene: Scene, p: PseudoSemanticsParams) -> Scene:
     """Stage: pseudo-semantic labels for every image (see the module docstring). Runs after the
     depth stages when they are in the pipeline (it uses their depth); frames are labelled lazily
-    when the scene's frames are a :class:`LazyFrames`."""
+    when the scene's frames are a :class:`LazyFrames`. Once every frame is labelled, the share of
+    each camera's pixels labelled is logged (INFO), with a WARNING for a camera under
+    :data:`MIN_LABEL_COVERAGE` (:class:`LabelCoverage`)."""
     segmenter = None
     if p.checkpoint is not None:
         segmenter = Segmenter.load(p.checkpoint, p.model, p.input_height, p.device)
@@ -858,13 +964,16 @@ def pseudo_semantics(scene: Scene, p: PseudoSemanticsParams) -> Scene:
             scene.scene_id,
             ", ".join(p.rules) or "none",
         )
-    cache = RayCache()
+    coverage = LabelCoverage(scene.scene_id, len(scene.frames), segmenter is not None)
 
     def run(frame: Frame) -> Frame:
-        return label_frame(frame, p, segmenter, cache)
+        labelled = label_frame(frame, p, segmenter)
+        coverage.add(labelled)
+        return labelled
 
     if isinstance(scene.frames, LazyFrames):
         scene.frames = scene.frames.map(run)
     else:
         scene.frames = [run(f) for f in scene.frames]
+        coverage.report()
     return scene
