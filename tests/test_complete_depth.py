@@ -923,3 +923,22 @@ def test_a_read_only_rays_table_gives_the_same_completion_as_fresh_rays_every_ca
             for name in ("depth_m", "confidence", "origin", "segments"):
                 assert np.array_equal(getattr(cached, name), getattr(fresh, name)), name
         assert np.sum(fresh.origin == PLANE) > 2000
+
+
+def test_the_fine_pass_kernel_equals_its_numpy_reference(monkeypatch):
+    """The coarse grid's fine pass (every fillable pixel of a completed cell takes the cell's
+    plane) in C (csrc/complete_fine.c) is bit-identical to the numpy path it replaces."""
+    from phigenesis.data import native
+    from phigenesis.data.stages import complete as complete_module
+
+    assert native.load_complete_fine() is not None, native.failure_reason()  # a C compiler here
+    depth, conf, rgb, truth, sky, *_ = facade_scene(windows=True, noise_m=0.01)
+    params = CompletionParams(max_side_px=90)
+    kernel = complete(depth, conf, rgb, sky=sky, params=params)
+    monkeypatch.setattr(complete_module, "load_complete_fine", lambda: None)
+    plain = complete(depth, conf, rgb, sky=sky, params=params)
+    for name in ("depth_m", "confidence", "origin", "segments"):
+        assert np.array_equal(getattr(kernel, name), getattr(plain, name)), name
+    done = kernel.origin == PLANE
+    assert done.sum() > 2000
+    np.testing.assert_allclose(kernel.depth_m[done], truth[done], atol=0.5)

@@ -163,6 +163,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis.data import taxonomy as tx
+from phigenesis.data.native import load_complete_fine
 from phigenesis.data.records import DENSE_ORIGINS, CameraImage, Frame, LazyFrames, Scene
 from phigenesis.data.stages import register_stage
 from phigenesis.data.stages.aggregate import ego_boxes_of
@@ -549,7 +550,7 @@ _RAY_INFO_LOCK = threading.Lock()
 
 
 def _complete_coarse(
-    inputs: _Inputs, up: F64, focal_px: float, p: CompletionParams, scale: float
+    inputs: _Inputs, up: F64, focal_px: float, p: CompletionParams, scale: float, native: bool = True
 ) -> NDArray[np.int32]:
     """Completes a large image on a grid ``scale`` times as fine (outputs updated in place);
     returns the segments, upsampled.
@@ -557,7 +558,9 @@ def _complete_coarse(
     Each grid cell is one of the image's own pixels (depth, rays and masks sampled, the image
     area-averaged), so the planes are the scene's; every empty pixel of the image then takes its
     cell's plane, intersected with its own ray: depths stay exact on the planes, only the segment
-    boundaries are as coarse as the grid.
+    boundaries are as coarse as the grid. That fine pass runs in a C kernel
+    (``csrc/complete_fine.c``) where it can be built and ``native``; the numpy path is its
+    reference (bit-identical, tests/test_complete_depth.py).
     """
     h, w = inputs.depth.shape
     h2, w2 = max(1, round(h * scale)), max(1, round(w * scale))
@@ -594,23 +597,47 @@ def _complete_coarse(
     if (small.known.any() or (p.sparse_planes and small.sparse is not None)) and small.fillable.any():
         completer = _Completer(small, segments, up, focal_small, p, small_norm)
         completer.run()
-        done = (small.origin >= ORIGIN["plane"])[np.ix_(ry, rx)]  # (H, W) whether the cell completed
-        done &= inputs.fillable
-        target = np.flatnonzero(done)
-        del done
-        src = ry[target // w] * w2 + rx[target % w]  # the grid cell of every target pixel
         norm = None
         if inputs.ray_info is not None:
             if "norm" not in inputs.ray_info:
                 inputs.ray_info["norm"] = np.linalg.norm(inputs.rays, axis=1)  # (H * W,) float64
-            norm = inputs.ray_info["norm"][target]
-        z, ok = completer.intersect(
-            inputs.rays[target], completer.plane_normal[src], completer.plane_offset[src], norm
-        )
-        target, src = target[ok], src[ok]
-        inputs.depth.reshape(-1)[target] = z[ok]
-        inputs.conf.reshape(-1)[target] = small.conf.reshape(-1)[src]
-        inputs.origin.reshape(-1)[target] = small.origin.reshape(-1)[src]
+            norm = inputs.ray_info["norm"]
+        kernel = load_complete_fine() if native else None
+        if kernel is not None:
+            kernel(
+                ry.astype(np.int64),
+                rx.astype(np.int64),
+                np.ascontiguousarray(inputs.fillable),
+                np.ascontiguousarray(inputs.rays),
+                np.linalg.norm(inputs.rays, axis=1) if norm is None else norm,
+                completer.plane_normal,
+                completer.plane_offset,
+                small.conf.reshape(-1),
+                small.origin.reshape(-1),
+                w2,
+                ORIGIN["plane"],
+                (p.min_depth_m, p.max_depth_m),
+                float(np.sin(np.radians(p.min_incidence_deg))),
+                inputs.depth,
+                inputs.conf,
+                inputs.origin,
+            )
+        else:
+            done = (small.origin >= ORIGIN["plane"])[np.ix_(ry, rx)]  # (H, W) whether the cell completed
+            done &= inputs.fillable
+            target = np.flatnonzero(done)
+            del done
+            src = ry[target // w] * w2 + rx[target % w]  # the grid cell of every target pixel
+            z, ok = completer.intersect(
+                inputs.rays[target],
+                completer.plane_normal[src],
+                completer.plane_offset[src],
+                None if norm is None else norm[target],
+            )
+            target, src = target[ok], src[ok]
+            inputs.depth.reshape(-1)[target] = z[ok]
+            inputs.conf.reshape(-1)[target] = small.conf.reshape(-1)[src]
+            inputs.origin.reshape(-1)[target] = small.origin.reshape(-1)[src]
     return segments[np.ix_(ry, rx)]
 
 
