@@ -3,6 +3,8 @@
 Entry points: :func:`label_camera` (one image) and the stage ``pseudo_semantics``, which runs it
 for every camera of every frame, lazily, and stores a :class:`CameraSemantics` on each image
 (class, confidence and source per pixel; sources in :data:`records.PSEUDO_SOURCES`).
+:func:`label_camera_reference` is the plain whole-image version :func:`label_camera` is tested
+against (same labels; at 1920 x 1280 about 2 CPU-s a camera against 0.07 s).
 
 As in the paper, a SegFormer fine-tuned on labelled frames (``phigenesis-train segmenter``) is run
 over every image. Its labels are then refined where the scene's geometry knows better:
@@ -629,7 +631,8 @@ def label_camera(
     rule's world quantity (height above the ground plane, lateral offset, elevation) as a
     per-frame linear function of the ray, in float32 (H, W) maps; the LiDAR-bin lookup of the sky
     rule only on pixels that can be sky, in float64; each box tested only on the pixels of its
-    projected rectangle (:func:`box_rectangles`), in float64. Pixels may differ from the
+    projected rectangle (:func:`box_rectangles`) within its depth range, in float64
+    (:func:`box_labels_in_rectangles`, a C kernel where one can be built). Pixels may differ from the
     reference only where a float32 quantity lies within float32 rounding (~1e-6 relative) of a
     rule's threshold (tests/test_semantics_stage.py measures the share).
     """
