@@ -306,7 +306,7 @@ class CompleteFine:
     def __init__(self, library: ctypes.CDLL):
         i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
         self._fine = library.phigenesis_complete_fine
-        self._fine.argtypes = [i64, i64, i64] + [ptr] * 9 + [i64, f64, f64, f64] + [ptr] * 3
+        self._fine.argtypes = [i64, i64, i64] + [ptr] * 8 + [i64, f64, f64, f64] + [ptr] * 3
         self._fine.restype = i64
 
     def __call__(
@@ -315,7 +315,6 @@ class CompleteFine:
         rx: NDArray[np.int64],
         fillable: NDArray[np.bool_],
         rays: NDArray[np.float64],
-        norm: NDArray[np.float64],
         normal_small: NDArray[np.float32],
         offset_small: NDArray[np.float32],
         conf_small: NDArray[np.float32],
@@ -332,7 +331,7 @@ class CompleteFine:
         whose grid cell (``ry`` (H,), ``rx`` (W,) int64 cell row and column of each image row and
         column; ``grid_width`` = W2) has an origin of at least ``min_code``: the cell's plane
         (``normal_small`` (H2 * W2, 3), ``offset_small`` (H2 * W2,)) met by the pixel's ray
-        (``rays`` (H * W, 3), z = 1, lengths ``norm``), where the depth is in ``depth_range`` =
+        (``rays`` (H * W, 3), z = 1), where the depth is in ``depth_range`` =
         (exclusive, inclusive) metres and the sine of the incidence at least ``sin_min``. Returns
         how many it filled."""
         h, w = depth.shape
@@ -347,7 +346,6 @@ class CompleteFine:
             (rx, np.int64, (w,)),
             (fillable, np.bool_, (h, w)),
             (rays, np.float64, (h * w, 3)),
-            (norm, np.float64, (h * w,)),
             (normal_small, np.float32, (cells, 3)),
             (offset_small, np.float32, (cells,)),
             (conf_small, np.float32, (cells,)),
@@ -368,7 +366,7 @@ class CompleteFine:
                 h,
                 w,
                 w2,
-                *(_address(a) for a, _, _ in checks[:9]),
+                *(_address(a) for a, _, _ in checks[:8]),
                 int(min_code),
                 float(depth_range[0]),
                 float(depth_range[1]),

@@ -597,11 +597,6 @@ def _complete_coarse(
     if (small.known.any() or (p.sparse_planes and small.sparse is not None)) and small.fillable.any():
         completer = _Completer(small, segments, up, focal_small, p, small_norm)
         completer.run()
-        norm = None
-        if inputs.ray_info is not None:
-            if "norm" not in inputs.ray_info:
-                inputs.ray_info["norm"] = np.linalg.norm(inputs.rays, axis=1)  # (H * W,) float64
-            norm = inputs.ray_info["norm"]
         kernel = load_complete_fine() if native else None
         if kernel is not None:
             kernel(
@@ -609,7 +604,6 @@ def _complete_coarse(
                 rx.astype(np.int64),
                 np.ascontiguousarray(inputs.fillable),
                 np.ascontiguousarray(inputs.rays),
-                np.linalg.norm(inputs.rays, axis=1) if norm is None else norm,
                 completer.plane_normal,
                 completer.plane_offset,
                 small.conf.reshape(-1),
@@ -628,6 +622,11 @@ def _complete_coarse(
             target = np.flatnonzero(done)
             del done
             src = ry[target // w] * w2 + rx[target % w]  # the grid cell of every target pixel
+            norm = None
+            if inputs.ray_info is not None:
+                if "norm" not in inputs.ray_info:
+                    inputs.ray_info["norm"] = np.linalg.norm(inputs.rays, axis=1)  # (H * W,) float64
+                norm = inputs.ray_info["norm"]
             z, ok = completer.intersect(
                 inputs.rays[target],
                 completer.plane_normal[src],
