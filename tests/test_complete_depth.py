@@ -906,3 +906,39 @@ def test_the_stage_without_pseudo_labels_warns_once(caplog):
     warnings = [r for r in caplog.records if "no pseudo-semantic labels" in r.getMessage()]
     assert len(warnings) == 1
     assert all(c.depth.dense_origin is not None for f in frames for c in f.cameras)
+
+
+def test_a_read_only_rays_table_gives_the_same_completion_as_fresh_rays_every_call():
+    """complete_depth_map keeps the checks, lengths and coarse grid of a read-only rays array (a
+    per-calibration table) across calls; the answer is bit-identical to fresh writeable rays."""
+    depth, conf, rgb, _, sky, *_ = facade_scene(windows=True, noise_m=0.01)
+    table = rays()
+    table.setflags(write=False)
+    for params in (CompletionParams(), CompletionParams(max_side_px=90)):  # full grid, coarse grid
+        fresh = complete(depth, conf, rgb, sky=sky, params=params)
+        for _ in range(2):  # the second call reuses what the first one kept
+            cached = complete_depth_map(
+                depth, conf, rgb, rays_cam=table, up_cam=UP, focal_px=F, sky=sky, params=params
+            )
+            for name in ("depth_m", "confidence", "origin", "segments"):
+                assert np.array_equal(getattr(cached, name), getattr(fresh, name)), name
+        assert np.sum(fresh.origin == PLANE) > 2000
+
+
+def test_the_fine_pass_kernel_equals_its_numpy_reference(monkeypatch):
+    """The coarse grid's fine pass (every fillable pixel of a completed cell takes the cell's
+    plane) in C (csrc/complete_fine.c) is bit-identical to the numpy path it replaces."""
+    from phigenesis.data import native
+    from phigenesis.data.stages import complete as complete_module
+
+    assert native.load_complete_fine() is not None, native.failure_reason()  # a C compiler here
+    depth, conf, rgb, truth, sky, *_ = facade_scene(windows=True, noise_m=0.01)
+    params = CompletionParams(max_side_px=90)
+    kernel = complete(depth, conf, rgb, sky=sky, params=params)
+    monkeypatch.setattr(complete_module, "load_complete_fine", lambda: None)
+    plain = complete(depth, conf, rgb, sky=sky, params=params)
+    for name in ("depth_m", "confidence", "origin", "segments"):
+        assert np.array_equal(getattr(kernel, name), getattr(plain, name)), name
+    done = kernel.origin == PLANE
+    assert done.sum() > 2000
+    np.testing.assert_allclose(kernel.depth_m[done], truth[done], atol=0.5)

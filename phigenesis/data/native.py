@@ -1,8 +1,10 @@
 """The data pipeline's C kernels (``csrc/*.c``), compiled on first use into one library: the Waymo
-reader's range-image kernel (``range_points.c``) and the shard writer's CRC-32C combination
-(``crc32c_combine.c``).
+reader's range-image kernel (``range_points.c``), the shard writer's CRC-32C combination
+(``crc32c_combine.c``), the pseudo labels' box rule (``box_labels.c``) and depth completion's
+fine pass (``complete_fine.c``).
 
-Entry points: :func:`load_range_points`, :func:`load_crc32c_combine`.
+Entry points: :func:`load_range_points`, :func:`load_crc32c_combine`, :func:`load_box_labels`,
+:func:`load_complete_fine`.
 
 Turning a Waymo frame's range images into points was a quarter of the v1 reader's time in numpy
 (16 ms of 65 ms a frame: a mask, a gather per channel, the ray arithmetic and the concatenation, each
@@ -39,6 +41,8 @@ logger = logging.getLogger(__name__)
 SOURCES = (
     Path(__file__).parent / "csrc" / "range_points.c",
     Path(__file__).parent / "csrc" / "crc32c_combine.c",
+    Path(__file__).parent / "csrc" / "box_labels.c",
+    Path(__file__).parent / "csrc" / "complete_fine.c",
 )
 LIBRARY_NAME = "libphigenesis_data"
 CFLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fPIC", "-shared", "-std=c99")
@@ -165,6 +169,8 @@ def _build(build_dir: Path) -> Path:
 class _Kernels(NamedTuple):
     range_points: RangePoints
     crc32c_combine: Crc32cCombine
+    box_labels: BoxLabels
+    complete_fine: CompleteFine
 
 
 def _load_library() -> _Kernels | None:
@@ -179,7 +185,9 @@ def _load_library() -> _Kernels | None:
             return None
         try:
             library = ctypes.CDLL(str(_build(build_directory())))
-            _library = _Kernels(RangePoints(library), Crc32cCombine(library))
+            _library = _Kernels(
+                RangePoints(library), Crc32cCombine(library), BoxLabels(library), CompleteFine(library)
+            )
         except (OSError, subprocess.SubprocessError, AttributeError) as error:
             _failure = str(error).splitlines()[0][:300] if str(error) else type(error).__name__
             logger.warning(
@@ -218,16 +226,177 @@ def load_crc32c_combine() -> Crc32cCombine | None:
     return None if kernels is None else kernels.crc32c_combine
 
 
+class BoxLabels:
+    """The loaded ``phigenesis_box_labels`` (see ``csrc/box_labels.c``): the pseudo labels' box
+    rule over one box's rectangle of pixels."""
+
+    def __init__(self, library: ctypes.CDLL):
+        i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+        self._labels = library.phigenesis_box_labels
+        self._labels.argtypes = [ptr, ptr, i64, i64, i64, i64, i64, f64, f64] + [ptr] * 5 + [i64, ptr, ptr]
+        self._labels.restype = i64
+
+    def __call__(
+        self,
+        depth: NDArray[np.float32],
+        rays: NDArray[np.float64],
+        rect: tuple[int, int, int, int],
+        z_range: tuple[float, float],
+        world_from_camera: NDArray[np.float64],
+        center: NDArray[np.float64],
+        world_from_box: NDArray[np.float64],
+        limits: NDArray[np.float64],
+        cls: int,
+        labels: NDArray[np.uint8],
+        best: NDArray[np.float64],
+    ) -> int:
+        """Labels the pixels of ``rect`` = (v0, v1, u0, u1) of the (H, W) float32 z-depth
+        ``depth`` (metres) whose point lies in the box (centre ``center``, rotation
+        ``world_from_box`` (3, 3), world frame; ``limits``: the box-frame bounds |x| <= l0,
+        |y| <= l1, l3 <= z <= l2) and is nearer its centre than ``best`` (both (H * W,), updated
+        in place with ``labels``); only depths in ``z_range`` are tested. ``rays``: (H * W, 3)
+        camera-frame rays, z = 1. Returns how many pixels lie in the box."""
+        h, w = depth.shape
+        v0, v1, u0, u1 = rect
+        if not (0 <= v0 <= v1 <= h and 0 <= u0 <= u1 <= w):
+            raise ValueError(f"box labels: rectangle {rect} outside a {h} x {w} image")
+        if rays.shape != (h * w, 3) or labels.shape != (h * w,) or best.shape != (h * w,):
+            raise ValueError("box labels: rays, labels and best must cover the image")
+        arrays = (depth, rays, labels, best)
+        dtypes = (np.float32, np.float64, np.uint8, np.float64)
+        if any(a.dtype != dt or not a.flags.c_contiguous for a, dt in zip(arrays, dtypes, strict=True)):
+            raise ValueError(
+                "box labels: depth, rays, labels and best must be C-order float32, float64, uint8, float64"
+            )
+        if not (labels.flags.writeable and best.flags.writeable):
+            raise ValueError("box labels: labels and best must be writeable")
+        small = [
+            np.ascontiguousarray(a, np.float64)
+            for a in (world_from_camera[:3, :3], world_from_camera[:3, 3], center, world_from_box, limits)
+        ]
+        return int(
+            self._labels(
+                _address(depth),
+                _address(rays),
+                w,
+                v0,
+                v1,
+                u0,
+                u1,
+                float(z_range[0]),
+                float(z_range[1]),
+                *(_address(a) for a in small),
+                int(cls),
+                _address(labels),
+                _address(best),
+            )
+        )
+
+
+def load_box_labels() -> BoxLabels | None:
+    """The box rule's kernel, or ``None`` where the library cannot be built (:func:`_load_library`)."""
+    kernels = _load_library()
+    return None if kernels is None else kernels.box_labels
+
+
+class CompleteFine:
+    """The loaded ``phigenesis_complete_fine`` (see ``csrc/complete_fine.c``): depth completion's
+    fine pass over a large image from its coarse grid's planes."""
+
+    def __init__(self, library: ctypes.CDLL):
+        i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+        self._fine = library.phigenesis_complete_fine
+        self._fine.argtypes = [i64, i64, i64] + [ptr] * 8 + [i64, f64, f64, f64] + [ptr] * 3
+        self._fine.restype = i64
+
+    def __call__(
+        self,
+        ry: NDArray[np.int64],
+        rx: NDArray[np.int64],
+        fillable: NDArray[np.bool_],
+        rays: NDArray[np.float64],
+        normal_small: NDArray[np.float32],
+        offset_small: NDArray[np.float32],
+        conf_small: NDArray[np.float32],
+        origin_small: NDArray[np.uint8],
+        grid_width: int,
+        min_code: int,
+        depth_range: tuple[float, float],
+        sin_min: float,
+        depth: NDArray[np.float32],
+        conf: NDArray[np.float32],
+        origin: NDArray[np.uint8],
+    ) -> int:
+        """Fills (in place) ``depth``, ``conf``, ``origin`` (H, W) at every ``fillable`` pixel
+        whose grid cell (``ry`` (H,), ``rx`` (W,) int64 cell row and column of each image row and
+        column; ``grid_width`` = W2) has an origin of at least ``min_code``: the cell's plane
+        (``normal_small`` (H2 * W2, 3), ``offset_small`` (H2 * W2,)) met by the pixel's ray
+        (``rays`` (H * W, 3), z = 1), where the depth is in ``depth_range`` =
+        (exclusive, inclusive) metres and the sine of the incidence at least ``sin_min``. Returns
+        how many it filled."""
+        h, w = depth.shape
+        cells = len(origin_small)
+        w2 = grid_width
+        if w2 < 1 or cells % w2 or (h and not 0 <= ry.min() <= ry.max() < cells // w2):
+            raise ValueError("complete fine: ry outside the coarse grid")
+        if w and not 0 <= rx.min() <= rx.max() < w2:
+            raise ValueError("complete fine: rx outside the coarse grid")
+        checks = [
+            (ry, np.int64, (h,)),
+            (rx, np.int64, (w,)),
+            (fillable, np.bool_, (h, w)),
+            (rays, np.float64, (h * w, 3)),
+            (normal_small, np.float32, (cells, 3)),
+            (offset_small, np.float32, (cells,)),
+            (conf_small, np.float32, (cells,)),
+            (origin_small, np.uint8, (cells,)),
+            (depth, np.float32, (h, w)),
+            (conf, np.float32, (h, w)),
+            (origin, np.uint8, (h, w)),
+        ]
+        for a, dtype, shape in checks:
+            if a.dtype != dtype or a.shape != shape or not a.flags.c_contiguous:
+                raise ValueError(
+                    f"complete fine: expected a C-order {np.dtype(dtype)} array of shape {shape}"
+                )
+        if not all(a.flags.writeable for a in (depth, conf, origin)):
+            raise ValueError("complete fine: depth, conf and origin must be writeable")
+        return int(
+            self._fine(
+                h,
+                w,
+                w2,
+                *(_address(a) for a, _, _ in checks[:8]),
+                int(min_code),
+                float(depth_range[0]),
+                float(depth_range[1]),
+                float(sin_min),
+                *(_address(a) for a in (depth, conf, origin)),
+            )
+        )
+
+
+def load_complete_fine() -> CompleteFine | None:
+    """Depth completion's fine-pass kernel, or ``None`` where the library cannot be built
+    (:func:`_load_library`)."""
+    kernels = _load_library()
+    return None if kernels is None else kernels.complete_fine
+
+
 def failure_reason() -> str | None:
     """Why the kernels are not available (after a loader returned ``None``)."""
     return _failure
 
 
 __all__ = [
+    "BoxLabels",
+    "CompleteFine",
     "Crc32cCombine",
     "RangePoints",
     "build_directory",
     "failure_reason",
+    "load_box_labels",
+    "load_complete_fine",
     "load_crc32c_combine",
     "load_range_points",
 ]

@@ -153,6 +153,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import threading
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -161,6 +163,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis.data import taxonomy as tx
+from phigenesis.data.native import load_complete_fine
 from phigenesis.data.records import DENSE_ORIGINS, CameraImage, Frame, LazyFrames, Scene
 from phigenesis.data.stages import register_stage
 from phigenesis.data.stages.aggregate import ego_boxes_of
@@ -452,7 +455,13 @@ def complete_depth_map(
     shape = depth.shape
     h, w = shape
     rgb = np.ascontiguousarray(check_rgb(rgb, shape, "depth_m"))
-    rays = _check_rays(rays_cam, shape)
+    ray_info = _ray_info(rays_cam)
+    if ray_info is not None and ray_info.get("checked") == shape:
+        rays = np.asarray(rays_cam).reshape(shape[0] * shape[1], 3)
+    else:
+        rays = _check_rays(rays_cam, shape)
+        if ray_info is not None:
+            ray_info["checked"] = shape
     up = _check_up(up_cam)
     focal_px = float(focal_px)
     if not np.isfinite(focal_px) or focal_px <= 0:
@@ -481,7 +490,9 @@ def complete_depth_map(
     for mask in (sky, keep_out):
         if mask is not None:
             fillable &= ~mask
-    inputs = _Inputs(out_depth, out_conf, out_origin, known, fillable, rgb, rays, sky, classes, sparse)
+    inputs = _Inputs(
+        out_depth, out_conf, out_origin, known, fillable, rgb, rays, sky, classes, sparse, ray_info
+    )
     scale = min(1.0, p.max_side_px / max(h, w))
     if scale < 1.0:
         segments = _complete_coarse(inputs, up, focal_px, p, scale)
@@ -512,10 +523,34 @@ class _Inputs:
     sky: Mask | None
     classes: NDArray[np.uint8] | None
     sparse: tuple[F32, F32] | None
+    #: What is known of ``rays`` across calls (:func:`_ray_info`): its lengths, its coarse grids.
+    ray_info: dict[Any, Any] | None = None
+
+
+def _ray_info(rays_cam: Any) -> dict[Any, Any] | None:
+    """A dict kept with a read-only rays array across calls (the per-calibration tables of
+    :mod:`~phigenesis.data.camera_tables`, passed for every frame): that it passed the checks, its
+    lengths, its coarse grids. None for a writeable array (it may change between calls). Entries
+    go with their array (held by a weak reference)."""
+    if not isinstance(rays_cam, np.ndarray) or rays_cam.flags.writeable:
+        return None
+    with _RAY_INFO_LOCK:
+        entry = _RAY_INFO.get(id(rays_cam))
+        if entry is not None and entry[0]() is rays_cam:
+            return entry[1]
+        for key in [k for k, (ref, _) in _RAY_INFO.items() if ref() is None]:
+            del _RAY_INFO[key]
+        info: dict[Any, Any] = {}
+        _RAY_INFO[id(rays_cam)] = (weakref.ref(rays_cam), info)
+        return info
+
+
+_RAY_INFO: dict[int, tuple[weakref.ref, dict[Any, Any]]] = {}
+_RAY_INFO_LOCK = threading.Lock()
 
 
 def _complete_coarse(
-    inputs: _Inputs, up: F64, focal_px: float, p: CompletionParams, scale: float
+    inputs: _Inputs, up: F64, focal_px: float, p: CompletionParams, scale: float, native: bool = True
 ) -> NDArray[np.int32]:
     """Completes a large image on a grid ``scale`` times as fine (outputs updated in place);
     returns the segments, upsampled.
@@ -523,7 +558,9 @@ def _complete_coarse(
     Each grid cell is one of the image's own pixels (depth, rays and masks sampled, the image
     area-averaged), so the planes are the scene's; every empty pixel of the image then takes its
     cell's plane, intersected with its own ray: depths stay exact on the planes, only the segment
-    boundaries are as coarse as the grid.
+    boundaries are as coarse as the grid. That fine pass runs in a C kernel
+    (``csrc/complete_fine.c``) where it can be built and ``native``; the numpy path is its
+    reference (bit-identical, tests/test_complete_depth.py).
     """
     h, w = inputs.depth.shape
     h2, w2 = max(1, round(h * scale)), max(1, round(w * scale))
@@ -534,11 +571,22 @@ def _complete_coarse(
     def sample(a: Any) -> Any:
         return None if a is None else np.ascontiguousarray(a[grid])
 
+    key = ("coarse", h2, w2)
+    if inputs.ray_info is not None and key in inputs.ray_info:
+        small_rays, small_norm = inputs.ray_info[key]
+    else:
+        small_rays = inputs.rays.reshape(h, w, 3)[grid].reshape(-1, 3)
+        small_norm = np.linalg.norm(small_rays, axis=1)
+        if inputs.ray_info is not None:
+            small_rays.setflags(write=False)
+            small_norm.setflags(write=False)
+            inputs.ray_info[key] = (small_rays, small_norm)
+
     small = _Inputs(
         *(sample(inputs.depth), sample(inputs.conf), sample(inputs.origin)),
         *(sample(inputs.known), sample(inputs.fillable)),
         cv2.resize(inputs.rgb, (w2, h2), interpolation=cv2.INTER_AREA),
-        inputs.rays.reshape(h, w, 3)[grid].reshape(-1, 3),
+        small_rays,
         *(sample(inputs.sky), sample(inputs.classes)),
         None if inputs.sparse is None else (sample(inputs.sparse[0]), sample(inputs.sparse[1])),
     )
@@ -547,19 +595,48 @@ def _complete_coarse(
     ry = np.minimum((np.arange(h) * h2 / h).astype(np.intp), h2 - 1)
     rx = np.minimum((np.arange(w) * w2 / w).astype(np.intp), w2 - 1)
     if (small.known.any() or (p.sparse_planes and small.sparse is not None)) and small.fillable.any():
-        completer = _Completer(small, segments, up, focal_small, p)
+        completer = _Completer(small, segments, up, focal_small, p, small_norm)
         completer.run()
-        cell = (ry[:, None] * w2 + rx[None, :]).reshape(-1)  # the grid cell of every pixel
-        done = small.origin.reshape(-1) >= ORIGIN["plane"]
-        target = np.flatnonzero(inputs.fillable.reshape(-1) & done[cell])
-        src = cell[target]
-        z, ok = completer.intersect(
-            inputs.rays[target], completer.plane_normal[src], completer.plane_offset[src]
-        )
-        target, src = target[ok], src[ok]
-        inputs.depth.reshape(-1)[target] = z[ok]
-        inputs.conf.reshape(-1)[target] = small.conf.reshape(-1)[src]
-        inputs.origin.reshape(-1)[target] = small.origin.reshape(-1)[src]
+        kernel = load_complete_fine() if native else None
+        if kernel is not None:
+            kernel(
+                ry.astype(np.int64),
+                rx.astype(np.int64),
+                np.ascontiguousarray(inputs.fillable),
+                np.ascontiguousarray(inputs.rays),
+                completer.plane_normal,
+                completer.plane_offset,
+                small.conf.reshape(-1),
+                small.origin.reshape(-1),
+                w2,
+                ORIGIN["plane"],
+                (p.min_depth_m, p.max_depth_m),
+                float(np.sin(np.radians(p.min_incidence_deg))),
+                inputs.depth,
+                inputs.conf,
+                inputs.origin,
+            )
+        else:
+            done = (small.origin >= ORIGIN["plane"])[np.ix_(ry, rx)]  # (H, W) whether the cell completed
+            done &= inputs.fillable
+            target = np.flatnonzero(done)
+            del done
+            src = ry[target // w] * w2 + rx[target % w]  # the grid cell of every target pixel
+            norm = None
+            if inputs.ray_info is not None:
+                if "norm" not in inputs.ray_info:
+                    inputs.ray_info["norm"] = np.linalg.norm(inputs.rays, axis=1)  # (H * W,) float64
+                norm = inputs.ray_info["norm"]
+            z, ok = completer.intersect(
+                inputs.rays[target],
+                completer.plane_normal[src],
+                completer.plane_offset[src],
+                None if norm is None else norm[target],
+            )
+            target, src = target[ok], src[ok]
+            inputs.depth.reshape(-1)[target] = z[ok]
+            inputs.conf.reshape(-1)[target] = small.conf.reshape(-1)[src]
+            inputs.origin.reshape(-1)[target] = small.origin.reshape(-1)[src]
     return segments[np.ix_(ry, rx)]
 
 
@@ -982,7 +1059,13 @@ class _Completer:
     """Completion state of one image; :meth:`run` updates the outputs of ``inputs`` in place."""
 
     def __init__(
-        self, inputs: _Inputs, segments: NDArray[np.int32], up: F64, focal_px: float, p: CompletionParams
+        self,
+        inputs: _Inputs,
+        segments: NDArray[np.int32],
+        up: F64,
+        focal_px: float,
+        p: CompletionParams,
+        ray_norm: F64 | None = None,
     ):
         self.shape = inputs.depth.shape
         self.depth, self.conf = inputs.depth.reshape(-1), inputs.conf.reshape(-1)
@@ -992,7 +1075,7 @@ class _Completer:
         self.segments = segments
         self.scale = focal_px / REFERENCE_FOCAL_PX
         self.rng = np.random.default_rng(p.seed)
-        self.ray_norm = np.linalg.norm(self.rays, axis=1)
+        self.ray_norm = np.linalg.norm(self.rays, axis=1) if ray_norm is None else ray_norm
         # The plane each completed pixel took (to complete a finer grid from this one).
         self.plane_normal = np.zeros((self.depth.size, 3), np.float32)
         self.plane_offset = np.zeros(self.depth.size, np.float32)
@@ -1570,7 +1653,7 @@ class _Completer:
         normal = self.horizontal(point)
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
         offset = -np.einsum("ij,ij->i", normal, point)
-        z, ok = self.intersect(self.rays[px], normal, offset)
+        z, ok = self.intersect(self.rays[px], normal, offset, self.ray_norm[px])
         px, ref, z, normal, offset = px[ok], ref[ok], z[ok], normal[ok], offset[ok]
         dist = (ref // w - px // w).astype(np.float32)
         conf = np.minimum(p.wall_confidence, self.conf[ref]) * np.exp(
@@ -1627,7 +1710,7 @@ class _Completer:
         if not taken:
             return
         px, n, o, d, c = (np.concatenate(parts) for parts in zip(*taken, strict=True))
-        z, ok = self.intersect(self.rays[px], n.astype(np.float64), o.astype(np.float64))
+        z, ok = self.intersect(self.rays[px], n.astype(np.float64), o.astype(np.float64), self.ray_norm[px])
         px, z, n, o, d, c = px[ok], z[ok], n[ok], o[ok], d[ok], c[ok]
         self.depth[px], self.conf[px], self.origin[px] = z, c, ORIGIN["vertical"]
         self.plane_normal[px], self.plane_offset[px], self.fill_dist[px] = n, o, d
@@ -1785,14 +1868,16 @@ class _Completer:
 
     # -- shared ------------------------------------------------------------------------------
 
-    def intersect(self, rays: F64, normal: F64, offset: F64) -> tuple[F64, Mask]:
+    def intersect(self, rays: F64, normal: F64, offset: F64, ray_norm: F64 | None = None) -> tuple[F64, Mask]:
         """Depths where (P, 3) rays (z = 1) meet planes (P, 3) / (P,) or one plane (3,) / (), and
         whether each is valid: finite, in ``(min_depth_m, max_depth_m]`` and at an incidence of at
-        least ``min_incidence_deg``."""
+        least ``min_incidence_deg``. ``ray_norm``: the rays' (P,) lengths, if known."""
         denom = rays @ normal if normal.ndim == 1 else np.einsum("ij,ij->i", rays, normal)
+        if ray_norm is None:
+            ray_norm = np.linalg.norm(rays, axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             z = -offset / denom
-            sin_incidence = np.abs(denom) / np.linalg.norm(rays, axis=1)
+            sin_incidence = np.abs(denom) / ray_norm
         ok = np.isfinite(z) & (z > self.p.min_depth_m) & (z <= self.p.max_depth_m)
         ok &= sin_incidence >= np.sin(np.radians(self.p.min_incidence_deg))
         return z, ok
@@ -1812,7 +1897,7 @@ class _Completer:
         if len(pixels) == 0:
             return
         normal, offset = fits.normal[s], float(fits.offset[s])
-        z, ok = self.intersect(self.rays[pixels], normal, offset)
+        z, ok = self.intersect(self.rays[pixels], normal, offset, self.ray_norm[pixels])
         if not ok.any():
             return
         pixels, z, dist = pixels[ok], z[ok], dist[ok]

@@ -3,6 +3,8 @@
 Entry points: :func:`label_camera` (one image) and the stage ``pseudo_semantics``, which runs it
 for every camera of every frame, lazily, and stores a :class:`CameraSemantics` on each image
 (class, confidence and source per pixel; sources in :data:`records.PSEUDO_SOURCES`).
+:func:`label_camera_reference` is the plain whole-image version :func:`label_camera` is tested
+against (same labels; at 1920 x 1280 about 2 CPU-s a camera against 0.07 s).
 
 As in the paper, a SegFormer fine-tuned on labelled frames (``phigenesis-train segmenter``) is run
 over every image. Its labels are then refined where the scene's geometry knows better:
@@ -45,6 +47,8 @@ from numpy.typing import NDArray
 
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
+from phigenesis.data.camera_tables import RayComponents, pixel_rays_cam, ray_components_of
+from phigenesis.data.native import load_box_labels
 from phigenesis.data.records import (
     PSEUDO_SOURCES,
     Boxes,
@@ -262,6 +266,58 @@ def box_labels(
     return labels
 
 
+def box_rectangles(
+    camera: CameraImage, boxes: Boxes, margin_m: float
+) -> list[tuple[int, int, int, int] | None]:
+    """For each box (grown by ``margin_m``), the image rectangle ``(v0, v1, u0, u1)`` (rows
+    ``v0:v1``, columns ``u0:u1``) holding its projected corners plus one pixel, clipped to the
+    image: the only pixels whose rays can pass through it. The whole image where a corner lies
+    behind the camera and another in front (any pixel may see it); None where none can (all
+    corners behind the camera, or the rectangle outside the image)."""
+    return [None if f is None else f[0] for f in _box_footprints(camera, boxes, margin_m)]
+
+
+def _box_footprints(
+    camera: CameraImage, boxes: Boxes, margin_m: float
+) -> list[tuple[tuple[int, int, int, int], float, float] | None]:
+    """For each box (grown by ``margin_m``): its :func:`box_rectangles` rectangle and the range
+    of camera z (metres) its corners span (a point inside the box has its z, the pixel's depth,
+    in that range: the box is convex); None where no pixel can see it. Where every corner lies in
+    front of the camera but some beyond the distortion's valid radius (the whole image for
+    :func:`box_regions`), the rectangle of the pixels whose rays pass within the corners' ray
+    bounds (:meth:`~phigenesis.data.camera_tables.RayComponents.rectangle`): no pixel outside it
+    can see the box."""
+    cal = camera.calibration
+    tables = ray_components_of(cal)
+    h, w = cal.height, cal.width
+    camera_from_world = geometry.invert_transform(camera.world_from_camera)
+    grown = boxes.size_lwh + 2 * abs(margin_m)
+    corners = geometry.rotated_box_corners(
+        boxes.center_world, grown, geometry.quaternion_to_matrix(boxes.orientation_world).reshape(-1, 3, 3)
+    )  # [M, 8, 3] world
+    out: list[tuple[tuple[int, int, int, int], float, float] | None] = []
+    for k in range(len(boxes)):
+        c_cam = geometry.transform_points(camera_from_world, corners[k])
+        z = (float(c_cam[:, 2].min()), float(c_cam[:, 2].max()))
+        uv, ok = geometry.project_points(c_cam, cal.intrinsics, cal.distortion)
+        if not ok.all():
+            if np.all(c_cam[:, 2] > 0):  # in front, beyond the distortion's valid radius
+                xy = c_cam[:, :2] / c_cam[:, 2:]  # the box's rays pass within these bounds
+                lo, hi = xy.min(axis=0), xy.max(axis=0)
+                rect = tables.rectangle(lo[0], hi[0], lo[1], hi[1])
+            else:
+                rect = (0, h, 0, w) if np.any(c_cam[:, 2] > 0) else None
+            out.append(None if rect is None else (rect, *z))
+            continue
+        u0, v0 = np.maximum(np.floor(uv.min(axis=0)).astype(int) - 1, 0)
+        u1, v1 = np.minimum(np.ceil(uv.max(axis=0)).astype(int) + 1, (w - 1, h - 1))
+        if u0 > u1 or v0 > v1:
+            out.append(None)
+        else:
+            out.append(((int(v0), int(v1) + 1, int(u0), int(u1) + 1), *z))
+    return out
+
+
 def box_regions(camera: CameraImage, boxes: Boxes, margin_m: float) -> list[NDArray[np.int64] | None]:
     """For each box (grown by ``margin_m``), the flat (row-major) indices of the pixels inside its
     projected bounding rectangle in ``camera``; None where a corner lies behind the camera (any
@@ -410,9 +466,9 @@ def sky_mask(
 
 def connected_to(mask: NDArray[np.bool_], seeds: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """(H, W) the 8-connected regions of ``mask`` that contain a ``seeds`` pixel."""
-    count, regions = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    count, regions = cv2.connectedComponents(mask.view(np.uint8), connectivity=8)
     keep = np.zeros(count, bool)
-    keep[np.unique(regions[seeds & mask])] = True
+    keep[regions[seeds & mask]] = True
     keep[0] = False
     return keep[regions]
 
@@ -439,7 +495,8 @@ class LidarEvidence:
 
 @dataclass
 class RayCache:
-    """Pixel rays (camera frame, z = 1, (H * W, 3)) by camera name, reused across frames."""
+    """Pixel rays (camera frame, z = 1, (H * W, 3)) by camera name, reused across frames (for
+    :func:`label_camera_reference`; :func:`label_camera` uses the per-calibration tables)."""
 
     rays_cam: dict[str, NDArray[np.float64]] = field(default_factory=dict)
 
@@ -453,7 +510,7 @@ class RayCache:
         return self.rays_cam[key]
 
 
-def label_camera(
+def label_camera_reference(
     frame: Frame,
     camera: CameraImage,
     params: PseudoSemanticsParams,
@@ -461,7 +518,9 @@ def label_camera(
     evidence: LidarEvidence | None = None,
     rays_cam: NDArray[np.float64] | None = None,
 ) -> CameraSemantics:
-    """Pseudo labels of one image (see the module docstring).
+    """Pseudo labels of one image (see the module docstring): the plain version, every rule on
+    (H * W, 3) float64 world points of the whole image. :func:`label_camera` gives the same labels
+    (tests/test_semantics_stage.py) several times faster; this one is kept as its reference.
 
     ``segmentation``: the segmenter's output, or None for geometric labels alone;
     ``evidence``: the frame's :class:`LidarEvidence` and ``rays_cam``: (H * W, 3) camera-frame
@@ -525,13 +584,278 @@ def label_camera(
     return CameraSemantics(label, confidence, source)
 
 
+def _new_labels(
+    h: int, w: int, segmentation: SegmenterOutput | None
+) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.uint8]]:
+    """(label, confidence, source) (H, W) of an image before any rule: the segmenter's, or none."""
+    if segmentation is None:
+        return (
+            np.full((h, w), tx.IGNORE_ID, np.uint8),
+            np.zeros((h, w), np.float32),
+            np.zeros((h, w), np.uint8),
+        )
+    assert segmentation.label.shape == (h, w), (segmentation.label.shape, h, w)
+    return (
+        segmentation.label.astype(np.uint8, copy=True),
+        segmentation.confidence.astype(np.float32, copy=True),
+        np.full((h, w), SOURCE["segmenter"], np.uint8),
+    )
+
+
+#: FLAT_LUT[c]: whether class c is flat (road, sidewalk, terrain).
+_FLAT_LUT = np.isin(np.arange(256), list(FLAT_IDS))
+
+
+def _linear(rc: RayComponents, coeff: NDArray[np.float64]) -> NDArray[np.float32]:
+    """(H, W) float32 ``coeff . (x, y, 1)`` of every pixel's ray."""
+    out = rc.x * np.float32(coeff[0])
+    out += rc.y * np.float32(coeff[1])
+    out += np.float32(coeff[2])
+    return out
+
+
+def label_camera(
+    frame: Frame,
+    camera: CameraImage,
+    params: PseudoSemanticsParams,
+    segmentation: SegmenterOutput | None = None,
+    evidence: LidarEvidence | None = None,
+) -> CameraSemantics:
+    """Pseudo labels of one image (see the module docstring).
+
+    ``segmentation``: the segmenter's output, or None for geometric labels alone; ``evidence``:
+    the frame's :class:`LidarEvidence`, computed if None.
+
+    The labels of :func:`label_camera_reference`, computed from what the scene needs: the
+    per-calibration ray tables (:func:`~phigenesis.data.camera_tables.ray_components_of`); each
+    rule's world quantity (height above the ground plane, lateral offset, elevation) as a
+    per-frame linear function of the ray, in float32 (H, W) maps; the LiDAR-bin lookup of the sky
+    rule only on pixels that can be sky, in float64; each box tested only on the pixels of its
+    projected rectangle (:func:`box_rectangles`) within its depth range, in float64
+    (:func:`box_labels_in_rectangles`, a C kernel where one can be built). Pixels may differ from the
+    reference only where a float32 quantity lies within float32 rounding (~1e-6 relative) of a
+    rule's threshold (tests/test_semantics_stage.py measures the share).
+    """
+    cal = camera.calibration
+    h, w = cal.height, cal.width
+    label, confidence, source = _new_labels(h, w, segmentation)
+    if not params.rules:
+        return CameraSemantics(label, confidence, source)
+    evidence = LidarEvidence.of(frame, params) if evidence is None else evidence
+    rc = ray_components_of(cal)
+    depth = np.asarray(pixel_depth(frame, camera), np.float32)
+    has_depth = depth > 0
+    world_from_camera = camera.world_from_camera
+    rot, t = world_from_camera[:3, :3], world_from_camera[:3, 3]
+    segmenter_source = np.uint8(SOURCE["segmenter"])
+    with_segmenter = segmentation is not None
+
+    def apply(mask: NDArray[np.bool_], cls: int, rule: str, replace: NDArray[np.bool_] | None) -> None:
+        """Labels ``mask`` pixels ``cls`` from ``rule`` where ``replace`` allows it (None:
+        everywhere); where the segmenter already says ``cls`` it keeps its source and takes the
+        larger confidence."""
+        conf = np.float32(RULE_CONFIDENCE[rule])
+        take = mask if replace is None else mask & replace
+        if with_segmenter:
+            agree = mask & (label == cls) & (source == segmenter_source)
+            np.maximum(confidence, conf, out=confidence, where=agree)
+            take &= ~agree
+        label[take] = cls
+        confidence[take] = conf
+        source[take] = SOURCE["sky" if rule.startswith("sky") else rule]
+
+    def apply_at(index: NDArray[np.intp], cls: NDArray[np.uint8], rule: str) -> None:
+        """:func:`apply` on the flat pixel indices ``index``, each with its class, everywhere."""
+        conf = np.float32(RULE_CONFIDENCE[rule])
+        lab, con, src = label.reshape(-1), confidence.reshape(-1), source.reshape(-1)
+        if with_segmenter:
+            agree = (lab[index] == cls) & (src[index] == segmenter_source)
+            con[index[agree]] = np.maximum(con[index[agree]], conf)
+            index, cls = index[~agree], cls[~agree]
+        lab[index], con[index], src[index] = cls, conf, SOURCE[rule]
+
+    weak = unsure = None  # without a segmenter every pixel is unlabelled: the rules replace all
+    if with_segmenter:
+        unlabelled = source == SOURCE["none"]
+        weak = unlabelled | (confidence < params.keep_segmenter_above)
+        unsure = unlabelled | (confidence < params.sky_keep_segmenter_above)
+    if "sky" in params.rules and evidence.returns is not None:
+        sky_in, sky_above = _sky_masks(evidence.returns, rc, camera, depth, has_depth, params)
+        apply(sky_in, tx.SKY, "sky", unsure)
+        apply(sky_above, tx.SKY, "sky_above", unsure)
+        del sky_in, sky_above
+    plane = evidence.plane
+    if "ground" in params.rules and plane is not None:
+        # height above the plane: n . (t + d R r) + offset = h0 + d (R^T n) . r
+        height = _linear(rc, rot.T @ plane.normal)
+        height *= depth
+        height += np.float32(plane.normal @ t + plane.offset)
+        rng = rc.norm * depth
+        tol = rng * np.float32(params.ground_tolerance_rel)
+        tol += np.float32(params.ground_tolerance_m)
+        on = has_depth & (np.abs(height, out=height) <= tol) & (rng <= np.float32(params.ground_max_range_m))
+        del height, tol, rng
+        # lateral offset (ego y at the image's pose): e . (t + d R r) + e_3, e the ego's y row
+        ego_from_world = geometry.invert_transform(camera.world_from_ego)
+        lateral = _linear(rc, rot.T @ ego_from_world[1, :3])
+        lateral *= depth
+        lateral += np.float32(ego_from_world[1, :3] @ t + ego_from_world[1, 3])
+        seeds = on & (np.abs(lateral, out=lateral) <= np.float32(params.ground_seed_half_width_m))
+        del lateral
+        road = connected_to(on, seeds)
+        replace = ~_FLAT_LUT[label]
+        if weak is not None:
+            replace &= weak
+        apply(road, tx.ROAD, "ground_plane", replace)
+    if "boxes" in params.rules:
+        boxes = camera_boxes(frame, camera)
+        if len(boxes):
+            index, cls = box_labels_in_rectangles(
+                camera, depth, boxes, params.box_margin_m, params.box_clearance_m
+            )
+            apply_at(index, cls, "box")
+    return CameraSemantics(label, confidence, source)
+
+
+def _sky_masks(
+    returns: tuple[NDArray[np.bool_], float],
+    rc: RayComponents,
+    camera: CameraImage,
+    depth: NDArray[np.float32],
+    has_depth: NDArray[np.bool_],
+    params: PseudoSemanticsParams,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """:func:`sky_mask` from the ray tables: the elevation tests on ``sin(elevation)`` (the world
+    ray's z over its length, linear in the ray: float32), the LiDAR-bin lookup (float64 angles,
+    as :func:`sky_mask`) only on the pixels in the field without depth."""
+    h, w = depth.shape
+    grid, top_deg = returns
+    rot = camera.world_from_camera[:3, :3]
+    sin_elevation = _linear(rc, rot[2])
+    sin_elevation /= rc.norm
+    sin_min = np.float32(np.sin(np.radians(params.sky_min_elevation_deg)))
+    sin_top = np.float32(np.sin(np.radians(min(max(top_deg, -90.0), 90.0))))
+    in_field = (sin_elevation >= sin_min) & (sin_elevation <= sin_top)
+    above = sin_elevation > sin_top
+    del sin_elevation
+    no_depth = ~has_depth
+    sky_in = in_field & no_depth
+    candidates = np.flatnonzero(sky_in)
+    if candidates.size:
+        rays = pixel_rays_cam(camera.calibration)[candidates] @ rot.T  # [P', 3] world axes
+        elevation = np.degrees(np.arctan2(rays[:, 2], np.hypot(rays[:, 0], rays[:, 1])))
+        azimuth = np.degrees(np.arctan2(rays[:, 1], rays[:, 0]))
+        rows, cols = grid.shape
+        hit = grid[
+            _bin(elevation + 90, params.sky_bin_deg, rows), _bin(azimuth + 180, params.sky_bin_deg, cols)
+        ]
+        sky_in.reshape(-1)[candidates[hit]] = False
+    # Above the field: a column whose highest in-field pixel is open sky is sky above it too.
+    has_field = in_field.any(axis=0)
+    first_in = np.argmax(in_field, axis=0)  # topmost in-field row per column (rows go down)
+    open_top = has_field & sky_in[first_in, np.arange(w)]
+    top_rows = int(first_in[open_top].max()) if open_top.any() else 0
+    sky_above = np.zeros((h, w), bool)
+    sub = slice(0, top_rows)
+    sky_above[sub] = (
+        above[sub] & no_depth[sub] & open_top[None, :] & (np.arange(top_rows)[:, None] < first_in[None, :])
+    )
+    return sky_in, sky_above
+
+
+def box_labels_in_rectangles(
+    camera: CameraImage,
+    depth: NDArray[np.float32],
+    boxes: Boxes,
+    margin_m: float,
+    clearance_m: float,
+    native: bool = True,
+) -> tuple[NDArray[np.intp], NDArray[np.uint8]]:
+    """The pixels whose point (the pixel's ray at ``depth``, (H, W) z-depth in metres, 0 unknown)
+    lies in a thing box, and the box's class: :func:`box_labels` on the image's points, but each
+    box tested only on the pixels of its rectangle (:func:`box_rectangles`) whose depth lies in
+    the z range of its corners, with the same float64 arithmetic. Returns (flat row-major pixel
+    indices, their classes); where boxes overlap, the one whose centre is nearest the point wins
+    (the first of equally near ones).
+
+    ``native``: use the C kernel (``csrc/box_labels.c``, one pass over each rectangle) where it
+    can be built; the numpy path (``native=False``, or without a compiler) is its reference."""
+    w = depth.shape[1]
+    kernel = load_box_labels() if native else None
+    flat_depth = depth.reshape(-1)
+    rays = pixel_rays_cam(camera.calibration)
+    rot, t = camera.world_from_camera[:3, :3], camera.world_from_camera[:3, 3]
+    rotations = geometry.quaternion_to_matrix(boxes.orientation_world).reshape(-1, 3, 3)
+    labels: NDArray[np.uint8] | None = None
+    best: NDArray[np.float64] | None = None
+    for k, found in enumerate(_box_footprints(camera, boxes, margin_m)):
+        cls = int(boxes.class_id[k])
+        if found is None or cls not in BOX_CLASSES:
+            continue
+        (v0, v1, u0, u1), z_lo, z_hi = found
+        pad = 1e-3 * max(1.0, abs(z_hi))  # rounding of the corners' z
+        half = 0.5 * boxes.size_lwh[k]
+        if kernel is not None:
+            if labels is None or best is None:
+                labels = np.full(depth.size, tx.IGNORE_ID, np.uint8)
+                best = np.full(depth.size, np.inf)
+            limits = np.array(
+                [half[0] + margin_m, half[1] + margin_m, half[2] + margin_m, -half[2] + clearance_m]
+            )
+            kernel(
+                np.ascontiguousarray(depth, np.float32),
+                rays,
+                (v0, v1, u0, u1),
+                (z_lo - pad, z_hi + pad),
+                camera.world_from_camera,
+                boxes.center_world[k],
+                rotations[k],
+                limits,
+                cls,
+                labels,
+                best,
+            )
+            continue
+        window = depth[v0:v1, u0:u1]
+        rows, cols = np.nonzero((window > 0) & (window >= z_lo - pad) & (window <= z_hi + pad))
+        if rows.size == 0:
+            continue
+        index = (rows + v0) * w + (cols + u0)
+        del rows, cols
+        points = t + (rays[index] @ rot.T) * flat_depth[index, None].astype(np.float64)  # [P', 3] world
+        offset = points - boxes.center_world[k]
+        local = offset @ rotations[k]  # box frame: R^T p
+        inside = (
+            (np.abs(local[:, 0]) <= half[0] + margin_m)
+            & (np.abs(local[:, 1]) <= half[1] + margin_m)
+            & (local[:, 2] <= half[2] + margin_m)
+            & (local[:, 2] >= -half[2] + clearance_m)
+        )
+        if not inside.any():
+            continue
+        index, offset = index[inside], offset[inside]
+        dist2 = np.einsum("ij,ij->i", offset, offset)
+        if labels is None or best is None:
+            labels = np.full(depth.size, tx.IGNORE_ID, np.uint8)
+            best = np.full(depth.size, np.inf)
+        closer = dist2 < best[index]  # the nearest centre wins; the first of equally near ones
+        labels[index[closer]] = cls
+        best[index[closer]] = dist2[closer]
+    if labels is None:
+        return np.zeros(0, np.intp), np.zeros(0, np.uint8)
+    index = np.flatnonzero(labels != tx.IGNORE_ID)
+    return index, labels[index]
+
+
 def label_frame(
     frame: Frame,
     params: PseudoSemanticsParams,
     segmenter: Segmenter | None = None,
     cache: RayCache | None = None,
 ) -> Frame:
-    """The frame with ``pseudo`` labels on every camera that has an image."""
+    """The frame with ``pseudo`` labels on every camera that has an image. ``cache`` is not used
+    (the pixel rays are per-calibration tables now: :mod:`phigenesis.data.camera_tables`); it is
+    kept for callers that pass one."""
     cams = [c for c in frame.cameras if c.image_bytes is not None]
     if not cams:
         return frame
@@ -540,26 +864,100 @@ def label_frame(
         outputs = segmenter.segment([c.decode_image() for c in cams])
         segmented = {c.name: p for c, p in zip(cams, outputs, strict=True)}
     evidence = LidarEvidence.of(frame, params)
-    cache = cache or RayCache()
     cameras = [
         c
         if c.image_bytes is None
         else dataclasses.replace(
             c,
-            pseudo=label_camera(
-                frame, c, params, segmented.get(c.name), evidence, cache.rays(c) if params.rules else None
-            ),
+            pseudo=label_camera(frame, c, params, segmented.get(c.name), evidence),
         )
         for c in frame.cameras
     ]
     return dataclasses.replace(frame, cameras=cameras)
 
 
+#: A camera whose pseudo labels cover less than this share of its pixels over a scene is warned
+#: about (:class:`LabelCoverage`).
+MIN_LABEL_COVERAGE = 0.01
+
+
+class LabelCoverage:
+    """Per-camera share of pixels given a pseudo label (source other than none) over a scene.
+
+    Each frame counts once however often a lazy frame is loaded (the last load wins). Once every
+    frame of the scene has been seen, :meth:`add` logs the shares in one INFO line and a WARNING
+    per camera under ``min_share`` (once per scene): nearly empty labels usually mean no
+    segmenter and neither boxes, ground nor open sky in view (a camera facing the ego body, a
+    frame without LiDAR or boxes), so the semantic targets of that view are missing.
+    """
+
+    def __init__(self, scene_id: str, frames: int, segmenter: bool, min_share: float = MIN_LABEL_COVERAGE):
+        self.scene_id = scene_id
+        self.frames = frames
+        self.segmenter = segmenter
+        self.min_share = min_share
+        self.reported = False
+        self._counts: dict[int, dict[str, tuple[int, int]]] = {}
+
+    def add(self, frame: Frame) -> None:
+        """Counts the frame's labelled cameras' (pixels, labelled pixels); reports when the
+        scene is complete."""
+        self._counts[frame.frame_index] = {
+            c.name: (int(c.pseudo.source.size), int(np.count_nonzero(c.pseudo.source)))
+            for c in frame.cameras
+            if c.pseudo is not None
+        }
+        if len(self._counts) >= self.frames:
+            self.report()
+
+    def shares(self) -> dict[str, float]:
+        """Share of pixels labelled, by camera (in the order first seen), over the frames seen."""
+        totals: dict[str, list[int]] = {}
+        for counts in self._counts.values():
+            for name, (pixels, labelled) in counts.items():
+                t = totals.setdefault(name, [0, 0])
+                t[0] += pixels
+                t[1] += labelled
+        return {name: labelled / max(pixels, 1) for name, (pixels, labelled) in totals.items()}
+
+    def report(self) -> None:
+        """Logs the shares once (INFO), and a WARNING per camera below ``min_share``."""
+        if self.reported:
+            return
+        self.reported = True
+        shares = self.shares()
+        if not shares:
+            return
+        log.info(
+            "scene %s: pseudo labels over %d frames, share of pixels labelled: %s",
+            self.scene_id,
+            len(self._counts),
+            ", ".join(f"{name} {100 * share:.1f} %" for name, share in shares.items()),
+        )
+        for name, share in shares.items():
+            if share < self.min_share:
+                log.warning(
+                    "scene %s camera %s: pseudo labels cover only %.2f %% of its pixels over the scene "
+                    "(under %.0f %%): %s, so its semantic targets are (nearly) empty. Does the view show "
+                    "no boxed things, no ground and no open sky (the ego body, a wall), or does the "
+                    "scene lack LiDAR or boxes?",
+                    self.scene_id,
+                    name,
+                    100 * share,
+                    100 * self.min_share,
+                    "a segmenter labelled it"
+                    if self.segmenter
+                    else "no segmenter checkpoint, geometric rules only",
+                )
+
+
 @register_stage("pseudo_semantics", params=PseudoSemanticsParams)
 def pseudo_semantics(scene: Scene, p: PseudoSemanticsParams) -> Scene:
     """Stage: pseudo-semantic labels for every image (see the module docstring). Runs after the
     depth stages when they are in the pipeline (it uses their depth); frames are labelled lazily
-    when the scene's frames are a :class:`LazyFrames`."""
+    when the scene's frames are a :class:`LazyFrames`. Once every frame is labelled, the share of
+    each camera's pixels labelled is logged (INFO), with a WARNING for a camera under
+    :data:`MIN_LABEL_COVERAGE` (:class:`LabelCoverage`)."""
     segmenter = None
     if p.checkpoint is not None:
         segmenter = Segmenter.load(p.checkpoint, p.model, p.input_height, p.device)
@@ -569,13 +967,16 @@ def pseudo_semantics(scene: Scene, p: PseudoSemanticsParams) -> Scene:
             scene.scene_id,
             ", ".join(p.rules) or "none",
         )
-    cache = RayCache()
+    coverage = LabelCoverage(scene.scene_id, len(scene.frames), segmenter is not None)
 
     def run(frame: Frame) -> Frame:
-        return label_frame(frame, p, segmenter, cache)
+        labelled = label_frame(frame, p, segmenter)
+        coverage.add(labelled)
+        return labelled
 
     if isinstance(scene.frames, LazyFrames):
         scene.frames = scene.frames.map(run)
     else:
         scene.frames = [run(f) for f in scene.frames]
+        coverage.report()
     return scene
