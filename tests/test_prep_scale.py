@@ -11,7 +11,7 @@ import pytest
 from phigenesis import prep
 from phigenesis.data import camera_tables
 from phigenesis.data import taxonomy as tx
-from phigenesis.data.coverage import MIN_PSEUDO_SHARE, SceneCoverage
+from phigenesis.data.coverage import SceneCoverage
 from phigenesis.data.records import Boxes, CameraCalibration, CameraDepth, CameraImage, CameraSemantics, Frame
 from phigenesis.data.stages import SETUP_RUNS
 from tests.conftest import TINY_PREP_ARGS
@@ -51,9 +51,9 @@ def counted_run(tmp_path_factory: pytest.TempPathFactory):
 def test_per_calibration_tables_are_computed_once_for_all_stages_and_frames(counted_run):
     summary, computed, setups, _ = counted_run
     assert summary.frames_written == 6
-    # Both scenes use the same five calibrations: five ray tables and five ego-body depths in all,
-    # shared by the projection, the labels, the completion and the range view of all six frames.
-    assert computed == {"pixel_rays": 5, "ego_body_depth": 5}
+    # Both scenes use the same five calibrations: five of each table in all, shared by the
+    # projection, the labels, the completion and the range view of all six frames.
+    assert computed == {"pixel_rays": 5, "ego_body_depth": 5, "ray_components": 5}
     assert setups == {"range_view": 2}  # the stage's declared setup: once per scene
 
 
@@ -99,22 +99,15 @@ def _labelled_frame(index: int, labelled_pixels: int) -> Frame:
     return Frame("s", index, index * 100_000, np.eye(4), [cam], None, Boxes.empty())
 
 
-@pytest.mark.parametrize(("labelled", "warned"), [(20, True), (60, False)])
-def test_thin_pseudo_labels_are_warned_about_by_camera(caplog, labelled, warned):
+def test_the_coverage_line_counts_each_map_over_the_frames_written(caplog):
     coverage = SceneCoverage("s")
     for i in range(2):
-        coverage.add(_labelled_frame(i, labelled))
+        coverage.add(_labelled_frame(i, 20 + 40 * i))
     with caplog.at_level(logging.INFO, logger="phigenesis.prep"):
         coverage.report()
-    (info,) = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
-    share = 100 * labelled / 5000
-    assert f"CAM (sparse 20.0 %, dense 0.0 %; pseudo labels {share:.1f} %)" in info
-    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
-    assert (labelled / 5000 < MIN_PSEUDO_SHARE) == warned
-    if warned:
-        assert (
-            len(warnings) == 1
-            and f"scene s camera CAM: pseudo labels cover only {share:.2f} %" in warnings[0]
-        )
-    else:
-        assert warnings == []
+    (info,) = [r.getMessage() for r in caplog.records]
+    # 20 + 60 labelled pixels of 10,000; 1,000 sparse depths per frame; no dense map.
+    assert info == (
+        "scene s: what the cache holds over 2 frames, share of pixels: "
+        "CAM (sparse 20.0 %, dense 0.0 %; pseudo labels 0.8 %)"
+    )

@@ -17,9 +17,6 @@ from phigenesis.data.records import Frame
 
 log = logging.getLogger("phigenesis.prep")
 
-#: A camera whose pseudo labels cover less than this share of its pixels is warned about.
-MIN_PSEUDO_SHARE = 0.01
-
 
 @dataclass
 class CameraCounts:
@@ -62,9 +59,8 @@ class SceneCoverage:
                 c.pseudo += int(np.count_nonzero(cam.pseudo.semantic != tx.IGNORE_ID))
 
     def report(self) -> None:
-        """Logs one INFO line of the shares per camera, and a WARNING per camera whose pseudo
-        labels cover under :data:`MIN_PSEUDO_SHARE` of its pixels (a thin sparse depth is warned
-        about by ``densify_depth``, which knows the scene's ``min_sparse_coverage``)."""
+        """Logs one INFO line of the shares per camera (the stages warn about thin maps:
+        ``densify_depth`` about a thin sparse depth, ``pseudo_semantics`` about thin labels)."""
         depth = {n: c for n, c in self.cameras.items() if c.with_depth}
         pseudo = {n: c for n, c in self.cameras.items() if c.with_pseudo}
         if not depth and not pseudo:
@@ -87,14 +83,3 @@ class SceneCoverage:
             self.frames,
             ", ".join(parts),
         )
-        for name, c in pseudo.items():
-            share = c.share(c.pseudo, c.with_pseudo)
-            if share < MIN_PSEUDO_SHARE:
-                log.warning(
-                    "scene %s camera %s: pseudo labels cover only %.2f %% of its pixels: without a segmenter "
-                    "checkpoint only boxes, the ground plane and the sky are labelled; is the ground out of "
-                    "view, the depth empty, or a segmenter missing (pseudo_semantics checkpoint)?",
-                    self.scene_id,
-                    name,
-                    100 * share,
-                )

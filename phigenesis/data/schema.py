@@ -203,7 +203,8 @@ class CameraColumns:
     )
     truth_flow_png: bytes = col(
         pa.binary(),
-        "exact world-frame velocity of the visible surface, 16-bit 3-channel map, m/s = (value - 32768) / 256",
+        "exact world-frame velocity of the visible surface, 16-bit 3-channel map, "
+        "m/s = (value - 32768) / 256",
         "m/s",
         "world",
         "truth_flow",

@@ -885,8 +885,9 @@ class LabelCoverage:
     """Per-camera share of pixels given a pseudo label (source other than none) over a scene.
 
     Each frame counts once however often a lazy frame is loaded (the last load wins). Once every
-    frame of the scene has been seen, :meth:`add` logs the shares in one INFO line and a WARNING
-    per camera under ``min_share`` (once per scene): nearly empty labels usually mean no
+    frame of the scene has been seen, :meth:`add` logs a WARNING per camera under ``min_share``
+    (once per scene; the shares themselves are in the pipeline's line on what the cache holds,
+    :class:`~phigenesis.data.coverage.SceneCoverage`): nearly empty labels usually mean no
     segmenter and neither boxes, ground nor open sky in view (a camera facing the ego body, a
     frame without LiDAR or boxes), so the semantic targets of that view are missing.
     """
@@ -921,19 +922,13 @@ class LabelCoverage:
         return {name: labelled / max(pixels, 1) for name, (pixels, labelled) in totals.items()}
 
     def report(self) -> None:
-        """Logs the shares once (INFO), and a WARNING per camera below ``min_share``."""
+        """Logs a WARNING per camera below ``min_share``, once."""
         if self.reported:
             return
         self.reported = True
         shares = self.shares()
         if not shares:
             return
-        log.info(
-            "scene %s: pseudo labels over %d frames, share of pixels labelled: %s",
-            self.scene_id,
-            len(self._counts),
-            ", ".join(f"{name} {100 * share:.1f} %" for name, share in shares.items()),
-        )
         for name, share in shares.items():
             if share < self.min_share:
                 log.warning(
@@ -955,9 +950,8 @@ class LabelCoverage:
 def pseudo_semantics(scene: Scene, p: PseudoSemanticsParams) -> Scene:
     """Stage: pseudo-semantic labels for every image (see the module docstring). Runs after the
     depth stages when they are in the pipeline (it uses their depth); frames are labelled lazily
-    when the scene's frames are a :class:`LazyFrames`. Once every frame is labelled, the share of
-    each camera's pixels labelled is logged (INFO), with a WARNING for a camera under
-    :data:`MIN_LABEL_COVERAGE` (:class:`LabelCoverage`)."""
+    when the scene's frames are a :class:`LazyFrames`. Once every frame is labelled, a camera whose
+    labels cover under :data:`MIN_LABEL_COVERAGE` of its pixels is warned about (:class:`LabelCoverage`)."""
     segmenter = None
     if p.checkpoint is not None:
         segmenter = Segmenter.load(p.checkpoint, p.model, p.input_height, p.device)
