@@ -34,6 +34,8 @@ def synthetic(
     rig: str | None = None,
     height: int | None = None,
     width: int | None = None,
+    preset: str | None = None,
+    render_scale: int | None = None,
     pipeline: str | os.PathLike[str] | PipelineSpec = "synthetic",
     executor: ExecutorName = "local",
     workers: int = 1,
@@ -45,19 +47,28 @@ def synthetic(
 ) -> PrepSummary:
     """Renders ``scenes`` synthetic scenes of ``frames`` frames into a cache at ``out``.
 
-    ``rig``, ``height``, ``width`` and any other synthetic source parameter
-    (:class:`~phigenesis.data.sources.synthetic.SyntheticConfig`) override the pipeline spec's
-    defaults. See :func:`~phigenesis.data.pipeline.prepare` for the run options.
+    ``preset`` (``waymo`` or ``nuscenes``: the real rigs' image sizes and LiDARs, see
+    :mod:`phigenesis.data.sources.synthetic.presets`) replaces the pipeline spec's sensors;
+    ``rig``, ``height``, ``width``, ``render_scale`` and any other synthetic source parameter
+    (:class:`~phigenesis.data.sources.synthetic.SyntheticConfig`) override both. See
+    :func:`~phigenesis.data.pipeline.prepare` for the run options.
     """
-    overrides = {
+    overrides: dict[str, Any] = {}
+    if preset is not None:
+        from phigenesis.data.sources.synthetic.presets import preset_values
+
+        overrides.update(preset_values(preset))
+    explicit = {
         "scenes": scenes,
         "frames": frames,
         "seed": seed,
         "rig": rig,
         "height": height,
         "width": width,
+        "render_scale": render_scale,
+        **source_params,
     }
-    overrides.update(source_params)
+    overrides.update({k: v for k, v in explicit.items() if v is not None})
     return prepare(
         out,
         "synthetic",

@@ -206,3 +206,26 @@ def test_cli_rejects_a_preset_that_does_not_fit_the_format(
     with pytest.raises(ConfigError, match="preset 'nuscenes' does not match format 'waymo-v1'"):
         synth("waymo-v1", tmp_path, preset="nuscenes")
     assert not any(tmp_path.iterdir())
+
+
+def test_prep_synthetic_takes_a_preset_and_explicit_values_override_it(tmp_path):
+    from phigenesis import prep
+    from phigenesis.data.schema import lidar_of
+    from phigenesis.data.shards import CacheReader, Manifest
+
+    summary = prep.synthetic(
+        tmp_path / "c", preset="waymo", scenes=1, frames=1, height=64, width=96, progress=False
+    )
+    assert summary.frames_written == 1
+    arguments = Manifest.load(tmp_path / "c").arguments
+    assert (arguments["height"], arguments["width"], arguments["uniform_image_size"]) == (64, 96, False)
+    assert (arguments["lidar"]["beams"], arguments["lidar"]["columns"]) == (64, 2650)
+    assert [lidar["name"] for lidar in arguments["extra_lidars"]] == [
+        "FRONT",
+        "SIDE_LEFT",
+        "SIDE_RIGHT",
+        "REAR",
+    ]
+    sweep = lidar_of(CacheReader(tmp_path / "c").read(0))
+    assert set(np.unique(sweep.lidar_id)) == {0, 1, 2, 3, 4}
+    assert set(np.unique(sweep.return_index)) == {0, 1}

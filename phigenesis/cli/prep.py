@@ -12,6 +12,7 @@ from phigenesis import prep
 from phigenesis.cli.common import Command, Parser, positive, run
 from phigenesis.data.executors import EXECUTORS
 from phigenesis.data.shards import CacheReader, Manifest
+from phigenesis.data.sources.synthetic.presets import PRESET_NAMES
 from phigenesis.data.sources.synthetic.rigs import RIG_NAMES
 from phigenesis.malloc_tuning import avoid_huge_page_faults, keep_freed_memory
 
@@ -56,6 +57,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rig", choices=RIG_NAMES, help="camera rig (default from the pipeline: waymo5)")
     s.add_argument("--height", type=positive, help="image height in pixels (default 160)")
     s.add_argument("--width", type=positive, help="image width in pixels (default 240)")
+    s.add_argument(
+        "--preset",
+        choices=PRESET_NAMES,
+        help="the real rig's sensor sizes (waymo: 5 cameras at 1920 x 1280/886, five LiDARs, two returns; "
+        "nuscenes: 6 cameras at 1600 x 900, a 32-beam LiDAR); --rig/--height/--width override it",
+    )
+    s.add_argument(
+        "--render-scale",
+        type=positive,
+        help="ray cast the images at 1/N of their size and resize them (cost benchmarks; default 1)",
+    )
     _run_options(s)
 
     w = sub.add_parser("waymo", help="convert Waymo Open Dataset segments (v1 TFRecord or v2 Parquet)")
@@ -117,6 +129,8 @@ def _synthetic(args: argparse.Namespace) -> int:
         rig=args.rig,
         height=args.height,
         width=args.width,
+        preset=args.preset,
+        render_scale=args.render_scale,
         **_run_arguments(args, "synthetic"),
     )
     print(summary.describe())

@@ -110,3 +110,13 @@ PRESETS: dict[str, dict[str, Any]] = {
     },
 }
 PRESET_NAMES: tuple[str, ...] = tuple(PRESETS)
+
+
+def preset_values(name: str) -> dict[str, Any]:
+    """Preset ``name``'s fields as plain values (LiDARs as mappings), as a pipeline spec or a
+    command line's overrides hold them; a :class:`~phigenesis.options.ConfigError` names the
+    presets for an unknown name."""
+    from phigenesis.data.sources.synthetic import SyntheticConfig
+
+    full = SyntheticConfig.from_preset(name).to_dict()
+    return {key: full[key] for key in PRESETS[name]}
