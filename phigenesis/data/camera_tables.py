@@ -6,7 +6,9 @@ the depth completion and the range view all need them for every image. They are 
 once per calibration and shared, read-only, by every stage of every frame of the scenes that use
 that calibration (at full Waymo resolution one camera's rays cost about 0.8 s and 59 MB).
 
-Entry points: :func:`pixel_rays_cam` and :func:`ego_body_depth_of`. Both keep the last
+Entry points: :func:`pixel_rays_cam`, :func:`ego_body_depth_of` and :func:`ray_extents_of`
+(per row and per column, the range of the rays' normalised coordinates: what lets a stage work
+only inside an object's projected footprint). Each keeps the last
 :data:`MAX_CACHED_CAMERAS` calibrations (a worker converts one scene at a time, and a rig has at
 most six cameras), so memory stays bounded across the scenes of a run. :data:`COMPUTED` counts
 what was computed, for the tests and the benchmark to check that it happens once per calibration.
@@ -133,6 +135,7 @@ class _Tables:
 
 _RAYS = _Tables("pixel_rays", MAX_CACHED_CAMERAS)
 _EGO_DEPTH = _Tables("ego_body_depth", MAX_CACHED_CAMERAS)
+_EXTENTS = _Tables("ray_extents", MAX_CACHED_CAMERAS)
 
 
 def pixel_rays_cam(cal: CameraCalibration) -> NDArray[np.float64]:
@@ -153,7 +156,46 @@ def ego_body_depth_of(cal: CameraCalibration, ego_boxes: Sequence[dict[str, Any]
     )
 
 
+def ray_extents(cal: CameraCalibration, rays_cam: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The extents of the pixel rays' normalised coordinates (x/z, y/z, camera frame): an
+    (H + W, 2) array whose first H rows are each image row's (min, max) of y/z and whose last W
+    rows are each column's (min, max) of x/z.
+
+    A ray (x, y, 1) can only belong to a pixel of a row whose y-range holds y and of a column
+    whose x-range holds x: the pixels whose rays may meet a region bounded by [x0, x1] x
+    [y0, y1] lie in the rows and columns whose ranges meet it (:func:`footprint_pixels`)."""
+    xy = rays_cam[:, :2].reshape(cal.height, cal.width, 2)
+    # fmin/fmax skip NaN rays (they meet nothing); an all-NaN row or column stays NaN and is
+    # never selected.
+    x, y = xy[:, :, 0], xy[:, :, 1]
+    rows = np.stack([np.fmin.reduce(y, axis=1), np.fmax.reduce(y, axis=1)], axis=1)
+    cols = np.stack([np.fmin.reduce(x, axis=0), np.fmax.reduce(x, axis=0)], axis=1)
+    return np.concatenate([rows, cols])
+
+
+def ray_extents_of(cal: CameraCalibration) -> NDArray[np.float64]:
+    """:func:`ray_extents` of the calibration's pixel rays, computed once per calibration,
+    read-only ((H + W, 2), 20 KB at 1920x1280)."""
+    return _EXTENTS.get(cal.key(), lambda: ray_extents(cal, pixel_rays_cam(cal)))
+
+
+def footprint_pixels(
+    cal: CameraCalibration, x_range: tuple[float, float], y_range: tuple[float, float]
+) -> tuple[slice, slice] | None:
+    """(rows, columns) slices of the image holding every pixel whose ray's normalised
+    coordinates (x/z, y/z) may lie in ``x_range`` x ``y_range`` (a superset, from
+    :func:`ray_extents_of`); None if no pixel can."""
+    extents = ray_extents_of(cal)
+    rows, cols = extents[: cal.height], extents[cal.height :]
+    row_hit = np.flatnonzero((rows[:, 1] >= y_range[0]) & (rows[:, 0] <= y_range[1]))
+    col_hit = np.flatnonzero((cols[:, 1] >= x_range[0]) & (cols[:, 0] <= x_range[1]))
+    if row_hit.size == 0 or col_hit.size == 0:
+        return None
+    return slice(int(row_hit[0]), int(row_hit[-1]) + 1), slice(int(col_hit[0]), int(col_hit[-1]) + 1)
+
+
 def clear() -> None:
     """Drops every cached table (tests; a worker between unrelated runs)."""
     _RAYS.clear()
     _EGO_DEPTH.clear()
+    _EXTENTS.clear()

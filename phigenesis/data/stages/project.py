@@ -45,7 +45,12 @@ from numpy.typing import NDArray
 
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
-from phigenesis.data.camera_tables import ego_body_depth_from_rays, ego_body_depth_of, pixel_rays_cam
+from phigenesis.data.camera_tables import (
+    ego_body_depth_from_rays,
+    ego_body_depth_of,
+    footprint_pixels,
+    pixel_rays_cam,
+)
 from phigenesis.data.camera_tables import ray_box_depths as ray_box_depths  # re-exported
 from phigenesis.data.ego_body import camera_centres, check_sensors_outside
 from phigenesis.data.records import DEPTH_ORIGINS, CameraDepth, CameraImage, Frame, LazyFrames, Scene
@@ -457,6 +462,35 @@ def ego_body_depth(
     return ego_body_depth_from_rays(camera.calibration, ego_boxes, rays)
 
 
+#: Boxes are clipped to z >= this (metres, camera frame) before their footprint is taken.
+_CLIP_Z_M = 1e-6
+#: The 12 edges of a box, as pairs of indices into ``geometry.BOX_CORNER_SIGNS``.
+_BOX_EDGES = [
+    (i, j)
+    for i in range(8)
+    for j in range(i + 1, 8)
+    if np.sum(geometry.BOX_CORNER_SIGNS[i] != geometry.BOX_CORNER_SIGNS[j]) == 1
+]
+
+
+def normalized_footprint(corners_cam: NDArray[np.float64]) -> tuple[tuple[float, float], ...] | None:
+    """((x0, x1), (y0, y1)): bounds of x/z and y/z over a box (its 8 corners, camera frame)
+    clipped to z >= :data:`_CLIP_Z_M`, None if nothing of it lies in front of the camera. A
+    convex solid's pinhole image is the hull of its vertices' images, so every ray (x, y, 1)
+    that meets the clipped box lies in these bounds."""
+    z = corners_cam[:, 2]
+    vertices = [corners_cam[z >= _CLIP_Z_M]]
+    for i, j in _BOX_EDGES:
+        if (z[i] - _CLIP_Z_M) * (z[j] - _CLIP_Z_M) < 0:
+            t = (_CLIP_Z_M - z[i]) / (z[j] - z[i])
+            vertices.append((corners_cam[i] + t * (corners_cam[j] - corners_cam[i]))[None])
+    points = np.concatenate(vertices)
+    if len(points) == 0:
+        return None
+    x, y = points[:, 0] / points[:, 2], points[:, 1] / points[:, 2]
+    return (float(x.min()), float(x.max())), (float(y.min()), float(y.max()))
+
+
 def vehicle_far_depth(
     frame: Frame,
     camera: CameraImage,
@@ -465,6 +499,56 @@ def vehicle_far_depth(
     rays: NDArray[np.float64],
 ) -> NDArray[np.float32]:
     """(H, W) depth of the far side of the nearest moving vehicle box (shrunk, bottom raised) on
+    each pixel's ray at the image's time, inf where none: nothing beyond it can be visible.
+
+    Each box's rays are tested only over its footprint: the rows and columns whose rays' extents
+    (:func:`~phigenesis.data.camera_tables.footprint_pixels`) meet the bounds of its
+    :func:`normalized_footprint`, also for a box that reaches behind the camera (a car alongside),
+    where :func:`vehicle_far_depth_reference` tested every pixel."""
+    cal = camera.calibration
+    h, w = cal.height, cal.width
+    far = np.full((h, w), np.inf, np.float32)
+    boxes = frame.boxes
+    dt_s = (camera.timestamp_micros - frame.timestamp_micros) * 1e-6
+    camera_from_world = geometry.invert_transform(camera.world_from_camera)
+    grid = rays.reshape(h, w, 3)
+    for k, track in enumerate(boxes.track_id):
+        cls = int(boxes.class_id[k])
+        if track not in moving_tracks or cls not in VEHICLE_IDS | PERSON_IDS:
+            continue
+        clearance = params.occluder_clearance_m if cls in VEHICLE_IDS else 0.0
+        shrink = params.occluder_shrink if cls in VEHICLE_IDS else params.person_core
+        size = boxes.size_lwh[k] * np.array([shrink, shrink, 1.0])
+        size[2] -= clearance
+        if np.any(size <= 0):
+            continue
+        rotation = geometry.quaternion_to_matrix(boxes.orientation_world[k])
+        centre = boxes.center_world[k] + boxes.velocity_world[k] * dt_s + rotation[:, 2] * 0.5 * clearance
+        camera_from_box = camera_from_world @ geometry.make_transform(rotation, centre)
+        corners = geometry.transform_points(camera_from_box, 0.5 * size * geometry.BOX_CORNER_SIGNS)
+        bounds = normalized_footprint(corners)
+        region = None if bounds is None else footprint_pixels(cal, *bounds)
+        if region is None:
+            continue
+        rows, cols = region
+        sub = grid[rows, cols]
+        _, t_out = ray_box_depths(sub.reshape(-1, 3), camera_from_box, 0.5 * size)
+        np.minimum(far[rows, cols], t_out.reshape(sub.shape[:2]), out=far[rows, cols])
+    return far
+
+
+def vehicle_far_depth_reference(
+    frame: Frame,
+    camera: CameraImage,
+    moving_tracks: frozenset[str],
+    params: ProjectParams,
+    rays: NDArray[np.float64],
+) -> NDArray[np.float32]:
+    """The reference :func:`vehicle_far_depth`: each box's rays over the bounding box of its
+    projected corners, or over the whole image when a corner lies nearer than ``min_depth_m``.
+    Kept for the tests.
+
+    (H, W) depth of the far side of the nearest moving vehicle box (shrunk, bottom raised) on
     each pixel's ray at the image's time, inf where none: nothing beyond it can be visible."""
     cal = camera.calibration
     h, w = cal.height, cal.width
@@ -650,6 +734,51 @@ def _plane_at_centre(m: dict, min_points: int) -> tuple[NDArray, NDArray, NDArra
     return a, b, c, rms
 
 
+def occupied_window_moments(
+    occupied: NDArray[np.int64], own: NDArray[np.float64], shape: tuple[int, int], radius: int
+) -> NDArray[np.float64]:
+    """(K, 10) moments (:data:`MOMENT_NAMES` order) of the ``(2r+1)^2`` window of each occupied
+    pixel, offsets taken from that pixel's centre: :func:`window_moments` evaluated only at the
+    ``occupied`` pixels (sorted flat indices; ``own`` their (K, 10) per-pixel moments).
+
+    Only occupied pixels contribute to a window and only their windows are used, so this is the
+    same sum over at most (2r+1)^2 neighbours per occupied pixel (found by binary search), not
+    ten whole-image filters: about 1 % of a full-size image's pixels hold a point."""
+    h, w = shape
+    k = len(occupied)
+    out = np.zeros((k, len(MOMENT_NAMES)))
+    if k == 0:
+        return out
+    row, col = occupied // w, occupied % w
+    n, u, v, uu, vv, uv, y, uy, vy, yy = own.T
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            inside = (col + dx >= 0) & (col + dx < w) & (row + dy >= 0) & (row + dy < h)
+            target = occupied + dy * w + dx
+            j = np.minimum(np.searchsorted(occupied, target), k - 1)
+            at = np.flatnonzero(inside & (occupied[j] == target))
+            if at.size == 0:
+                continue
+            nb = j[at]
+            # A neighbour at (dx, dy) has offsets du + dx, dv + dy from this pixel's centre.
+            out[at] += np.stack(
+                [
+                    n[nb],
+                    u[nb] + dx * n[nb],
+                    v[nb] + dy * n[nb],
+                    uu[nb] + 2 * dx * u[nb] + dx * dx * n[nb],
+                    vv[nb] + 2 * dy * v[nb] + dy * dy * n[nb],
+                    uv[nb] + dx * v[nb] + dy * u[nb] + dx * dy * n[nb],
+                    y[nb],
+                    uy[nb] + dx * y[nb],
+                    vy[nb] + dy * y[nb],
+                    yy[nb],
+                ],
+                axis=1,
+            )
+    return out
+
+
 def fit_pixels(
     pixel: NDArray[np.int64],
     uv: NDArray[np.float64],
@@ -659,6 +788,79 @@ def fit_pixels(
     params: ProjectParams,
 ) -> PixelFit:
     """Depth at each pixel centre from the visible points (image pixel ``pixel``, position
+    ``uv``, depth ``z``): ``1/z = a + b du + c dv`` (du, dv: offset from the centre, pixels)
+    fitted to the points of the pixel's ``(2 fit_window_px + 1)^2`` window where they lie on
+    one plane (RMS residual within ``fit_tolerance``/2), else to the pixel's own points. The
+    pixel is mixed if one of its own points lies farther than the tolerance from its own
+    fit or, with too few points for one, from ``reference_m`` (the point nearest its centre).
+
+    The moments and fits are computed for the occupied pixels only
+    (:func:`occupied_window_moments`); :func:`fit_pixels_reference` is the same on whole-image
+    maps (equal to rounding: the sums are taken in another order)."""
+    h, w = shape
+    size = h * w
+    z = np.asarray(z, np.float64)
+    du = uv[:, 0] - pixel % w
+    dv = uv[:, 1] - pixel // w
+    y = 1.0 / z
+    occupied, inverse = np.unique(pixel, return_inverse=True)
+    k = len(occupied)
+    values = (None, du, dv, du * du, dv * dv, du * dv, y, du * y, dv * y, y * y)
+    sums = [np.bincount(inverse, weights=v, minlength=k) for v in values]
+    own_k = np.stack(sums, axis=1).astype(np.float64)
+    own = dict(zip(MOMENT_NAMES, own_k.T, strict=True))
+    count_k = own["n"].astype(np.int64)
+    a, b, c, _ = _plane_at_centre(own, params.plane_min_points)
+    zmin = np.full(k, np.inf)
+    zmax = np.zeros(k)
+    np.minimum.at(zmin, inverse, z)
+    np.maximum.at(zmax, inverse, z)
+    reference = np.asarray(reference_m)[occupied]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # As in fit_pixels_reference: the centre's depth stays within the pixel's own depth range
+        # widened by its span, and at least half the nearest point's depth.
+        span = zmax - zmin
+        depth = np.where(a > 0, np.clip(1.0 / a, np.maximum(zmin - span, 0.5 * zmin), zmax + span), np.nan)
+        fitted = np.isfinite(a)[inverse]
+        plane_z = 1.0 / (a[inverse] + b[inverse] * du + c[inverse] * dv)
+        expected = np.where(fitted, plane_z, reference[inverse])
+        deviation = np.nan_to_num(np.abs(z - expected), nan=np.inf)
+    worst = np.zeros(k)
+    np.maximum.at(worst, inverse, deviation)
+    base = np.where(np.isfinite(depth), depth, reference)
+    tolerance = params.fit_tolerance_m + params.fit_tolerance_rel * base
+    mixed = worst > tolerance
+    if params.fit_window_px > 0 and k:
+        window = occupied_window_moments(occupied, own_k, shape, params.fit_window_px)
+        window_fit = dict(zip(MOMENT_NAMES, window.T, strict=True))
+        wa, _, _, rms = _plane_at_centre(window_fit, params.plane_min_points)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            window_z = 1.0 / wa
+            window_tolerance = params.window_tolerance_m + params.window_tolerance_rel * window_z
+            good = np.isfinite(window_z) & (window_z > 0) & (rms * window_z**2 <= window_tolerance)
+            good &= np.abs(window_z - base) <= tolerance
+        depth = np.where(good, window_z, depth)
+    depth_full = np.full(size, np.nan)
+    depth_full[occupied] = depth
+    count_full = np.zeros(size, np.int64)
+    count_full[occupied] = count_k
+    mixed_full = np.zeros(size, bool)
+    mixed_full[occupied] = mixed
+    return PixelFit(depth_full, count_full, mixed_full)
+
+
+def fit_pixels_reference(
+    pixel: NDArray[np.int64],
+    uv: NDArray[np.float64],
+    z: NDArray[np.floating],
+    shape: tuple[int, int],
+    reference_m: NDArray[np.floating],
+    params: ProjectParams,
+) -> PixelFit:
+    """The reference :func:`fit_pixels`: the same arithmetic on whole-image moment maps (ten
+    (H * W) float64 maps, filtered over every row that holds a point). Kept for the tests.
+
+    Depth at each pixel centre from the visible points (image pixel ``pixel``, position
     ``uv``, depth ``z``): ``1/z = a + b du + c dv`` (du, dv: offset from the centre, pixels)
     fitted to the points of the pixel's ``(2 fit_window_px + 1)^2`` window where they lie on
     one plane (RMS residual within ``fit_tolerance``/2), else to the pixel's own points. The

@@ -1,0 +1,141 @@
+"""The optimised depth projection equals its plain reference functions on a full-size camera.
+
+One synthetic scene at Waymo's full resolution (1920 x 1280 FRONT camera, geometry only: no
+image is rendered), its 128 x 2650 LiDAR aggregated over 3 frames: the sparse depth of the FRONT camera with
+:func:`project.fit_pixels` (moments of the occupied pixels only) against
+:func:`project.fit_pixels_reference` (whole-image moment maps), and the moving vehicles' far
+sides (:func:`project.vehicle_far_depth`, footprint only) against
+:func:`project.vehicle_far_depth_reference` (whole image for a box beside the camera).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from phigenesis import geometry
+from phigenesis.data import camera_tables
+from phigenesis.data import taxonomy as tx
+from phigenesis.data.records import Boxes, Frame
+from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene
+from phigenesis.data.sources.synthetic.rigs import LidarSpec
+from phigenesis.data.stages import project
+from phigenesis.data.stages.aggregate import AggregateParams, aggregate_scene
+
+PARAMS = project.ProjectParams()
+
+
+@pytest.fixture(scope="module")
+def full_size() -> tuple[Frame, project.LidarMap]:
+    # A 128 x 2650 LiDAR (about Waymo's top LiDAR's columns, twice its beams).
+    lidar = LidarSpec(beams=128, columns=2650)
+    config = SyntheticConfig(scenes=1, frames=3, seed=0, height=1280, width=1920, lidar=lidar)
+    scene = SyntheticScene(config, 0).scene()
+    lidar_map = aggregate_scene(scene, AggregateParams(voxel_m=0.02, outlier_neighbors=0))
+    frame = scene.frames.geometry(1)
+    frame.cameras = frame.cameras[:1]  # FRONT, 1920 x 1280
+    return frame, lidar_map
+
+
+def test_full_size_camera_sparse_depth_equals_the_reference_fit(
+    full_size: tuple[Frame, project.LidarMap], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    frame, lidar_map = full_size
+    camera = frame.cameras[0]
+    assert (camera.calibration.width, camera.calibration.height) == (1920, 1280)
+    static = project.static_points_per_camera(frame, lidar_map, PARAMS)[0]
+    points = project.scene_points(frame, camera, lidar_map, PARAMS, static)
+    ego = project.ego_body_depth(camera, lidar_map.ego_boxes)
+    fast, counts = project.project_camera(camera, points, PARAMS, ego)
+    monkeypatch.setattr(project, "fit_pixels", project.fit_pixels_reference)
+    slow, slow_counts = project.project_camera(camera, points, PARAMS, ego)
+    assert counts == slow_counts
+    assert counts["projected"] > 50_000
+    known = slow.sparse_m > 0
+    assert known.sum() > 10_000
+    np.testing.assert_array_equal(fast.sparse_m > 0, known)
+    # The moments are summed in another order: depths agree to float32 rounding.
+    np.testing.assert_allclose(fast.sparse_m, slow.sparse_m, rtol=1e-6, atol=0)
+    np.testing.assert_array_equal(fast.sparse_confidence, slow.sparse_confidence)
+    np.testing.assert_array_equal(fast.sparse_origin, slow.sparse_origin)
+
+
+def _beside_camera(frame: Frame, camera_world: np.ndarray) -> Boxes:
+    """A moving car whose box straddles the camera's image plane (2 m to its right, from 3 m
+    behind to 2 m ahead), and one 15 m ahead."""
+    axes = camera_world[:3, :3]
+    centres = [
+        camera_world[:3, 3] + axes @ np.array([2.5, 0.3, -0.5]),
+        camera_world[:3, 3] + axes @ np.array([0.5, 0.5, 15.0]),
+    ]
+    forward = axes @ np.array([0.0, 0.0, 1.0])
+    yaw = float(np.arctan2(forward[1], forward[0]))
+    return Boxes(
+        track_id=["beside", "ahead"],
+        class_id=np.array([tx.CAR, tx.CAR], np.uint8),
+        center_world=np.array(centres),
+        size_lwh=np.array([[5.0, 2.0, 1.8], [4.5, 1.9, 1.6]]),
+        yaw_world=np.array([yaw, yaw]),
+        velocity_world=np.array([[3.0, 0.0, 0.0], [5.0, 1.0, 0.0]]),
+        status=np.zeros(2, np.uint8),
+        instance_id=np.array([1, 2], np.uint16),
+        num_lidar_points=np.full(2, -1, np.int32),
+    )
+
+
+def test_vehicle_far_depth_on_the_footprint_equals_the_whole_image_reference(
+    full_size: tuple[Frame, project.LidarMap],
+) -> None:
+    frame, _ = full_size
+    camera = frame.cameras[0]
+    boxes = _beside_camera(frame, camera.world_from_camera)
+    frame = dataclasses.replace(frame, boxes=boxes)
+    rays = project.pixel_rays(camera)
+    tracks = frozenset(boxes.track_id)
+    fast = project.vehicle_far_depth(frame, camera, tracks, PARAMS, rays)
+    slow = project.vehicle_far_depth_reference(frame, camera, tracks, PARAMS, rays)
+    assert fast.dtype == np.float32 and fast.shape == (1280, 1920)
+    hit = np.isfinite(slow)
+    assert 0.01 < hit.mean() < 0.9  # both boxes are in view
+    np.testing.assert_array_equal(fast, slow)
+
+
+def test_footprint_pixels_hold_every_ray_in_the_bounds() -> None:
+    """Rows and columns from the per-calibration ray extents cover every pixel whose ray lies in
+    the given bounds, on a strongly distorted camera (the extents are computed once)."""
+    config = SyntheticConfig(scenes=1, frames=1, seed=3, height=96, width=160)
+    cal = SyntheticScene(config, 0).calibrations[0]
+    cal = dataclasses.replace(cal, distortion=np.array([-0.3, 0.1, 0.001, -0.002, 0.0]))
+    camera_tables.clear()
+    before = camera_tables.COMPUTED["ray_extents"]
+    rays = camera_tables.pixel_rays_cam(cal)
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        x0, y0 = rng.uniform(-1.0, 0.8, 2)
+        bounds = ((x0, x0 + rng.uniform(0.01, 0.5)), (y0, y0 + rng.uniform(0.01, 0.5)))
+        inside = (
+            (rays[:, 0] >= bounds[0][0])
+            & (rays[:, 0] <= bounds[0][1])
+            & (rays[:, 1] >= bounds[1][0])
+            & (rays[:, 1] <= bounds[1][1])
+        ).reshape(cal.height, cal.width)
+        region = camera_tables.footprint_pixels(cal, *bounds)
+        if region is None:
+            assert not inside.any()
+            continue
+        mask = np.zeros_like(inside)
+        mask[region] = True
+        assert not (inside & ~mask).any()
+    assert camera_tables.COMPUTED["ray_extents"] == before + 1
+
+
+def test_normalized_footprint_of_a_box_behind_and_across_the_camera() -> None:
+    corners = 0.5 * np.array([4.0, 2.0, 2.0]) * geometry.BOX_CORNER_SIGNS
+    assert project.normalized_footprint(corners - np.array([0.0, 0.0, 5.0])) is None  # wholly behind
+    (x0, x1), (y0, y1) = project.normalized_footprint(corners + np.array([0.0, 0.0, 5.0]))
+    # Nearest face at z = 4 m: x from -2/4 to 2/4, y from -1/4 to 1/4.
+    np.testing.assert_allclose([x0, x1, y0, y1], [-0.5, 0.5, -0.25, 0.25])
+    (x0, x1), _ = project.normalized_footprint(corners + np.array([3.0, 0.0, 0.5]))
+    assert x0 > 0 and x1 > 1e5  # reaches the image plane: unbounded to the right only
