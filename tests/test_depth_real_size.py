@@ -3,7 +3,8 @@
 One synthetic scene at Waymo's full resolution (1920 x 1280 FRONT camera, geometry only: no
 image is rendered), its 128 x 2650 LiDAR aggregated over 3 frames: the sparse depth of the FRONT camera with
 :func:`project.fit_pixels` (moments of the occupied pixels only) against
-:func:`project.fit_pixels_reference` (whole-image moment maps), and the moving vehicles' far
+:func:`project.fit_pixels_reference` (whole-image moment maps) and the splat test's
+occluders on cropped rectangles against :func:`project.occluder_depth_reference`, and the moving vehicles' far
 sides (:func:`project.vehicle_far_depth`, footprint only) against
 :func:`project.vehicle_far_depth_reference` (whole image for a box beside the camera).
 """
@@ -50,6 +51,7 @@ def test_full_size_camera_sparse_depth_equals_the_reference_fit(
     ego = project.ego_body_depth(camera, lidar_map.ego_boxes)
     fast, counts = project.project_camera(camera, points, PARAMS, ego)
     monkeypatch.setattr(project, "fit_pixels", project.fit_pixels_reference)
+    monkeypatch.setattr(project, "occluder_depth", project.occluder_depth_reference)
     slow, slow_counts = project.project_camera(camera, points, PARAMS, ego)
     assert counts == slow_counts
     assert counts["projected"] > 50_000
@@ -60,6 +62,19 @@ def test_full_size_camera_sparse_depth_equals_the_reference_fit(
     np.testing.assert_allclose(fast.sparse_m, slow.sparse_m, rtol=1e-6, atol=0)
     np.testing.assert_array_equal(fast.sparse_confidence, slow.sparse_confidence)
     np.testing.assert_array_equal(fast.sparse_origin, slow.sparse_origin)
+
+
+def test_occluder_depth_on_cropped_rectangles_equals_the_whole_image() -> None:
+    rng = np.random.default_rng(5)
+    h, w = 300, 400
+    for n in (1, 50, 3000):
+        rows, cols = rng.integers(40, 200, n), rng.integers(0, w, n)
+        pixel = rows * w + cols
+        z = rng.uniform(1.0, 80.0, n).astype(np.float32)
+        radius = rng.choice([0, 1, 3, 12], n)
+        fast = project.occluder_depth(pixel, z, radius, (h, w))
+        np.testing.assert_array_equal(fast, project.occluder_depth_reference(pixel, z, radius, (h, w)))
+        assert np.isfinite(fast).sum() >= len(np.unique(pixel))
 
 
 def _beside_camera(frame: Frame, camera_world: np.ndarray) -> Boxes:

@@ -601,7 +601,32 @@ def _zbuffer(pixel: NDArray[np.int64], z: NDArray[np.float32], size: int) -> NDA
 def occluder_depth(
     pixel: NDArray[np.int64], z: NDArray[np.float32], radius_px: NDArray[np.int64], shape: tuple[int, int]
 ) -> NDArray[np.float32]:
-    """(H, W) nearest depth of any point whose disc of ``radius_px`` covers each pixel (inf: none)."""
+    """(H, W) nearest depth of any point whose disc of ``radius_px`` covers each pixel (inf: none).
+
+    Each radius's z-buffer and erosion cover only the rectangle around that radius's points
+    that their discs reach (the LiDAR fills a band of rows, the sky and the cameras' edges
+    nothing): the same values as over the whole image (:func:`occluder_depth_reference`)."""
+    h, w = shape
+    occ = np.full((h, w), np.inf, np.float32)
+    for r in np.unique(radius_px):
+        sel = pixel[radius_px == r]
+        zs = z[radius_px == r]
+        rows, cols = sel // w, sel % w
+        r0, r1 = max(int(rows.min()) - r, 0), min(int(rows.max()) + r + 1, h)
+        c0, c1 = max(int(cols.min()) - r, 0), min(int(cols.max()) + r + 1, w)
+        cw = c1 - c0
+        buf = _zbuffer((rows - r0) * cw + (cols - c0), zs, (r1 - r0) * cw).reshape(r1 - r0, cw)
+        if r > 0:
+            buf = cv2.erode(buf, _disc(int(r)), borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+        np.minimum(occ[r0:r1, c0:c1], buf, out=occ[r0:r1, c0:c1])
+    return occ
+
+
+def occluder_depth_reference(
+    pixel: NDArray[np.int64], z: NDArray[np.float32], radius_px: NDArray[np.int64], shape: tuple[int, int]
+) -> NDArray[np.float32]:
+    """The reference :func:`occluder_depth`: every radius's z-buffer and erosion over the whole
+    image. Kept for the tests."""
     h, w = shape
     occ = np.full((h, w), np.inf, np.float32)
     for r in np.unique(radius_px):
