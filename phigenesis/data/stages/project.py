@@ -53,6 +53,7 @@ from phigenesis.data.camera_tables import (
 )
 from phigenesis.data.camera_tables import ray_box_depths as ray_box_depths  # re-exported
 from phigenesis.data.ego_body import camera_centres, check_sensors_outside
+from phigenesis.data.native import load_ray_box
 from phigenesis.data.records import DEPTH_ORIGINS, CameraDepth, CameraImage, Frame, LazyFrames, Scene
 from phigenesis.data.stages import register_stage
 from phigenesis.data.stages.aggregate import (
@@ -504,7 +505,8 @@ def vehicle_far_depth(
     Each box's rays are tested only over its footprint: the rows and columns whose rays' extents
     (:func:`~phigenesis.data.camera_tables.footprint_pixels`) meet the bounds of its
     :func:`normalized_footprint`, also for a box that reaches behind the camera (a car alongside),
-    where :func:`vehicle_far_depth_reference` tested every pixel."""
+    where :func:`vehicle_far_depth_reference` tested every pixel; in one pass per box with the
+    native kernel (:func:`~phigenesis.data.native.load_ray_box`), else with numpy."""
     cal = camera.calibration
     h, w = cal.height, cal.width
     far = np.full((h, w), np.inf, np.float32)
@@ -529,6 +531,10 @@ def vehicle_far_depth(
         bounds = normalized_footprint(corners)
         region = None if bounds is None else footprint_pixels(cal, *bounds)
         if region is None:
+            continue
+        kernel = load_ray_box() if rays.flags.c_contiguous else None
+        if kernel is not None:
+            kernel.far_side(rays, region, geometry.invert_transform(camera_from_box), 0.5 * size, far)
             continue
         rows, cols = region
         sub = grid[rows, cols]
