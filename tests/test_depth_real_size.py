@@ -1,12 +1,13 @@
-"""The optimised depth projection equals its plain reference functions on a full-size camera.
+"""The optimised depth stages equal their plain reference functions at Waymo's full size.
 
-One synthetic scene at Waymo's full resolution (1920 x 1280 FRONT camera, geometry only: no
-image is rendered), its 128 x 2650 LiDAR aggregated over 3 frames: the sparse depth of the FRONT camera with
-:func:`project.fit_pixels` (moments of the occupied pixels only) against
-:func:`project.fit_pixels_reference` (whole-image moment maps) and the splat test's
-occluders on cropped rectangles against :func:`project.occluder_depth_reference`, and the moving vehicles' far
-sides (:func:`project.vehicle_far_depth`, footprint only) against
-:func:`project.vehicle_far_depth_reference` (whole image for a box beside the camera).
+One synthetic scene at full resolution (1920 x 1280 FRONT camera, geometry only: no image is
+rendered), its 128 x 2650 LiDAR aggregated over 3 frames: the FRONT camera's sparse depth from
+:func:`project.project_camera` (plane fits on the occupied pixels only, the splat test's
+occluders and the edge bands on cropped rectangles, per-pixel values on the pixels that take a
+point) against :func:`project.project_camera_reference` (every step over the whole image); the
+moving vehicles' far sides (:func:`project.vehicle_far_depth`, footprint only, native kernel or
+numpy) against :func:`project.vehicle_far_depth_reference` (whole image for a box beside the
+camera); the aggregation's box test on a grid against every box against every point.
 """
 
 from __future__ import annotations
@@ -45,8 +46,8 @@ def full_size() -> tuple[Frame, project.LidarMap]:
     return frame, lidar_map
 
 
-def test_full_size_camera_sparse_depth_equals_the_reference_fit(
-    full_size: tuple[Frame, project.LidarMap], monkeypatch: pytest.MonkeyPatch
+def test_full_size_camera_sparse_depth_equals_the_reference(
+    full_size: tuple[Frame, project.LidarMap],
 ) -> None:
     frame, lidar_map = full_size
     camera = frame.cameras[0]
@@ -55,9 +56,7 @@ def test_full_size_camera_sparse_depth_equals_the_reference_fit(
     points = project.scene_points(frame, camera, lidar_map, PARAMS, static)
     ego = project.ego_body_depth(camera, lidar_map.ego_boxes)
     fast, counts = project.project_camera(camera, points, PARAMS, ego)
-    monkeypatch.setattr(project, "fit_pixels", project.fit_pixels_reference)
-    monkeypatch.setattr(project, "occluder_depth", project.occluder_depth_reference)
-    slow, slow_counts = project.project_camera(camera, points, PARAMS, ego)
+    slow, slow_counts = project.project_camera_reference(camera, points, PARAMS, ego)
     assert counts == slow_counts
     assert counts["projected"] > 50_000
     known = slow.sparse_m > 0
@@ -80,6 +79,33 @@ def test_occluder_depth_on_cropped_rectangles_equals_the_whole_image() -> None:
         fast = project.occluder_depth(pixel, z, radius, (h, w))
         np.testing.assert_array_equal(fast, project.occluder_depth_reference(pixel, z, radius, (h, w)))
         assert np.isfinite(fast).sum() >= len(np.unique(pixel))
+
+
+def test_edge_bands_on_the_known_box_equal_the_whole_image() -> None:
+    """Depth-edge and silhouette bands computed on the known pixels' bounding box equal the
+    whole-image references, known pixels touching the image's border or not."""
+    rng = np.random.default_rng(2)
+    h, w = 240, 320
+    rgb = rng.integers(0, 256, (h, w, 3), np.uint8)
+    rgb[:, 150:] //= 4  # a strong vertical image edge
+    for rows, cols in (
+        (slice(100, 200), slice(40, 300)),
+        (slice(0, h), slice(0, 90)),
+        (slice(5, 6), slice(7, 8)),
+    ):
+        depth = np.zeros((h, w), np.float32)
+        patch = depth[rows, cols]
+        patch[...] = rng.choice([5.0, 5.2, 30.0], patch.shape) * (rng.random(patch.shape) < 0.3)
+        for band, near in ((4, None), (2, 6), (0, None)):
+            np.testing.assert_array_equal(
+                project.depth_edge_band(depth, band, 0.1, 0.3, 0.05, near),
+                project.depth_edge_band_reference(depth, band, 0.1, 0.3, 0.05, near),
+            )
+        np.testing.assert_array_equal(
+            project.silhouette_pixels(rgb, depth, 150.0),
+            project.silhouette_pixels_reference(rgb, depth, 150.0),
+        )
+    assert project.depth_edge_band(np.zeros((h, w)), 4, 0.1, 0.3).sum() == 0
 
 
 def _beside_camera(frame: Frame, camera_world: np.ndarray) -> Boxes:

@@ -948,6 +948,19 @@ def fit_pixels_reference(
     return PixelFit(depth, count, mixed)
 
 
+def _known_box(known: NDArray[np.bool_], margin: int) -> tuple[slice, slice] | None:
+    """The rows and columns of the known pixels' bounding box widened by ``margin`` (clipped to
+    the image), None if none is known."""
+    rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
+    if rows.size == 0:
+        return None
+    h, w = known.shape
+    return (
+        slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h)),
+        slice(max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin + 1, w)),
+    )
+
+
 def depth_edge_band(
     depth_m: NDArray[np.floating],
     band_px: int,
@@ -961,7 +974,47 @@ def depth_edge_band(
     background point seen through a gap), or within ``near_band_px`` (default ``band_px``) of a
     farther one when at least ``min_share`` of the known pixels around are such far-side pixels
     (the near side of a silhouette; a lone leak of background among foreground pixels does not
-    make them edge pixels)."""
+    make them edge pixels).
+
+    Computed on the known pixels' bounding box: outside it every filter's input already holds
+    its border value, so the result equals :func:`depth_edge_band_reference`'s."""
+    out = np.zeros(depth_m.shape, bool)
+    box = _known_box(depth_m > 0, 0)
+    if box is not None:
+        out[box] = depth_edge_band_reference(depth_m[box], band_px, rel, abs_m, min_share, near_band_px)
+    return out
+
+
+def silhouette_pixels(
+    rgb: NDArray[np.uint8], depth_m: NDArray[np.floating], threshold: float
+) -> NDArray[np.bool_]:
+    """(H, W) True for known pixels (depth > 0) on the rim of the known region (an unknown
+    8-neighbour) that lie within a pixel of a strong image edge (Sobel magnitude of the grey image,
+    0-255 scale, above ``threshold``).
+
+    A foreground point landing in a pixel whose centre sees the background beyond a silhouette
+    cannot be caught by comparing depths when the background has no depth there (above the
+    LiDAR's field, beyond its range): the image still shows the silhouette.
+
+    Computed on the known pixels' bounding box widened by 3 pixels (the Sobel and the 3 x 3
+    dilation reach 2, the rim test 1, and the replicated border then repeats unknown pixels):
+    equal to :func:`silhouette_pixels_reference`."""
+    out = np.zeros(depth_m.shape, bool)
+    box = _known_box(depth_m > 0, 3)
+    if box is not None:
+        out[box] = silhouette_pixels_reference(rgb[box], depth_m[box], threshold)
+    return out
+
+
+def depth_edge_band_reference(
+    depth_m: NDArray[np.floating],
+    band_px: int,
+    rel: float,
+    abs_m: float,
+    min_share: float = 0.05,
+    near_band_px: int | None = None,
+) -> NDArray[np.bool_]:
+    """The reference :func:`depth_edge_band`, over the whole image. Kept for the tests."""
     known = depth_m > 0
     if band_px <= 0 or not known.any():
         return np.zeros(depth_m.shape, bool)
@@ -991,16 +1044,10 @@ def depth_edge_band(
     return far_side | near_side
 
 
-def silhouette_pixels(
+def silhouette_pixels_reference(
     rgb: NDArray[np.uint8], depth_m: NDArray[np.floating], threshold: float
 ) -> NDArray[np.bool_]:
-    """(H, W) True for known pixels (depth > 0) on the rim of the known region (an unknown
-    8-neighbour) that lie within a pixel of a strong image edge (Sobel magnitude of the grey image,
-    0-255 scale, above ``threshold``).
-
-    A foreground point landing in a pixel whose centre sees the background beyond a silhouette
-    cannot be caught by comparing depths when the background has no depth there (above the
-    LiDAR's field, beyond its range): the image still shows the silhouette."""
+    """The reference :func:`silhouette_pixels`, over the whole image. Kept for the tests."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
     magnitude = np.hypot(
         cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
@@ -1099,12 +1146,155 @@ def project_camera(
     fine_origin = np.zeros(hf * wf, np.uint8)
     nearest = np.flatnonzero(z == fine_depth[fine])
     fine_origin[fine[nearest]] = origin[nearest]
+    # Every per-pixel value below is computed on the pixels that take a point (``known``, about
+    # 1 % of a full-size image), then scattered into the (H, W) maps.
+    if ss == 1:
+        known = np.flatnonzero(np.isfinite(fine_depth))  # _centre_first on a 1 x 1 grid
+        chosen = known
+    else:
+        chosen = _centre_first(fine_depth.reshape(h, ss, w, ss), params.max_offset_px).reshape(-1)
+        known = np.flatnonzero(chosen >= 0)
+        chosen = chosen[known]
+    sparse_k = fine_depth[chosen]
+    origin_k = fine_origin[chosen]
+    if params.estimator == "plane":
+        sparse = np.full(h * w, np.inf, np.float32)
+        sparse[known] = sparse_k
+        fit = fit_pixels(pixel, uv[keep], z, (h, w), sparse, params)
+        fit_depth, fit_count, mixed = fit.depth_m[known], fit.count[known], fit.mixed[known]
+        plane = np.isfinite(fit_depth) & ~mixed
+        sparse_k = np.where(plane, fit_depth, sparse_k)
+        support = np.where(plane, 2, np.minimum(fit_count, 1))
+    else:
+        # Support: points in the pixel agreeing with its depth within tau.
+        sparse = np.full(h * w, np.inf, np.float32)
+        sparse[known] = sparse_k
+        agree = np.abs(z - sparse[pixel]) <= sparse[pixel] * params.tau
+        support = np.bincount(pixel[agree], minlength=h * w)[known]
+        mixed = np.zeros(len(known), bool)
+    confidence_k = ORIGIN_WEIGHTS[origin_k] * np.where(support >= 2, 1.0, 0.75)
+    confidence_k = np.where(mixed, 0.5 * confidence_k, confidence_k)
+    counts["mixed_pixels"] = int(mixed.sum())
+    if params.mixed_pixels == "drop":
+        kept = ~mixed
+        known, sparse_k, confidence_k, origin_k = (
+            known[kept],
+            sparse_k[kept],
+            confidence_k[kept],
+            origin_k[kept],
+        )
+    depth = np.zeros(h * w, np.float32)
+    depth[known] = sparse_k
+    confidence = np.zeros(h * w, np.float32)
+    confidence[known] = confidence_k
+    origin_map = np.zeros(h * w, np.uint8)
+    origin_map[known] = origin_k
+    edge = depth_edge_band(
+        depth.reshape(h, w),
+        params.edge_band_px,
+        params.edge_tolerance_rel,
+        params.edge_tolerance_m,
+        params.edge_min_share,
+        params.edge_near_band_px,
+    ).reshape(-1)
+    if params.image_edge_threshold is not None and camera.image_bytes is not None:
+        edge |= silhouette_pixels(
+            camera.decode_image(), depth.reshape(h, w), params.image_edge_threshold
+        ).reshape(-1)
+    counts["edge_pixels"] = int(edge.sum())
+    confidence[edge] *= params.edge_confidence
+    if ego_depth is not None:
+        body = np.isfinite(ego_depth.reshape(-1))
+        depth[body], confidence[body], origin_map[body] = 0.0, 0.0, 0
+    return (
+        CameraDepth(depth.reshape(h, w), confidence.reshape(h, w), origin_map.reshape(h, w)),
+        counts,
+    )
+
+
+def project_camera_reference(
+    camera: CameraImage,
+    points: CameraPoints,
+    params: ProjectParams,
+    ego_depth: NDArray[np.float32] | None = None,
+    occluder_far: NDArray[np.float32] | None = None,
+    sweep_step_rad: float = float(np.radians(0.5)),
+) -> tuple[CameraDepth, dict[str, int]]:
+    """The reference :func:`project_camera`: the same steps with the plain reference functions
+    (:func:`occluder_depth_reference`, :func:`fit_pixels_reference`,
+    :func:`depth_edge_band_reference`, :func:`silhouette_pixels_reference`) and every per-pixel
+    value computed over the whole image. Kept for the tests."""
+    cal = camera.calibration
+    h, w = cal.height, cal.width
+    # float32 relative to the camera centre: millions of map points, and world coordinates of a
+    # scene (up to a few km) keep ~0.1 mm precision once the centre is subtracted.
+    centre = camera.world_from_camera[:3, 3]
+    rotation = camera.world_from_camera[:3, :3].astype(np.float32)
+    p_cam = (np.asarray(points.points_world, np.float32) - centre.astype(np.float32)) @ rotation
+    z_all = p_cam[:, 2]
+    near = (z_all > params.min_depth_m) & (np.einsum("ij,ij->i", p_cam, p_cam) <= params.max_range_m**2)
+    # A cheap test on the undistorted view directions before the exact projection.
+    (x0, x1), (y0, y1) = normalized_bounds(camera)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x, y = p_cam[:, 0] / z_all, p_cam[:, 1] / z_all
+    near &= (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+    p_cam = p_cam[near]
+    uv, valid = geometry.project_points(p_cam, cal.intrinsics, cal.distortion, params.min_depth_m)
+    valid &= geometry.in_image(uv, w, h)
+    idx = np.flatnonzero(near)[valid]
+    z = p_cam[valid, 2].astype(np.float32)
+    uv = uv[valid]
+    pixel = _pixel_index(uv, 1, w, h)
+    counts = {
+        "projected": len(z),
+        "removed_by_visibility": 0,
+        "behind_ego_body": 0,
+        "behind_vehicles": 0,
+        "mixed_pixels": 0,
+        "edge_pixels": 0,
+    }
+    for name, limit, slack in (
+        ("behind_ego_body", ego_depth, 0.0),
+        ("behind_vehicles", occluder_far, params.slack_m),
+    ):
+        if limit is not None:
+            front = z < limit.reshape(-1)[pixel] + slack
+            counts[name] = int(np.sum(~front))
+            pixel, z, idx, uv = pixel[front], z[front], idx[front], uv[front]
+    origin = points.origin[idx]
+    # Visibility and the z-buffer work on a grid `s` times finer than the image, so a point
+    # occludes (and fills) only the part of a pixel it covers; each pixel then takes the visible
+    # point nearest its centre, not the nearest in depth, so edge pixels keep the surface at
+    # their centre.
+    ss = supersample_of(params, w)
+    hf, wf = h * ss, w * ss
+    fine = _pixel_index(uv, ss, wf, hf)
+    keep = np.ones(len(z), bool)
+    if params.visibility == "splat" and len(z):
+        focal = float(cal.intrinsics[0, 0]) * ss
+        spacing = points.spacing_m[idx]
+        footprint = np.where(np.isnan(spacing), z * sweep_step_rad, spacing)
+        radius = np.rint(params.splat_scale * focal * footprint / z)
+        radius = np.clip(radius, 0, params.max_splat_px * ss).astype(np.int64)
+        occ = occluder_depth_reference(fine, z, radius, (hf, wf)).reshape(-1)
+        keep = z <= occ[fine] * (1 + params.tau) + params.slack_m
+    elif params.visibility == "local_min" and len(z):
+        buf = _zbuffer(pixel, z, h * w).reshape(h, w)
+        kernel = np.ones((params.window, params.window), np.uint8)
+        local = cv2.erode(buf, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf).reshape(-1)
+        keep = z <= local[pixel] * (1 + params.tau)
+    counts["removed_by_visibility"] = int(np.sum(~keep))
+    pixel, fine, z, origin = pixel[keep], fine[keep], z[keep], origin[keep]
+    fine_depth = _zbuffer(fine, z, hf * wf)
+    fine_origin = np.zeros(hf * wf, np.uint8)
+    nearest = np.flatnonzero(z == fine_depth[fine])
+    fine_origin[fine[nearest]] = origin[nearest]
     chosen = _centre_first(fine_depth.reshape(h, ss, w, ss), params.max_offset_px).reshape(-1)
     hit = chosen >= 0
     sparse = np.where(hit, fine_depth[np.maximum(chosen, 0)], np.inf)
     origin_map = np.where(hit, fine_origin[np.maximum(chosen, 0)], 0).astype(np.uint8)
     if params.estimator == "plane":
-        fit = fit_pixels(pixel, uv[keep], z, (h, w), sparse, params)
+        fit = fit_pixels_reference(pixel, uv[keep], z, (h, w), sparse, params)
         plane = np.isfinite(fit.depth_m) & hit & ~fit.mixed
         sparse = np.where(plane, fit.depth_m, sparse)
         support = np.where(plane, 2, np.minimum(fit.count, 1))
@@ -1122,7 +1312,7 @@ def project_camera(
     confidence = np.where(hit, confidence, 0.0).astype(np.float32)
     origin_map = np.where(hit, origin_map, 0).astype(np.uint8)
     depth = np.where(hit, sparse, 0.0).astype(np.float32)
-    edge = depth_edge_band(
+    edge = depth_edge_band_reference(
         depth.reshape(h, w),
         params.edge_band_px,
         params.edge_tolerance_rel,
@@ -1131,7 +1321,7 @@ def project_camera(
         params.edge_near_band_px,
     ).reshape(-1)
     if params.image_edge_threshold is not None and camera.image_bytes is not None:
-        edge |= silhouette_pixels(
+        edge |= silhouette_pixels_reference(
             camera.decode_image(), depth.reshape(h, w), params.image_edge_threshold
         ).reshape(-1)
     counts["edge_pixels"] = int(edge.sum())
