@@ -20,6 +20,7 @@ import pytest
 from phigenesis import geometry
 from phigenesis.data import camera_tables, native
 from phigenesis.data import taxonomy as tx
+from phigenesis.data.ego_body import WAYMO_PACIFICA_BOXES
 from phigenesis.data.records import Boxes, Frame
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene
 from phigenesis.data.sources.synthetic.rigs import LidarSpec
@@ -29,6 +30,7 @@ from phigenesis.data.stages.aggregate import (
     aggregate_scene,
     box_points_at_times,
     box_points_at_times_reference,
+    in_ego_body,
 )
 
 PARAMS = project.ProjectParams()
@@ -220,3 +222,16 @@ def test_box_points_by_x_slab_equal_every_box_against_every_point() -> None:
         assert (slow >= 0).sum() > 3_000
         np.testing.assert_array_equal(fast, slow)
         np.testing.assert_array_equal(fast_local, slow_local)
+
+
+def test_ego_body_test_equals_points_in_box_at_yaw_zero() -> None:
+    """The aggregation's ego-body test (axis-aligned boxes, no matrix product) against
+    ``geometry.points_in_box`` at yaw 0, on a Waymo-sized sweep around the Pacifica's body."""
+    rng = np.random.default_rng(4)
+    points = rng.uniform([-3, -2, -0.5], [6, 2, 2.5], (300_000, 3)).astype(np.float32)
+    want = np.zeros(len(points), bool)
+    for b in WAYMO_PACIFICA_BOXES:
+        want |= geometry.points_in_box(points, b["center_ego"], b["size_lwh"], 0.0, 0.1)
+    got = in_ego_body(points, WAYMO_PACIFICA_BOXES, 0.1)
+    assert 0.1 < want.mean() < 0.9
+    np.testing.assert_array_equal(got, want)
