@@ -235,3 +235,17 @@ def test_ego_body_test_equals_points_in_box_at_yaw_zero() -> None:
     got = in_ego_body(points, WAYMO_PACIFICA_BOXES, 0.1)
     assert 0.1 < want.mean() < 0.9
     np.testing.assert_array_equal(got, want)
+
+
+def test_border_tables_are_computed_once_per_calibration(full_size: tuple[Frame, project.LidarMap]) -> None:
+    frame, _ = full_size
+    camera = frame.cameras[0]
+    camera_tables.clear()
+    before = dict(camera_tables.COMPUTED)
+    bounds = [project.normalized_bounds(camera) for _ in range(3)]
+    wedges = [project.camera_wedge(camera) for _ in range(3)]
+    assert bounds[0] == bounds[2] and wedges[0] == wedges[2]
+    (x0, x1), (y0, y1) = bounds[0]
+    assert x0 < -0.5 < 0.5 < x1 and y0 < -0.3 < 0.3 < y1  # a ~50 degree wide, 1920 x 1280 view
+    for kind in ("normalized_bounds 0.05", "wedge_border_rays"):
+        assert camera_tables.COMPUTED[kind] == before.get(kind, 0) + 1

@@ -194,8 +194,22 @@ def footprint_pixels(
     return slice(int(row_hit[0]), int(row_hit[-1]) + 1), slice(int(col_hit[0]), int(col_hit[-1]) + 1)
 
 
+_SMALL: dict[str, _Tables] = {}
+_SMALL_LOCK = threading.Lock()
+
+
+def per_calibration(kind: str, cal: CameraCalibration, compute: Callable[[], T]) -> T:
+    """``compute()`` once per calibration for a small table of the given ``kind`` (a stage's
+    border rays, image bounds), kept like the others and counted in :data:`COMPUTED` by kind."""
+    with _SMALL_LOCK:
+        tables = _SMALL.setdefault(kind, _Tables(kind, MAX_CACHED_CAMERAS))
+    return tables.get(cal.key(), compute)
+
+
 def clear() -> None:
     """Drops every cached table (tests; a worker between unrelated runs)."""
     _RAYS.clear()
     _EGO_DEPTH.clear()
     _EXTENTS.clear()
+    for tables in _SMALL.values():
+        tables.clear()

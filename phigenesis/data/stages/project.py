@@ -49,12 +49,21 @@ from phigenesis.data.camera_tables import (
     ego_body_depth_from_rays,
     ego_body_depth_of,
     footprint_pixels,
+    per_calibration,
     pixel_rays_cam,
 )
 from phigenesis.data.camera_tables import ray_box_depths as ray_box_depths  # re-exported
 from phigenesis.data.ego_body import camera_centres, check_sensors_outside
 from phigenesis.data.native import load_ray_box
-from phigenesis.data.records import DEPTH_ORIGINS, CameraDepth, CameraImage, Frame, LazyFrames, Scene
+from phigenesis.data.records import (
+    DEPTH_ORIGINS,
+    CameraCalibration,
+    CameraDepth,
+    CameraImage,
+    Frame,
+    LazyFrames,
+    Scene,
+)
 from phigenesis.data.stages import register_stage
 from phigenesis.data.stages.aggregate import (
     TILE_M,
@@ -292,8 +301,13 @@ def seen_past_lidar_top(
 
 def normalized_bounds(camera: CameraImage, margin: float = 0.05) -> tuple[tuple[float, float], ...]:
     """((x_min, x_max), (y_min, y_max)) of x/z and y/z over rays through the image border (distortion
-    undone), widened by ``margin`` of the span: points outside cannot land in the image."""
+    undone), widened by ``margin`` of the span: points outside cannot land in the image. Computed
+    once per calibration and margin (:func:`~phigenesis.data.camera_tables.per_calibration`)."""
     cal = camera.calibration
+    return per_calibration(f"normalized_bounds {margin!r}", cal, lambda: _normalized_bounds(cal, margin))
+
+
+def _normalized_bounds(cal: CameraCalibration, margin: float) -> tuple[tuple[float, float], ...]:
     w, h = cal.width, cal.height
     t = np.linspace(0.0, 1.0, 32)
     border = np.concatenate(
@@ -318,6 +332,18 @@ def camera_wedge(camera: CameraImage) -> tuple[float, float] | None:
     radians, from rays along the image border; None if it spans more than 160 degrees (a
     fisheye, or a camera looking straight up or down), where culling by azimuth is unsafe."""
     cal = camera.calibration
+    rays = per_calibration("wedge_border_rays", cal, lambda: _border_rays(cal))
+    d = rays @ camera.world_from_camera[:3, :3].T
+    optical = camera.world_from_camera[:3, 2]
+    if np.hypot(optical[0], optical[1]) < 1e-3:
+        return None
+    centre = float(np.arctan2(optical[1], optical[0]))
+    half = float(np.max(np.abs(geometry.wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - centre))))
+    return None if half > np.radians(80.0) else (centre, half)
+
+
+def _border_rays(cal: CameraCalibration) -> NDArray[np.float64]:
+    """(68, 3) camera-frame rays through 17 points along each side of the image (z = 1)."""
     w, h = cal.width, cal.height
     t = np.linspace(0.0, 1.0, 17)
     border = np.concatenate(
@@ -328,14 +354,7 @@ def camera_wedge(camera: CameraImage) -> tuple[float, float] | None:
             np.stack([np.full_like(t, w - 1), t * (h - 1)], 1),
         ]
     )
-    rays = geometry.unproject_pixels(border, cal.intrinsics, cal.distortion)
-    d = rays @ camera.world_from_camera[:3, :3].T
-    optical = camera.world_from_camera[:3, 2]
-    if np.hypot(optical[0], optical[1]) < 1e-3:
-        return None
-    centre = float(np.arctan2(optical[1], optical[0]))
-    half = float(np.max(np.abs(geometry.wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - centre))))
-    return None if half > np.radians(80.0) else (centre, half)
+    return geometry.unproject_pixels(border, cal.intrinsics, cal.distortion)
 
 
 def tiles_in_view(
