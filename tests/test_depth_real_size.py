@@ -249,3 +249,25 @@ def test_border_tables_are_computed_once_per_calibration(full_size: tuple[Frame,
     assert x0 < -0.5 < 0.5 < x1 and y0 < -0.3 < 0.3 < y1  # a ~50 degree wide, 1920 x 1280 view
     for kind in ("normalized_bounds 0.05", "wedge_border_rays"):
         assert camera_tables.COMPUTED[kind] == before.get(kind, 0) + 1
+
+
+def test_native_ego_body_depth_equals_the_numpy_reference() -> None:
+    """The ego body's depth from the native ray-box kernel against
+    ``camera_tables.ego_body_depth_from_rays``, on a full-size camera tilted down at the Waymo
+    Pacifica's body (so that a good share of its rays meet it)."""
+    if native.load_ray_box() is None:
+        pytest.skip(f"native kernels not built here: {native.failure_reason()}")
+    config = SyntheticConfig(scenes=1, frames=1, seed=0, height=1280, width=1920)
+    cal = SyntheticScene(config, 0).calibrations[0]
+    c, s = np.cos(np.radians(-35.0)), np.sin(np.radians(-35.0))
+    # About the camera's x axis: the optical axis turns 35 degrees down (+y in OpenCV axes).
+    tilt = geometry.make_transform(np.array([[1, 0, 0], [0, c, -s], [0, s, c]]), np.zeros(3))
+    cal = dataclasses.replace(cal, ego_from_camera=cal.ego_from_camera @ tilt)
+    rays = camera_tables.undistorted_pixel_rays(cal)
+    slow = camera_tables.ego_body_depth_from_rays(cal, WAYMO_PACIFICA_BOXES, rays)
+    fast = camera_tables.ego_body_depth_native(cal, WAYMO_PACIFICA_BOXES, rays)
+    assert fast is not None and fast.dtype == np.float32
+    hit = np.isfinite(slow)
+    assert 0.05 < hit.mean() < 0.95
+    np.testing.assert_array_equal(np.isfinite(fast), hit)
+    np.testing.assert_allclose(fast[hit], slow[hit], rtol=1e-6, atol=0)

@@ -104,6 +104,26 @@ def ego_body_depth_from_rays(
     return entry.reshape(cal.height, cal.width).astype(np.float32)
 
 
+def ego_body_depth_native(
+    cal: CameraCalibration, ego_boxes: Sequence[dict[str, Any]], rays_cam: NDArray[np.float64]
+) -> NDArray[np.float32] | None:
+    """:func:`ego_body_depth_from_rays` with the native ray-box kernel (one pass per box instead
+    of numpy's ~15 over (H * W, 3) float64 temporaries: 0.8 s per box at 1920x1280); None where
+    the kernel cannot be built here. Equal to the reference to float32 rounding."""
+    from phigenesis.data.native import load_ray_box
+
+    kernel = load_ray_box()
+    if kernel is None or not rays_cam.flags.c_contiguous:
+        return None
+    camera_from_ego = geometry.invert_transform(cal.ego_from_camera)
+    entry = np.full((cal.height, cal.width), np.inf, np.float32)
+    for b in ego_boxes:
+        camera_from_box = camera_from_ego @ geometry.make_transform(np.eye(3), b["center_ego"])
+        half = 0.5 * np.asarray(b["size_lwh"], np.float64)
+        kernel.near_side(rays_cam, geometry.invert_transform(camera_from_box), half, entry)
+    return entry
+
+
 class _Tables:
     """A small least-recently-used map from keys to read-only arrays, safe across threads (the
     depth projection works on a frame's cameras in threads)."""

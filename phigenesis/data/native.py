@@ -172,6 +172,31 @@ class RayBox:
         self._far = library.phigenesis_ray_box_far
         self._far.argtypes = [ptr, i64, i64, i64, i64, i64, ptr, ptr, ptr]
         self._far.restype = i64
+        self._near = library.phigenesis_ray_box_near
+        self._near.argtypes = [ptr, i64, ptr, ptr, ptr]
+        self._near.restype = i64
+
+    def near_side(
+        self,
+        rays: NDArray[np.float64],
+        box_from_camera: NDArray[np.float64],
+        half_size: NDArray[np.float64],
+        near: NDArray[np.float32],
+    ) -> int:
+        """Lowers ``near`` ((N,) or (H, W) float32, C order, modified in place) to the depth at
+        which each ray of ``rays`` ((N, 3) float64, C order, z = 1) enters the box (0 from inside),
+        where it meets it: :func:`~phigenesis.data.camera_tables.ray_box_depths`'s entry depth,
+        rounded to float32. Returns how many rays met the box."""
+        n = near.size
+        if rays.shape != (n, 3) or rays.dtype != np.float64 or not rays.flags.c_contiguous:
+            raise ValueError(f"ray box: rays must be a C-order ({n}, 3) float64 array")
+        if near.dtype != np.float32 or not near.flags.c_contiguous or not near.flags.writeable:
+            raise ValueError("ray box: near must be a writable C-order float32 array")
+        matrix = np.ascontiguousarray(box_from_camera[:3, :4], np.float64)
+        half = np.ascontiguousarray(half_size, np.float64)
+        if half.shape != (3,):
+            raise ValueError(f"ray box: half_size must have 3 values, got {half.shape}")
+        return int(self._near(_address(rays), n, _address(matrix), _address(half), _address(near)))
 
     def far_side(
         self,
