@@ -498,7 +498,10 @@ def test_coverage_is_logged_once_per_scene_counting_each_lazy_frame_once(caplog)
             list(scene.frames)
     lines = [r.getMessage() for r in caplog.records if "depth coverage" in r.getMessage()]
     assert len(lines) == 1
-    assert "scene s: depth coverage over 3 frames" in lines[0] and "CAM 25.0 % / " in lines[0]
+    assert (
+        lines[0]
+        == "scene s: sparse depth coverage over 3 frames, share of pixels with a sparse depth: CAM 25.0 %"
+    )
     assert not [
         r for r in caplog.records if r.levelno >= logging.WARNING and "sparse depth" in r.getMessage()
     ]

@@ -13,6 +13,7 @@ from phigenesis.data import camera_tables
 from phigenesis.data import taxonomy as tx
 from phigenesis.data.coverage import SceneCoverage
 from phigenesis.data.records import Boxes, CameraCalibration, CameraDepth, CameraImage, CameraSemantics, Frame
+from phigenesis.data.shards import CacheReader
 from phigenesis.data.stages import SETUP_RUNS
 from tests.conftest import TINY_PREP_ARGS
 
@@ -53,8 +54,9 @@ def test_per_calibration_tables_are_computed_once_for_all_stages_and_frames(coun
     assert summary.frames_written == 6
     # Both scenes use the same five calibrations: five of each table in all, shared by the
     # projection, the labels, the completion and the range view of all six frames.
-    assert computed == {"pixel_rays": 5, "ego_body_depth": 5, "ray_components": 5}
-    assert setups == {"range_view": 2}  # the stage's declared setup: once per scene
+    assert {"pixel_rays", "ego_body_depth", "ray_components", "ray_extents"} <= set(computed)
+    assert computed == dict.fromkeys(computed, 5), computed
+    assert setups == {"project_depth": 2, "range_view": 2}  # the stages' declared setups: once per scene
 
 
 def test_every_part_of_a_scene_is_timed(counted_run):
@@ -72,15 +74,21 @@ def test_every_part_of_a_scene_is_timed(counted_run):
 
 
 def test_the_log_gives_the_coverage_of_what_was_written_after_completion(counted_run):
-    _, _, _, messages = counted_run
+    summary, _, _, messages = counted_run
     lines = [m for m in messages if "what the cache holds over 3 frames" in m]
     assert len(lines) == 2
-    before = [m for m in messages if "depth coverage over" in m]
-    # Completion fills more than the densifier: the written share is the larger one.
-    for line, early in zip(lines, before, strict=True):
-        front_written = float(line.split("FRONT (")[1].split("dense ")[1].split(" %")[0])
-        front_densified = float(early.split("FRONT ")[1].split(" / ")[1].split(" %")[0])
-        assert front_written > front_densified
+    reader = CacheReader(summary.cache_dir)
+    for scene_id, line in zip(summary.scenes_written, lines, strict=True):
+        assert line.startswith(f"scene {scene_id}:")
+        frames = [reader.frame(i) for i in range(len(reader)) if reader.frame(i).scene_id == scene_id]
+        for name in ("FRONT", "SIDE_LEFT"):
+            dense = np.mean([np.mean(f.camera(name).depth.dense_m > 0) for f in frames])
+            pseudo = np.mean([np.mean(f.camera(name).pseudo.semantic != tx.IGNORE_ID) for f in frames])
+            assert f"{name} (sparse " in line
+            logged = line.split(f"{name} (")[1].split(")")[0]
+            assert f"dense {100 * dense:.1f} %" in logged and f"pseudo labels {100 * pseudo:.1f} %" in logged
+    # The densifier's own line gives only the sparse share: completion fills more after it.
+    assert all("dense" not in m for m in messages if "sparse depth coverage over" in m)
 
 
 def _labelled_frame(index: int, labelled_pixels: int) -> Frame:

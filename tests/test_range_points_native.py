@@ -169,9 +169,11 @@ def test_without_a_compiler_the_reader_falls_back_to_numpy_with_one_warning(
         assert native.load_range_points() is None
     assert [r.getMessage() for r in caplog.records] == [
         "native data kernels not available: no C compiler (cc, gcc or clang) on PATH; "
-        "converting range images with numpy and checksumming shard rows twice"
+        "converting range images and testing rays against boxes with numpy, and checksumming "
+        "shard rows twice"
     ]
     assert native.load_crc32c_combine() is None
+    assert native.load_ray_box() is None
     cal = RawLaserCalibration(2, transform(rz(0.3), (4.0, 0, 0.5)), None, -1.5, 0.5)
     image = _image(np.random.default_rng(1), 5, 8, 0.5)
     sweep = convert.lidar_sweep(_frame([RawLaser(2, image, None, None)], [cal]), 0, np.eye(4))

@@ -102,6 +102,36 @@ def test_written_scenes_read_back_as_the_synthetic_truth(
         np.testing.assert_array_equal(gb.class_id, [convert.BOX_CLASS_IDS[t] for t in waymo_type])
 
 
+@pytest.mark.parametrize("version", ["v1", "v2"])
+def test_geometry_frames_skip_the_images_and_keep_the_rest(
+    exported: dict[str, Path], version: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The scene-wide pass (LazyFrames.geometry) reads no image bytes or labels and decodes no
+    JPEG; poses, camera times, LiDAR and boxes equal the whole frame's."""
+    from phigenesis.data.records import CameraImage, LazyFrames
+
+    source = WaymoSource(WaymoConfig(input=str(exported[version])))
+    scene = source.load(source.scene_ids()[0])
+    assert isinstance(scene.frames, LazyFrames)
+    checks = []
+    original = CameraImage.check_image
+    monkeypatch.setattr(CameraImage, "check_image", lambda self: checks.append(self.name) or original(self))
+    for k in range(CONFIG.frames):
+        geo = scene.frames.geometry(k)
+        assert checks == []
+        full = scene.frames[k]
+        assert len(checks) == len(full.cameras) == len(geo.cameras) == 5
+        checks.clear()
+        assert all(c.image_bytes is None and c.labels is None for c in geo.cameras)
+        assert all(c.image_bytes is not None and c.labels is not None for c in full.cameras)
+        for g, f in zip(geo.cameras, full.cameras, strict=True):
+            assert (g.name, g.timestamp_micros) == (f.name, f.timestamp_micros)
+            np.testing.assert_array_equal(g.world_from_ego, f.world_from_ego)
+        assert geo.timestamp_micros == full.timestamp_micros
+        np.testing.assert_array_equal(geo.lidar.points_ego, full.lidar.points_ego)
+        np.testing.assert_array_equal(geo.boxes.center_world, full.boxes.center_world)
+
+
 def test_prep_waymo_on_v1_and_v2_gives_the_same_cache_rows(exported: dict[str, Path], tmp_path: Path) -> None:
     a = prep.waymo(tmp_path / "a", input=exported["v1"], progress=False)
     b = prep.waymo(tmp_path / "b", input=exported["v2"], progress=False)

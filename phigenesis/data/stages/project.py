@@ -45,10 +45,25 @@ from numpy.typing import NDArray
 
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
-from phigenesis.data.camera_tables import ego_body_depth_from_rays, ego_body_depth_of, pixel_rays_cam
+from phigenesis.data.camera_tables import (
+    ego_body_depth_from_rays,
+    ego_body_depth_of,
+    footprint_pixels,
+    per_calibration,
+    pixel_rays_cam,
+)
 from phigenesis.data.camera_tables import ray_box_depths as ray_box_depths  # re-exported
 from phigenesis.data.ego_body import camera_centres, check_sensors_outside
-from phigenesis.data.records import DEPTH_ORIGINS, CameraDepth, CameraImage, Frame, LazyFrames, Scene
+from phigenesis.data.native import load_ray_box
+from phigenesis.data.records import (
+    DEPTH_ORIGINS,
+    CameraCalibration,
+    CameraDepth,
+    CameraImage,
+    Frame,
+    LazyFrames,
+    Scene,
+)
 from phigenesis.data.stages import register_stage
 from phigenesis.data.stages.aggregate import (
     TILE_M,
@@ -286,8 +301,13 @@ def seen_past_lidar_top(
 
 def normalized_bounds(camera: CameraImage, margin: float = 0.05) -> tuple[tuple[float, float], ...]:
     """((x_min, x_max), (y_min, y_max)) of x/z and y/z over rays through the image border (distortion
-    undone), widened by ``margin`` of the span: points outside cannot land in the image."""
+    undone), widened by ``margin`` of the span: points outside cannot land in the image. Computed
+    once per calibration and margin (:func:`~phigenesis.data.camera_tables.per_calibration`)."""
     cal = camera.calibration
+    return per_calibration(f"normalized_bounds {margin!r}", cal, lambda: _normalized_bounds(cal, margin))
+
+
+def _normalized_bounds(cal: CameraCalibration, margin: float) -> tuple[tuple[float, float], ...]:
     w, h = cal.width, cal.height
     t = np.linspace(0.0, 1.0, 32)
     border = np.concatenate(
@@ -312,6 +332,18 @@ def camera_wedge(camera: CameraImage) -> tuple[float, float] | None:
     radians, from rays along the image border; None if it spans more than 160 degrees (a
     fisheye, or a camera looking straight up or down), where culling by azimuth is unsafe."""
     cal = camera.calibration
+    rays = per_calibration("wedge_border_rays", cal, lambda: _border_rays(cal))
+    d = rays @ camera.world_from_camera[:3, :3].T
+    optical = camera.world_from_camera[:3, 2]
+    if np.hypot(optical[0], optical[1]) < 1e-3:
+        return None
+    centre = float(np.arctan2(optical[1], optical[0]))
+    half = float(np.max(np.abs(geometry.wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - centre))))
+    return None if half > np.radians(80.0) else (centre, half)
+
+
+def _border_rays(cal: CameraCalibration) -> NDArray[np.float64]:
+    """(68, 3) camera-frame rays through 17 points along each side of the image (z = 1)."""
     w, h = cal.width, cal.height
     t = np.linspace(0.0, 1.0, 17)
     border = np.concatenate(
@@ -322,14 +354,7 @@ def camera_wedge(camera: CameraImage) -> tuple[float, float] | None:
             np.stack([np.full_like(t, w - 1), t * (h - 1)], 1),
         ]
     )
-    rays = geometry.unproject_pixels(border, cal.intrinsics, cal.distortion)
-    d = rays @ camera.world_from_camera[:3, :3].T
-    optical = camera.world_from_camera[:3, 2]
-    if np.hypot(optical[0], optical[1]) < 1e-3:
-        return None
-    centre = float(np.arctan2(optical[1], optical[0]))
-    half = float(np.max(np.abs(geometry.wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - centre))))
-    return None if half > np.radians(80.0) else (centre, half)
+    return geometry.unproject_pixels(border, cal.intrinsics, cal.distortion)
 
 
 def tiles_in_view(
@@ -457,6 +482,35 @@ def ego_body_depth(
     return ego_body_depth_from_rays(camera.calibration, ego_boxes, rays)
 
 
+#: Boxes are clipped to z >= this (metres, camera frame) before their footprint is taken.
+_CLIP_Z_M = 1e-6
+#: The 12 edges of a box, as pairs of indices into ``geometry.BOX_CORNER_SIGNS``.
+_BOX_EDGES = [
+    (i, j)
+    for i in range(8)
+    for j in range(i + 1, 8)
+    if np.sum(geometry.BOX_CORNER_SIGNS[i] != geometry.BOX_CORNER_SIGNS[j]) == 1
+]
+
+
+def normalized_footprint(corners_cam: NDArray[np.float64]) -> tuple[tuple[float, float], ...] | None:
+    """((x0, x1), (y0, y1)): bounds of x/z and y/z over a box (its 8 corners, camera frame)
+    clipped to z >= :data:`_CLIP_Z_M`, None if nothing of it lies in front of the camera. A
+    convex solid's pinhole image is the hull of its vertices' images, so every ray (x, y, 1)
+    that meets the clipped box lies in these bounds."""
+    z = corners_cam[:, 2]
+    vertices = [corners_cam[z >= _CLIP_Z_M]]
+    for i, j in _BOX_EDGES:
+        if (z[i] - _CLIP_Z_M) * (z[j] - _CLIP_Z_M) < 0:
+            t = (_CLIP_Z_M - z[i]) / (z[j] - z[i])
+            vertices.append((corners_cam[i] + t * (corners_cam[j] - corners_cam[i]))[None])
+    points = np.concatenate(vertices)
+    if len(points) == 0:
+        return None
+    x, y = points[:, 0] / points[:, 2], points[:, 1] / points[:, 2]
+    return (float(x.min()), float(x.max())), (float(y.min()), float(y.max()))
+
+
 def vehicle_far_depth(
     frame: Frame,
     camera: CameraImage,
@@ -465,6 +519,61 @@ def vehicle_far_depth(
     rays: NDArray[np.float64],
 ) -> NDArray[np.float32]:
     """(H, W) depth of the far side of the nearest moving vehicle box (shrunk, bottom raised) on
+    each pixel's ray at the image's time, inf where none: nothing beyond it can be visible.
+
+    Each box's rays are tested only over its footprint: the rows and columns whose rays' extents
+    (:func:`~phigenesis.data.camera_tables.footprint_pixels`) meet the bounds of its
+    :func:`normalized_footprint`, also for a box that reaches behind the camera (a car alongside),
+    where :func:`vehicle_far_depth_reference` tested every pixel; in one pass per box with the
+    native kernel (:func:`~phigenesis.data.native.load_ray_box`), else with numpy."""
+    cal = camera.calibration
+    h, w = cal.height, cal.width
+    far = np.full((h, w), np.inf, np.float32)
+    boxes = frame.boxes
+    dt_s = (camera.timestamp_micros - frame.timestamp_micros) * 1e-6
+    camera_from_world = geometry.invert_transform(camera.world_from_camera)
+    grid = rays.reshape(h, w, 3)
+    for k, track in enumerate(boxes.track_id):
+        cls = int(boxes.class_id[k])
+        if track not in moving_tracks or cls not in VEHICLE_IDS | PERSON_IDS:
+            continue
+        clearance = params.occluder_clearance_m if cls in VEHICLE_IDS else 0.0
+        shrink = params.occluder_shrink if cls in VEHICLE_IDS else params.person_core
+        size = boxes.size_lwh[k] * np.array([shrink, shrink, 1.0])
+        size[2] -= clearance
+        if np.any(size <= 0):
+            continue
+        rotation = geometry.quaternion_to_matrix(boxes.orientation_world[k])
+        centre = boxes.center_world[k] + boxes.velocity_world[k] * dt_s + rotation[:, 2] * 0.5 * clearance
+        camera_from_box = camera_from_world @ geometry.make_transform(rotation, centre)
+        corners = geometry.transform_points(camera_from_box, 0.5 * size * geometry.BOX_CORNER_SIGNS)
+        bounds = normalized_footprint(corners)
+        region = None if bounds is None else footprint_pixels(cal, *bounds)
+        if region is None:
+            continue
+        kernel = load_ray_box() if rays.flags.c_contiguous else None
+        if kernel is not None:
+            kernel.far_side(rays, region, geometry.invert_transform(camera_from_box), 0.5 * size, far)
+            continue
+        rows, cols = region
+        sub = grid[rows, cols]
+        _, t_out = ray_box_depths(sub.reshape(-1, 3), camera_from_box, 0.5 * size)
+        np.minimum(far[rows, cols], t_out.reshape(sub.shape[:2]), out=far[rows, cols])
+    return far
+
+
+def vehicle_far_depth_reference(
+    frame: Frame,
+    camera: CameraImage,
+    moving_tracks: frozenset[str],
+    params: ProjectParams,
+    rays: NDArray[np.float64],
+) -> NDArray[np.float32]:
+    """The reference :func:`vehicle_far_depth`: each box's rays over the bounding box of its
+    projected corners, or over the whole image when a corner lies nearer than ``min_depth_m``.
+    Kept for the tests.
+
+    (H, W) depth of the far side of the nearest moving vehicle box (shrunk, bottom raised) on
     each pixel's ray at the image's time, inf where none: nothing beyond it can be visible."""
     cal = camera.calibration
     h, w = cal.height, cal.width
@@ -517,7 +626,32 @@ def _zbuffer(pixel: NDArray[np.int64], z: NDArray[np.float32], size: int) -> NDA
 def occluder_depth(
     pixel: NDArray[np.int64], z: NDArray[np.float32], radius_px: NDArray[np.int64], shape: tuple[int, int]
 ) -> NDArray[np.float32]:
-    """(H, W) nearest depth of any point whose disc of ``radius_px`` covers each pixel (inf: none)."""
+    """(H, W) nearest depth of any point whose disc of ``radius_px`` covers each pixel (inf: none).
+
+    Each radius's z-buffer and erosion cover only the rectangle around that radius's points
+    that their discs reach (the LiDAR fills a band of rows, the sky and the cameras' edges
+    nothing): the same values as over the whole image (:func:`occluder_depth_reference`)."""
+    h, w = shape
+    occ = np.full((h, w), np.inf, np.float32)
+    for r in np.unique(radius_px):
+        sel = pixel[radius_px == r]
+        zs = z[radius_px == r]
+        rows, cols = sel // w, sel % w
+        r0, r1 = max(int(rows.min()) - r, 0), min(int(rows.max()) + r + 1, h)
+        c0, c1 = max(int(cols.min()) - r, 0), min(int(cols.max()) + r + 1, w)
+        cw = c1 - c0
+        buf = _zbuffer((rows - r0) * cw + (cols - c0), zs, (r1 - r0) * cw).reshape(r1 - r0, cw)
+        if r > 0:
+            buf = cv2.erode(buf, _disc(int(r)), borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+        np.minimum(occ[r0:r1, c0:c1], buf, out=occ[r0:r1, c0:c1])
+    return occ
+
+
+def occluder_depth_reference(
+    pixel: NDArray[np.int64], z: NDArray[np.float32], radius_px: NDArray[np.int64], shape: tuple[int, int]
+) -> NDArray[np.float32]:
+    """The reference :func:`occluder_depth`: every radius's z-buffer and erosion over the whole
+    image. Kept for the tests."""
     h, w = shape
     occ = np.full((h, w), np.inf, np.float32)
     for r in np.unique(radius_px):
@@ -650,6 +784,51 @@ def _plane_at_centre(m: dict, min_points: int) -> tuple[NDArray, NDArray, NDArra
     return a, b, c, rms
 
 
+def occupied_window_moments(
+    occupied: NDArray[np.int64], own: NDArray[np.float64], shape: tuple[int, int], radius: int
+) -> NDArray[np.float64]:
+    """(K, 10) moments (:data:`MOMENT_NAMES` order) of the ``(2r+1)^2`` window of each occupied
+    pixel, offsets taken from that pixel's centre: :func:`window_moments` evaluated only at the
+    ``occupied`` pixels (sorted flat indices; ``own`` their (K, 10) per-pixel moments).
+
+    Only occupied pixels contribute to a window and only their windows are used, so this is the
+    same sum over at most (2r+1)^2 neighbours per occupied pixel (found by binary search), not
+    ten whole-image filters: about 1 % of a full-size image's pixels hold a point."""
+    h, w = shape
+    k = len(occupied)
+    out = np.zeros((k, len(MOMENT_NAMES)))
+    if k == 0:
+        return out
+    row, col = occupied // w, occupied % w
+    n, u, v, uu, vv, uv, y, uy, vy, yy = own.T
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            inside = (col + dx >= 0) & (col + dx < w) & (row + dy >= 0) & (row + dy < h)
+            target = occupied + dy * w + dx
+            j = np.minimum(np.searchsorted(occupied, target), k - 1)
+            at = np.flatnonzero(inside & (occupied[j] == target))
+            if at.size == 0:
+                continue
+            nb = j[at]
+            # A neighbour at (dx, dy) has offsets du + dx, dv + dy from this pixel's centre.
+            out[at] += np.stack(
+                [
+                    n[nb],
+                    u[nb] + dx * n[nb],
+                    v[nb] + dy * n[nb],
+                    uu[nb] + 2 * dx * u[nb] + dx * dx * n[nb],
+                    vv[nb] + 2 * dy * v[nb] + dy * dy * n[nb],
+                    uv[nb] + dx * v[nb] + dy * u[nb] + dx * dy * n[nb],
+                    y[nb],
+                    uy[nb] + dx * y[nb],
+                    vy[nb] + dy * y[nb],
+                    yy[nb],
+                ],
+                axis=1,
+            )
+    return out
+
+
 def fit_pixels(
     pixel: NDArray[np.int64],
     uv: NDArray[np.float64],
@@ -659,6 +838,79 @@ def fit_pixels(
     params: ProjectParams,
 ) -> PixelFit:
     """Depth at each pixel centre from the visible points (image pixel ``pixel``, position
+    ``uv``, depth ``z``): ``1/z = a + b du + c dv`` (du, dv: offset from the centre, pixels)
+    fitted to the points of the pixel's ``(2 fit_window_px + 1)^2`` window where they lie on
+    one plane (RMS residual within ``fit_tolerance``/2), else to the pixel's own points. The
+    pixel is mixed if one of its own points lies farther than the tolerance from its own
+    fit or, with too few points for one, from ``reference_m`` (the point nearest its centre).
+
+    The moments and fits are computed for the occupied pixels only
+    (:func:`occupied_window_moments`); :func:`fit_pixels_reference` is the same on whole-image
+    maps (equal to rounding: the sums are taken in another order)."""
+    h, w = shape
+    size = h * w
+    z = np.asarray(z, np.float64)
+    du = uv[:, 0] - pixel % w
+    dv = uv[:, 1] - pixel // w
+    y = 1.0 / z
+    occupied, inverse = np.unique(pixel, return_inverse=True)
+    k = len(occupied)
+    values = (None, du, dv, du * du, dv * dv, du * dv, y, du * y, dv * y, y * y)
+    sums = [np.bincount(inverse, weights=v, minlength=k) for v in values]
+    own_k = np.stack(sums, axis=1).astype(np.float64)
+    own = dict(zip(MOMENT_NAMES, own_k.T, strict=True))
+    count_k = own["n"].astype(np.int64)
+    a, b, c, _ = _plane_at_centre(own, params.plane_min_points)
+    zmin = np.full(k, np.inf)
+    zmax = np.zeros(k)
+    np.minimum.at(zmin, inverse, z)
+    np.maximum.at(zmax, inverse, z)
+    reference = np.asarray(reference_m)[occupied]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # As in fit_pixels_reference: the centre's depth stays within the pixel's own depth range
+        # widened by its span, and at least half the nearest point's depth.
+        span = zmax - zmin
+        depth = np.where(a > 0, np.clip(1.0 / a, np.maximum(zmin - span, 0.5 * zmin), zmax + span), np.nan)
+        fitted = np.isfinite(a)[inverse]
+        plane_z = 1.0 / (a[inverse] + b[inverse] * du + c[inverse] * dv)
+        expected = np.where(fitted, plane_z, reference[inverse])
+        deviation = np.nan_to_num(np.abs(z - expected), nan=np.inf)
+    worst = np.zeros(k)
+    np.maximum.at(worst, inverse, deviation)
+    base = np.where(np.isfinite(depth), depth, reference)
+    tolerance = params.fit_tolerance_m + params.fit_tolerance_rel * base
+    mixed = worst > tolerance
+    if params.fit_window_px > 0 and k:
+        window = occupied_window_moments(occupied, own_k, shape, params.fit_window_px)
+        window_fit = dict(zip(MOMENT_NAMES, window.T, strict=True))
+        wa, _, _, rms = _plane_at_centre(window_fit, params.plane_min_points)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            window_z = 1.0 / wa
+            window_tolerance = params.window_tolerance_m + params.window_tolerance_rel * window_z
+            good = np.isfinite(window_z) & (window_z > 0) & (rms * window_z**2 <= window_tolerance)
+            good &= np.abs(window_z - base) <= tolerance
+        depth = np.where(good, window_z, depth)
+    depth_full = np.full(size, np.nan)
+    depth_full[occupied] = depth
+    count_full = np.zeros(size, np.int64)
+    count_full[occupied] = count_k
+    mixed_full = np.zeros(size, bool)
+    mixed_full[occupied] = mixed
+    return PixelFit(depth_full, count_full, mixed_full)
+
+
+def fit_pixels_reference(
+    pixel: NDArray[np.int64],
+    uv: NDArray[np.float64],
+    z: NDArray[np.floating],
+    shape: tuple[int, int],
+    reference_m: NDArray[np.floating],
+    params: ProjectParams,
+) -> PixelFit:
+    """The reference :func:`fit_pixels`: the same arithmetic on whole-image moment maps (ten
+    (H * W) float64 maps, filtered over every row that holds a point). Kept for the tests.
+
+    Depth at each pixel centre from the visible points (image pixel ``pixel``, position
     ``uv``, depth ``z``): ``1/z = a + b du + c dv`` (du, dv: offset from the centre, pixels)
     fitted to the points of the pixel's ``(2 fit_window_px + 1)^2`` window where they lie on
     one plane (RMS residual within ``fit_tolerance``/2), else to the pixel's own points. The
@@ -715,6 +967,19 @@ def fit_pixels(
     return PixelFit(depth, count, mixed)
 
 
+def _known_box(known: NDArray[np.bool_], margin: int) -> tuple[slice, slice] | None:
+    """The rows and columns of the known pixels' bounding box widened by ``margin`` (clipped to
+    the image), None if none is known."""
+    rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
+    if rows.size == 0:
+        return None
+    h, w = known.shape
+    return (
+        slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h)),
+        slice(max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin + 1, w)),
+    )
+
+
 def depth_edge_band(
     depth_m: NDArray[np.floating],
     band_px: int,
@@ -728,7 +993,47 @@ def depth_edge_band(
     background point seen through a gap), or within ``near_band_px`` (default ``band_px``) of a
     farther one when at least ``min_share`` of the known pixels around are such far-side pixels
     (the near side of a silhouette; a lone leak of background among foreground pixels does not
-    make them edge pixels)."""
+    make them edge pixels).
+
+    Computed on the known pixels' bounding box: outside it every filter's input already holds
+    its border value, so the result equals :func:`depth_edge_band_reference`'s."""
+    out = np.zeros(depth_m.shape, bool)
+    box = _known_box(depth_m > 0, 0)
+    if box is not None:
+        out[box] = depth_edge_band_reference(depth_m[box], band_px, rel, abs_m, min_share, near_band_px)
+    return out
+
+
+def silhouette_pixels(
+    rgb: NDArray[np.uint8], depth_m: NDArray[np.floating], threshold: float
+) -> NDArray[np.bool_]:
+    """(H, W) True for known pixels (depth > 0) on the rim of the known region (an unknown
+    8-neighbour) that lie within a pixel of a strong image edge (Sobel magnitude of the grey image,
+    0-255 scale, above ``threshold``).
+
+    A foreground point landing in a pixel whose centre sees the background beyond a silhouette
+    cannot be caught by comparing depths when the background has no depth there (above the
+    LiDAR's field, beyond its range): the image still shows the silhouette.
+
+    Computed on the known pixels' bounding box widened by 3 pixels (the Sobel and the 3 x 3
+    dilation reach 2, the rim test 1, and the replicated border then repeats unknown pixels):
+    equal to :func:`silhouette_pixels_reference`."""
+    out = np.zeros(depth_m.shape, bool)
+    box = _known_box(depth_m > 0, 3)
+    if box is not None:
+        out[box] = silhouette_pixels_reference(rgb[box], depth_m[box], threshold)
+    return out
+
+
+def depth_edge_band_reference(
+    depth_m: NDArray[np.floating],
+    band_px: int,
+    rel: float,
+    abs_m: float,
+    min_share: float = 0.05,
+    near_band_px: int | None = None,
+) -> NDArray[np.bool_]:
+    """The reference :func:`depth_edge_band`, over the whole image. Kept for the tests."""
     known = depth_m > 0
     if band_px <= 0 or not known.any():
         return np.zeros(depth_m.shape, bool)
@@ -758,16 +1063,10 @@ def depth_edge_band(
     return far_side | near_side
 
 
-def silhouette_pixels(
+def silhouette_pixels_reference(
     rgb: NDArray[np.uint8], depth_m: NDArray[np.floating], threshold: float
 ) -> NDArray[np.bool_]:
-    """(H, W) True for known pixels (depth > 0) on the rim of the known region (an unknown
-    8-neighbour) that lie within a pixel of a strong image edge (Sobel magnitude of the grey image,
-    0-255 scale, above ``threshold``).
-
-    A foreground point landing in a pixel whose centre sees the background beyond a silhouette
-    cannot be caught by comparing depths when the background has no depth there (above the
-    LiDAR's field, beyond its range): the image still shows the silhouette."""
+    """The reference :func:`silhouette_pixels`, over the whole image. Kept for the tests."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
     magnitude = np.hypot(
         cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
@@ -866,12 +1165,155 @@ def project_camera(
     fine_origin = np.zeros(hf * wf, np.uint8)
     nearest = np.flatnonzero(z == fine_depth[fine])
     fine_origin[fine[nearest]] = origin[nearest]
+    # Every per-pixel value below is computed on the pixels that take a point (``known``, about
+    # 1 % of a full-size image), then scattered into the (H, W) maps.
+    if ss == 1:
+        known = np.flatnonzero(np.isfinite(fine_depth))  # _centre_first on a 1 x 1 grid
+        chosen = known
+    else:
+        chosen = _centre_first(fine_depth.reshape(h, ss, w, ss), params.max_offset_px).reshape(-1)
+        known = np.flatnonzero(chosen >= 0)
+        chosen = chosen[known]
+    sparse_k = fine_depth[chosen]
+    origin_k = fine_origin[chosen]
+    if params.estimator == "plane":
+        sparse = np.full(h * w, np.inf, np.float32)
+        sparse[known] = sparse_k
+        fit = fit_pixels(pixel, uv[keep], z, (h, w), sparse, params)
+        fit_depth, fit_count, mixed = fit.depth_m[known], fit.count[known], fit.mixed[known]
+        plane = np.isfinite(fit_depth) & ~mixed
+        sparse_k = np.where(plane, fit_depth, sparse_k)
+        support = np.where(plane, 2, np.minimum(fit_count, 1))
+    else:
+        # Support: points in the pixel agreeing with its depth within tau.
+        sparse = np.full(h * w, np.inf, np.float32)
+        sparse[known] = sparse_k
+        agree = np.abs(z - sparse[pixel]) <= sparse[pixel] * params.tau
+        support = np.bincount(pixel[agree], minlength=h * w)[known]
+        mixed = np.zeros(len(known), bool)
+    confidence_k = ORIGIN_WEIGHTS[origin_k] * np.where(support >= 2, 1.0, 0.75)
+    confidence_k = np.where(mixed, 0.5 * confidence_k, confidence_k)
+    counts["mixed_pixels"] = int(mixed.sum())
+    if params.mixed_pixels == "drop":
+        kept = ~mixed
+        known, sparse_k, confidence_k, origin_k = (
+            known[kept],
+            sparse_k[kept],
+            confidence_k[kept],
+            origin_k[kept],
+        )
+    depth = np.zeros(h * w, np.float32)
+    depth[known] = sparse_k
+    confidence = np.zeros(h * w, np.float32)
+    confidence[known] = confidence_k
+    origin_map = np.zeros(h * w, np.uint8)
+    origin_map[known] = origin_k
+    edge = depth_edge_band(
+        depth.reshape(h, w),
+        params.edge_band_px,
+        params.edge_tolerance_rel,
+        params.edge_tolerance_m,
+        params.edge_min_share,
+        params.edge_near_band_px,
+    ).reshape(-1)
+    if params.image_edge_threshold is not None and camera.image_bytes is not None:
+        edge |= silhouette_pixels(
+            camera.decode_image(), depth.reshape(h, w), params.image_edge_threshold
+        ).reshape(-1)
+    counts["edge_pixels"] = int(edge.sum())
+    confidence[edge] *= params.edge_confidence
+    if ego_depth is not None:
+        body = np.isfinite(ego_depth.reshape(-1))
+        depth[body], confidence[body], origin_map[body] = 0.0, 0.0, 0
+    return (
+        CameraDepth(depth.reshape(h, w), confidence.reshape(h, w), origin_map.reshape(h, w)),
+        counts,
+    )
+
+
+def project_camera_reference(
+    camera: CameraImage,
+    points: CameraPoints,
+    params: ProjectParams,
+    ego_depth: NDArray[np.float32] | None = None,
+    occluder_far: NDArray[np.float32] | None = None,
+    sweep_step_rad: float = float(np.radians(0.5)),
+) -> tuple[CameraDepth, dict[str, int]]:
+    """The reference :func:`project_camera`: the same steps with the plain reference functions
+    (:func:`occluder_depth_reference`, :func:`fit_pixels_reference`,
+    :func:`depth_edge_band_reference`, :func:`silhouette_pixels_reference`) and every per-pixel
+    value computed over the whole image. Kept for the tests."""
+    cal = camera.calibration
+    h, w = cal.height, cal.width
+    # float32 relative to the camera centre: millions of map points, and world coordinates of a
+    # scene (up to a few km) keep ~0.1 mm precision once the centre is subtracted.
+    centre = camera.world_from_camera[:3, 3]
+    rotation = camera.world_from_camera[:3, :3].astype(np.float32)
+    p_cam = (np.asarray(points.points_world, np.float32) - centre.astype(np.float32)) @ rotation
+    z_all = p_cam[:, 2]
+    near = (z_all > params.min_depth_m) & (np.einsum("ij,ij->i", p_cam, p_cam) <= params.max_range_m**2)
+    # A cheap test on the undistorted view directions before the exact projection.
+    (x0, x1), (y0, y1) = normalized_bounds(camera)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x, y = p_cam[:, 0] / z_all, p_cam[:, 1] / z_all
+    near &= (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+    p_cam = p_cam[near]
+    uv, valid = geometry.project_points(p_cam, cal.intrinsics, cal.distortion, params.min_depth_m)
+    valid &= geometry.in_image(uv, w, h)
+    idx = np.flatnonzero(near)[valid]
+    z = p_cam[valid, 2].astype(np.float32)
+    uv = uv[valid]
+    pixel = _pixel_index(uv, 1, w, h)
+    counts = {
+        "projected": len(z),
+        "removed_by_visibility": 0,
+        "behind_ego_body": 0,
+        "behind_vehicles": 0,
+        "mixed_pixels": 0,
+        "edge_pixels": 0,
+    }
+    for name, limit, slack in (
+        ("behind_ego_body", ego_depth, 0.0),
+        ("behind_vehicles", occluder_far, params.slack_m),
+    ):
+        if limit is not None:
+            front = z < limit.reshape(-1)[pixel] + slack
+            counts[name] = int(np.sum(~front))
+            pixel, z, idx, uv = pixel[front], z[front], idx[front], uv[front]
+    origin = points.origin[idx]
+    # Visibility and the z-buffer work on a grid `s` times finer than the image, so a point
+    # occludes (and fills) only the part of a pixel it covers; each pixel then takes the visible
+    # point nearest its centre, not the nearest in depth, so edge pixels keep the surface at
+    # their centre.
+    ss = supersample_of(params, w)
+    hf, wf = h * ss, w * ss
+    fine = _pixel_index(uv, ss, wf, hf)
+    keep = np.ones(len(z), bool)
+    if params.visibility == "splat" and len(z):
+        focal = float(cal.intrinsics[0, 0]) * ss
+        spacing = points.spacing_m[idx]
+        footprint = np.where(np.isnan(spacing), z * sweep_step_rad, spacing)
+        radius = np.rint(params.splat_scale * focal * footprint / z)
+        radius = np.clip(radius, 0, params.max_splat_px * ss).astype(np.int64)
+        occ = occluder_depth_reference(fine, z, radius, (hf, wf)).reshape(-1)
+        keep = z <= occ[fine] * (1 + params.tau) + params.slack_m
+    elif params.visibility == "local_min" and len(z):
+        buf = _zbuffer(pixel, z, h * w).reshape(h, w)
+        kernel = np.ones((params.window, params.window), np.uint8)
+        local = cv2.erode(buf, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf).reshape(-1)
+        keep = z <= local[pixel] * (1 + params.tau)
+    counts["removed_by_visibility"] = int(np.sum(~keep))
+    pixel, fine, z, origin = pixel[keep], fine[keep], z[keep], origin[keep]
+    fine_depth = _zbuffer(fine, z, hf * wf)
+    fine_origin = np.zeros(hf * wf, np.uint8)
+    nearest = np.flatnonzero(z == fine_depth[fine])
+    fine_origin[fine[nearest]] = origin[nearest]
     chosen = _centre_first(fine_depth.reshape(h, ss, w, ss), params.max_offset_px).reshape(-1)
     hit = chosen >= 0
     sparse = np.where(hit, fine_depth[np.maximum(chosen, 0)], np.inf)
     origin_map = np.where(hit, fine_origin[np.maximum(chosen, 0)], 0).astype(np.uint8)
     if params.estimator == "plane":
-        fit = fit_pixels(pixel, uv[keep], z, (h, w), sparse, params)
+        fit = fit_pixels_reference(pixel, uv[keep], z, (h, w), sparse, params)
         plane = np.isfinite(fit.depth_m) & hit & ~fit.mixed
         sparse = np.where(plane, fit.depth_m, sparse)
         support = np.where(plane, 2, np.minimum(fit.count, 1))
@@ -889,7 +1331,7 @@ def project_camera(
     confidence = np.where(hit, confidence, 0.0).astype(np.float32)
     origin_map = np.where(hit, origin_map, 0).astype(np.uint8)
     depth = np.where(hit, sparse, 0.0).astype(np.float32)
-    edge = depth_edge_band(
+    edge = depth_edge_band_reference(
         depth.reshape(h, w),
         params.edge_band_px,
         params.edge_tolerance_rel,
@@ -898,7 +1340,7 @@ def project_camera(
         params.edge_near_band_px,
     ).reshape(-1)
     if params.image_edge_threshold is not None and camera.image_bytes is not None:
-        edge |= silhouette_pixels(
+        edge |= silhouette_pixels_reference(
             camera.decode_image(), depth.reshape(h, w), params.image_edge_threshold
         ).reshape(-1)
     counts["edge_pixels"] = int(edge.sum())
@@ -983,7 +1425,16 @@ class _Projector:
         return frame
 
 
-@register_stage("project_depth", params=ProjectParams)
+def _camera_tables_once(scene: Scene, params: ProjectParams) -> None:
+    """Per-scene setup: every camera's pixel rays and ego-body depth
+    (:mod:`~phigenesis.data.camera_tables`), so no frame pays for them."""
+    lidar_map = scene.products.get("lidar_map") if params.use_map else None
+    ego_boxes = lidar_map.ego_boxes if lidar_map is not None else checked_ego_boxes(scene)
+    for cal in scene.calibrations:
+        ego_body_depth_of(cal, ego_boxes)
+
+
+@register_stage("project_depth", params=ProjectParams, setup=_camera_tables_once)
 def project_depth(scene: Scene, params: ProjectParams) -> Scene:
     """Stage: sparse depth and confidence for every image (see the module docstring); uses the
     aggregated map from ``aggregate_lidar`` when it ran, else each frame's own sweep."""

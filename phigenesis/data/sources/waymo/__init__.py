@@ -279,9 +279,9 @@ def _scene(
     calibrations = convert.rig_calibrations(first, problems)
     rig = frozenset(c.name for c in calibrations)
 
-    def load(index: int) -> Frame:
+    def load(index: int, images: bool = True) -> Frame:
         raw = cache.pop(index) if index in cache else frames.frame(index)
-        converted = convert.frame(raw, index, origin, problems, dropped, rig)
+        converted = convert.frame(raw, index, origin, problems, dropped, rig, images)
         converted.scene_id = scene_id
         return converted
 
@@ -292,6 +292,7 @@ def _scene(
         frames=LazyFrames(
             len(frames),
             load,
+            lambda index: load(index, images=False),
             timestamps_micros=[t + convert.POSE_TIME_OFFSET_MICROS for t in frames.timestamps],
         ),
         metadata={
