@@ -116,8 +116,19 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def run_child(job: dict[str, Any], pythonpath: str | None = None) -> dict[str, Any]:
-    """``job`` in a fresh interpreter (``pythonpath`` first on its path: another checkout)."""
+def run_child(job: dict[str, Any], pythonpath: str | None = None, reuse: bool = False) -> dict[str, Any]:
+    """``job`` in a fresh interpreter (``pythonpath`` first on its path: another checkout); its
+    figures are kept in ``job["out"] + ".json"``, which ``reuse`` returns instead of running again
+    (a rerun that only failed later in the script)."""
+    saved = Path(job["out"] + ".json")
+    if reuse and saved.exists():
+        return json.loads(saved.read_text())
+    result = _run_child(job, pythonpath)
+    saved.write_text(json.dumps(result))
+    return result
+
+
+def _run_child(job: dict[str, Any], pythonpath: str | None) -> dict[str, Any]:
     env = dict(os.environ)
     if pythonpath:
         env["PYTHONPATH"] = os.pathsep.join([pythonpath, str(Path(__file__).resolve().parents[1])])
@@ -247,6 +258,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--baseline", help="an older checkout: its package gives the 'before' error column")
     parser.add_argument("--update", action="store_true", help="write the section into BENCHMARKS.md")
     parser.add_argument("--data-only", action="store_true", help="only write the datasets, then stop")
+    parser.add_argument("--reuse", action="store_true", help="reuse the figures of runs already measured")
     args = parser.parse_args(argv)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -272,8 +284,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     for frames in args.waymo_frames:
         data = synth_dataset(work, "waymo-v1", "waymo", frames, args.render_scale)
         job = {"source": "waymo", "overrides": {"input": str(data)}, "pipeline": "waymo"}
-        result = run_child({**job, "out": str(work / f"cache-waymo-{frames}")})
-        floor = run_child({**job, "out": str(work / f"floor-waymo-{frames}"), "floor": True})
+        result = run_child({**job, "out": str(work / f"cache-waymo-{frames}")}, reuse=args.reuse)
+        floor = run_child(
+            {**job, "out": str(work / f"floor-waymo-{frames}"), "floor": True}, reuse=args.reuse
+        )
         runs.append((f"Waymo, {frames} frames", result, floor))
         print(f"waymo {frames}: {result['cpu_s'] / result['frames']:.2f} CPU-s/frame", flush=True)
     data = synth_dataset(work, "nuscenes", "nuscenes", 0, args.render_scale, args.nuscenes_keyframes)
@@ -282,8 +296,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         "overrides": {"dataroot": str(data), "version": "v1.0-mini"},
         "pipeline": "nuscenes",
     }
-    result = run_child({**job, "out": str(work / "cache-nuscenes")})
-    floor = run_child({**job, "out": str(work / "floor-nuscenes"), "floor": True})
+    result = run_child({**job, "out": str(work / "cache-nuscenes")}, reuse=args.reuse)
+    floor = run_child({**job, "out": str(work / "floor-nuscenes"), "floor": True}, reuse=args.reuse)
     runs.append((f"nuScenes 12 Hz, {result['frames']} frames", result, floor))
 
     parts: list[str] = []
@@ -350,13 +364,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     errors: dict[str, dict[str, float]] = {}
     if args.baseline:
         job = {**error_job, "source_params": _source_params(args.error_frames, preset=False)}
-        run_child({**job, "out": str(work / "truth-before")}, pythonpath=args.baseline)
+        run_child({**job, "out": str(work / "truth-before")}, pythonpath=args.baseline, reuse=args.reuse)
         errors["before: TOP only"] = truth_errors(work / "truth-before")
     job = {**error_job, "source_params": _source_params(args.error_frames, preset=False)}
-    run_child({**job, "out": str(work / "truth-common")})
+    run_child({**job, "out": str(work / "truth-common")}, reuse=args.reuse)
     errors["now: TOP only"] = truth_errors(work / "truth-common")
     job = {**error_job, "source_params": _source_params(args.error_frames, preset=True)}
-    run_child({**job, "out": str(work / "truth-preset")})
+    run_child({**job, "out": str(work / "truth-preset")}, reuse=args.reuse)
     errors["now: five LiDARs, two returns"] = truth_errors(work / "truth-preset")
     labels = {
         "sparse_absrel": "sparse depth AbsRel",
