@@ -229,3 +229,14 @@ def test_prep_synthetic_takes_a_preset_and_explicit_values_override_it(tmp_path)
     sweep = lidar_of(CacheReader(tmp_path / "c").read(0))
     assert set(np.unique(sweep.lidar_id)) == {0, 1, 2, 3, 4}
     assert set(np.unique(sweep.return_index)) == {0, 1}
+
+
+def test_a_waymo_preset_export_converts_with_the_waymo_sources_body(tmp_path):
+    # The short-range LiDARs sit outside the Pacifica boxes the Waymo source assumes for every
+    # segment; inside them, the source's sensor check refuses the scene.
+    from phigenesis import prep
+    from phigenesis.synth import synth
+
+    synth("waymo-v1", tmp_path / "v1", preset="waymo", frames=1, height=64, width=96)
+    summary = prep.waymo(tmp_path / "cache", input=tmp_path / "v1", progress=False)
+    assert summary.frames_written == 1

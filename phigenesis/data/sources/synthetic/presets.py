@@ -13,9 +13,12 @@ sensors.md``): each value below cites the section it comes from.
 - ``nuscenes``: nuScenes v1.0. Six cameras at 1600 x 900, 12 Hz; LIDAR_TOP a Velodyne HDL-32E
   (32 beams, +10 .. -30 deg, 20 Hz spin, 70 m).
 
-The short-range LiDARs' mounts are plausible places on the synthetic ego car (front bumper, the
-two front wings, rear bumper, 10 cm outside the body, 0.55 m above the ground), not Waymo's
-measured extrinsics, which the reference does not give. They are cast as one snapshot at the
+The short-range LiDARs' mounts are plausible places on a Pacifica (front bumper, the two front
+wings, rear bumper, 0.55 m above the ground), 5 cm outside the faces of the body boxes the Waymo
+source assumes for every segment (:data:`phigenesis.data.ego_body.WAYMO_PACIFICA_BOXES`, whose
+lower box the real perimeter LiDARs sit just outside), not Waymo's measured extrinsics, which the
+reference does not give. The synthetic car is shorter than a Pacifica, so they stand a little
+clear of its rendered body. They are cast as one snapshot at the
 frame time (``sectors`` 1): Waymo stores no per-pixel poses for them, so a reader puts their
 points in the frame's vehicle frame, which is where a snapshot's points are exactly. They do not
 return from the ego car's own body (``ego_returns`` False): those cells stay empty.
@@ -62,13 +65,14 @@ def waymo_short_range(name: str, position_m: tuple[float, float, float], yaw_deg
     )
 
 
-#: Waymo's four short-range LiDARs, mounted on the synthetic ego body (front 3.5 m, rear -0.6 m,
-#: sides +-0.9 m; see meshes.ego_body), in Waymo's laser order FRONT, SIDE_LEFT, SIDE_RIGHT, REAR.
+#: Waymo's four short-range LiDARs, 5 cm outside the Pacifica body box (front 4.049 m, rear
+#: -1.127 m, sides +-1.0 m; ego_body.WAYMO_PACIFICA_BOXES), in Waymo's laser order FRONT,
+#: SIDE_LEFT, SIDE_RIGHT, REAR.
 WAYMO_SHORT_RANGE: tuple[LidarSpec, ...] = (
-    waymo_short_range("FRONT", (3.6, 0.0, 0.55), 0.0),
-    waymo_short_range("SIDE_LEFT", (2.9, 1.0, 0.55), 90.0),
-    waymo_short_range("SIDE_RIGHT", (2.9, -1.0, 0.55), -90.0),
-    waymo_short_range("REAR", (-0.7, 0.0, 0.55), 180.0),
+    waymo_short_range("FRONT", (4.10, 0.0, 0.55), 0.0),
+    waymo_short_range("SIDE_LEFT", (2.9, 1.05, 0.55), 90.0),
+    waymo_short_range("SIDE_RIGHT", (2.9, -1.05, 0.55), -90.0),
+    waymo_short_range("REAR", (-1.18, 0.0, 0.55), 180.0),
 )
 
 #: nuScenes LIDAR_TOP, a Velodyne HDL-32E: 32 beams, +10 .. -30 deg, 20 Hz (the nuscenes6 rig's
