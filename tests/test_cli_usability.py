@@ -124,7 +124,7 @@ def test_ctrl_c_during_prep_says_in_one_line_which_scenes_are_kept_and_a_rerun_r
     assert "Traceback" not in proc.stderr
     done = complete_scene_count(cache)
     assert 1 <= done < 4
-    (line,) = proc.stderr.splitlines()
+    (line,) = messages(proc.stderr)
     assert line.startswith("phigenesis-prep: interrupted")
     assert f"{done} of 4 scenes" in line and str(cache) in line and "rerun the same command" in line
     assert verify_cache(cache).ok
