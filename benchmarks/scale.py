@@ -322,9 +322,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         "manifest included), so they exceed the sum of the parts a little.",
     )
 
-    waymo_long = next((r for name, r, _ in runs if name.startswith("Waymo") and r["frames"] >= 150), None)
-    waymo_short = runs[0][1]
-    waymo = waymo_long or waymo_short
+    waymo_runs = [r for name, r, _ in runs if name.startswith("Waymo")]
+    waymo_short = min(waymo_runs, key=lambda r: r["frames"])
+    waymo = max(waymo_runs, key=lambda r: r["frames"])
+    waymo_long = waymo if waymo["frames"] > waymo_short["frames"] else None
     nusc = runs[-1][1]
     cost_rows = []
     for name, frames, r in (
