@@ -307,12 +307,28 @@ def _first_bad_item(value: Any, hint: Any, bounds: Bounds) -> tuple[str, Any, An
     return None
 
 
+def _nested_item(hint: Any) -> type | None:
+    """The config class ``X`` of a ``tuple[X, ...]`` field whose items are configs (dataclasses),
+    else None."""
+    args = typing.get_args(hint)
+    tuple_of = typing.get_origin(hint) is tuple and len(args) == 2 and args[1] is Ellipsis
+    if tuple_of and isinstance(args[0], type) and dataclasses.is_dataclass(args[0]):
+        return args[0]
+    return None
+
+
 def _checked_value(field: dataclasses.Field, hint: Any, value: Any, label: str) -> Any:
     """``value`` of ``field`` (type ``hint``) as its type holds it; a mapping given for a nested
     config (a field whose type is a dataclass of options) is built with :func:`from_mapping`.
     Raises :class:`ConfigError` (``LABEL: KEY = VALUE: must be ...``) if it does not fit."""
     if isinstance(hint, type) and dataclasses.is_dataclass(hint) and isinstance(value, Mapping):
         return from_mapping(hint, value, f"{label}: {field.name}")
+    item = _nested_item(hint)
+    if item is not None and isinstance(value, list | tuple):  # a tuple of nested configs
+        value = tuple(
+            from_mapping(item, v, f"{label}: {field.name}[{i}]") if isinstance(v, Mapping) else v
+            for i, v in enumerate(value)
+        )
     bounds = option_bounds(field)
     try:
         return _check(value, hint, bounds)

@@ -17,6 +17,7 @@ from phigenesis.data.sources.synthetic.presets import PRESETS
 from phigenesis.data.sources.synthetic.rigs import camera_calibrations
 from phigenesis.data.sources.synthetic.waymo_export import export_waymo
 from phigenesis.data.sources.waymo import WaymoConfig, WaymoSource
+from phigenesis.errors import PrepError
 from phigenesis.options import ConfigError
 from phigenesis.synth import synth
 
@@ -240,3 +241,23 @@ def test_a_waymo_preset_export_converts_with_the_waymo_sources_body(tmp_path):
     synth("waymo-v1", tmp_path / "v1", preset="waymo", frames=1, height=64, width=96)
     summary = prep.waymo(tmp_path / "cache", input=tmp_path / "v1", progress=False)
     assert summary.frames_written == 1
+
+
+def test_a_pipeline_spec_may_give_the_extra_lidars_as_mappings():
+    from phigenesis.data.pipeline import PipelineSpec, load_pipeline
+    from phigenesis.data.sources.synthetic.presets import preset_values
+
+    spec = load_pipeline("synthetic").to_dict()
+    spec["source"]["params"].update(preset_values("waymo"))  # LiDARs as mappings, as YAML holds them
+    loaded = PipelineSpec.from_dict(spec, "spec.yaml")
+    assert [lidar["name"] for lidar in loaded.source_params["extra_lidars"]] == [
+        "FRONT",
+        "SIDE_LEFT",
+        "SIDE_RIGHT",
+        "REAR",
+    ]
+    spec["source"]["params"]["extra_lidars"][1]["beams"] = 0
+    with pytest.raises(
+        PrepError, match=r"extra_lidars\[1\]: LidarSpec: beams = 0: must be an integer in \[1, 1024\]"
+    ):
+        PipelineSpec.from_dict(spec, "spec.yaml")
