@@ -1,8 +1,11 @@
 """Shared helpers of the benchmark scripts: markdown tables and named sections of BENCHMARKS.md.
 
 A script builds a :class:`Report`, adds tables as it measures (each is printed at once), and
-finally calls :meth:`Report.write`, which replaces the script's section of ``BENCHMARKS.md``
-(or appends it) between the markers ``<!-- section:NAME -->`` and ``<!-- /section:NAME -->``.
+finally calls :meth:`Report.write`. With the script's ``--update`` flag (:func:`add_update_flag`)
+that replaces the script's section of ``BENCHMARKS.md`` (or appends it) between the markers
+``<!-- section:NAME -->`` and ``<!-- /section:NAME -->``; without it the tracked file is left
+alone and the section goes to ``benchmarks/out/NAME.md`` (ignored by git), so reproducing a
+figure never rewrites the published table.
 Every section starts with a header naming the machine, the exact command, the date and the
 versions of the main libraries, so numbers are never quoted without their context.
 """
@@ -18,18 +21,22 @@ import shlex
 import statistics
 import subprocess
 import sys
+from argparse import ArgumentParser
 from collections.abc import Sequence
 from importlib import metadata
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS_MD = REPO_ROOT / "BENCHMARKS.md"
+#: Where a run without ``--update`` leaves its section (one file per section, ignored by git).
+SCRATCH_DIR = REPO_ROOT / "benchmarks" / "out"
 #: The distributions whose versions every section header records.
 VERSIONED_PACKAGES = ("torch", "open3d", "numpy", "pyarrow")
 _TITLE = (
     "# Benchmarks\n\n"
     "Measured performance of phigenesis. Each section below is written by the script in `benchmarks/` "
-    "that its header names; rerun that script (on a quiet machine) to replace the section. "
+    "that its header names; rerun that script with `--update` (on a quiet machine) to replace the "
+    "section; without it the script prints its tables and saves the section under `benchmarks/out/`. "
     "Timings are medians over repeated runs unless a table says otherwise.\n"
 )
 _NUMBER = re.compile(r"^[-+]?[\d,]*\.?\d+(e[-+]?\d+)?\s*[%×x]?$", re.IGNORECASE)
@@ -191,6 +198,40 @@ class Report:
         self.parts.append(paragraph.strip())
         print(paragraph.strip(), end="\n\n", flush=True)
 
-    def write(self, path: Path = BENCHMARKS_MD) -> Path:
-        """Writes the section into ``path`` (see :func:`update_section`)."""
-        return update_section(self.name, "\n\n".join(self.parts), path)
+    def write(self, update: bool, path: Path = BENCHMARKS_MD) -> Path:
+        """Writes the section into ``path`` (see :func:`update_section`) when ``update``, else into
+        its own file under :data:`SCRATCH_DIR` (``path`` untouched); prints where it went."""
+        body = "\n\n".join(self.parts)
+        if update:
+            written = update_section(self.name, body, path)
+            print(f"wrote section '{self.name}' of {written}", flush=True)
+            return written
+        SCRATCH_DIR.mkdir(parents=True, exist_ok=True)
+        written = SCRATCH_DIR / f"{self.name}.md"
+        tmp = written.with_name(f".{written.name}.{os.getpid()}.tmp")
+        tmp.write_text(body.strip() + "\n")
+        os.replace(tmp, written)
+        print(
+            f"wrote section '{self.name}' to {written}; {path.name} is unchanged "
+            "(pass --update to replace its section)",
+            flush=True,
+        )
+        return written
+
+
+def output_path(repo_relative: str | Path, update: bool) -> Path:
+    """Where a benchmark writes a tracked artefact (a figure under ``docs/images``): the tracked
+    path itself with ``--update``, else a file of the same name under :data:`SCRATCH_DIR`."""
+    if update:
+        return REPO_ROOT / repo_relative
+    SCRATCH_DIR.mkdir(parents=True, exist_ok=True)
+    return SCRATCH_DIR / Path(repo_relative).name
+
+
+def add_update_flag(parser: ArgumentParser) -> None:
+    """Gives a benchmark script the ``--update`` flag :meth:`Report.write` obeys."""
+    parser.add_argument(
+        "--update",
+        action="store_true",
+        help="replace this script's section of BENCHMARKS.md (default: write benchmarks/out/SECTION.md)",
+    )

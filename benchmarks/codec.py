@@ -30,7 +30,7 @@ import numpy as np
 import pyarrow as pa
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import Report
+from _report import Report, add_update_flag
 
 from phigenesis.data import codec
 from phigenesis.data.shards import CacheReader
@@ -256,7 +256,7 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, help="a prep cache to take the maps from (default: make one)")
     parser.add_argument("--frames", type=int, default=2, help="frames of the cache to take maps from")
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--update", action="store_true", help="write the section into BENCHMARKS.md")
+    add_update_flag(parser)
     args = parser.parse_args()
     cv2.setNumThreads(1)
 
@@ -309,8 +309,7 @@ def main() -> None:
         [[name, f"{t[0] / 1e6:.2f}", f"{t[1]:.0f}", f"{t[2]:.0f}"] for name, t in complete.items()],
         note="Codecs that apply to every map (16-bit and 8-bit), summed over the maps of one frame.",
     )
-    if args.update:
-        print(f"wrote {report.write()}")
+    report.write(update=args.update)
 
 
 if __name__ == "__main__":

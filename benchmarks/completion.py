@@ -14,7 +14,7 @@ RMSE, by origin (``records.DENSE_ORIGINS``) and by truth class. The stage is tim
 the pipeline runs it (lazily, per-camera tables cached), and once on an image upscaled 8x
 (1280 x 1920, the coarse-grid path). A few ablations rerun the stage with one part switched off.
 
-Writes the ``completion`` section of BENCHMARKS.md and a figure of one image before and after to
+``--update`` writes the ``completion`` section of BENCHMARKS.md and a figure of one image before and after to
 docs/images/depth_completion.png. No timing is asserted anywhere.
 """
 
@@ -30,7 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from benchmarks._report import REPO_ROOT, Report
+from benchmarks._report import Report, add_update_flag, output_path
 from phigenesis.data import taxonomy as tx
 from phigenesis.data.pipeline import load_pipeline
 from phigenesis.data.records import DENSE_ORIGINS, CameraDepth, Frame, LazyFrames, Scene
@@ -40,7 +40,7 @@ from phigenesis.data.stages.complete import CompletionParams, segment_image
 from phigenesis.data.stages.densify import camera_focal_px
 from phigenesis.train.metrics import depth_errors
 
-FIGURE = REPO_ROOT / "docs" / "images" / "depth_completion.png"
+FIGURE = "docs/images/depth_completion.png"
 STAGES = [stage for stage in load_pipeline("synthetic").stages if stage.name != "range_view"]
 BEFORE = [stage for stage in STAGES if stage.name != "complete_depth"]
 PARAMS = next((dict(s.params) for s in STAGES if s.name == "complete_depth"), {})
@@ -408,6 +408,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--eval-frames", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quick", action="store_true", help="1 scene of 8 frames, 2 evaluated, no ablations")
+    add_update_flag(parser)
     args = parser.parse_args(argv)
     if args.quick:
         args.scenes, args.frames, args.eval_frames = 1, 8, 2
@@ -438,8 +439,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         ablations(report, runs, s)
     goals(report, s)
     gain = [int(np.isin(i.after.dense_origin, COMPLETED).sum()) for i in images[: cams * args.eval_frames]]
-    figure(images[int(np.argmax(gain))], FIGURE)
-    print(f"wrote section 'completion' of {report.write()}")
+    figure(images[int(np.argmax(gain))], output_path(FIGURE, args.update))
+    report.write(update=args.update)
 
 
 if __name__ == "__main__":

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from _report import Report
+from _report import Report, add_update_flag
 
 from phigenesis import prep
 from phigenesis.data.shards import CacheReader
@@ -210,6 +210,7 @@ def main() -> None:
     ap.add_argument(
         "--plain-depth", action="store_true", help="predict metric depth directly (no canonical camera)"
     )
+    add_update_flag(ap)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     args.work.mkdir(parents=True, exist_ok=True)
@@ -294,7 +295,7 @@ def main() -> None:
         ["training set", "AbsRel change, mean ± std", "seeds improved"],
         gains,
     )
-    report.write()
+    report.write(update=args.update)
 
 
 if __name__ == "__main__":

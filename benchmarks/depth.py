@@ -21,7 +21,7 @@ Then (``--full-frames``) one scene of that many frames runs the whole depth stag
 does, timing aggregation, projection and densification per frame (the frames rendered first),
 and reports the peak RSS.
 
-Writes the ``depth`` section of BENCHMARKS.md and a figure (Pareto front and depth maps) to
+``--update`` writes the ``depth`` section of BENCHMARKS.md and a figure (Pareto front and depth maps) to
 docs/images/depth_benchmark.png, and the ``depth-stage`` section. No timing is asserted anywhere.
 """
 
@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._report import REPO_ROOT, Report
+from benchmarks._report import Report, add_update_flag, output_path
 from phigenesis.data.pipeline import load_pipeline
 from phigenesis.data.records import TRUSTED_DEPTH_CONFIDENCE, Frame, LazyFrames, Scene
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene
@@ -48,7 +48,7 @@ from phigenesis.data.stages.densify import DEFAULT_DENSIFIER, DENSIFIERS, densif
 from phigenesis.data.stages.project import ProjectParams, _Projector
 from phigenesis.train.metrics import depth_errors, see_through_share
 
-FIGURE = REPO_ROOT / "docs" / "images" / "depth_benchmark.png"
+FIGURE = "docs/images/depth_benchmark.png"
 VOXELS_M = (0.02, 0.05, 0.1)
 #: The depth stages' parameters as the synthetic pipeline runs them.
 PIPELINE_PARAMS = {stage.name: dict(stage.params) for stage in load_pipeline("synthetic").stages}
@@ -559,6 +559,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         action="store_true",
         help="only the whole-stage timing (its own section, so it can be re-timed on a quiet machine)",
     )
+    add_update_flag(parser)
     args = parser.parse_args(argv)
     if args.quick:
         args.scenes, args.frames, args.eval_frames, args.full_frames = 1, 16, 3, 0
@@ -572,8 +573,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         )
         variants = run_scenes(args, report)
         goals(report, variants)
-        figure(variants, FIGURE)
-        print(f"wrote section 'depth' of {report.write()}")
+        figure(variants, output_path(FIGURE, args.update))
+        report.write(update=args.update)
     if args.full_frames:
         stage = Report(
             "depth-stage",
@@ -583,7 +584,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             "pipeline's parameters, as `phigenesis-prep synthetic` runs them.",
         )
         full_scene(stage, args)
-        print(f"wrote section 'depth-stage' of {stage.write()}")
+        stage.write(update=args.update)
 
 
 if __name__ == "__main__":

@@ -59,7 +59,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from _report import Report
+from _report import Report, add_update_flag
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The interpreter's folder: the phigenesis-* commands of the environment running this script.
@@ -1590,7 +1590,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--timeout", type=float, default=120.0, help="seconds per command (default 120)")
     parser.add_argument("--mem-cap-mb", type=float, default=4096.0, help="RLIMIT_AS per command (0: none)")
     parser.add_argument("--keep", action="store_true", help="keep the temporary scratch folder")
-    parser.add_argument("--update", action="store_true", help="write the section into BENCHMARKS.md")
+    add_update_flag(parser)
     parser.add_argument("--list", action="store_true", help="list the probes and leave")
     args = parser.parse_args(argv)
     # SIGTERM ends the probes as Ctrl-C does: the running command's session is killed with them.
@@ -1646,8 +1646,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "a trajectory FIFO hung; 2 of 4 killed output caches unresumable; 2 of 2 second writers not "
         "refused; verify exit 0 on all three incomplete caches."
     )
-    if args.update:
-        print(f"wrote section 'fault_probes' of {report.write()}")
+    report.write(update=args.update)
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pyarrow as pa
-from _report import Report, round_ratio
+from _report import Report, add_update_flag, round_ratio
 from torch.utils.data import DataLoader
 
 from phigenesis import prep
@@ -530,6 +530,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
     parser.add_argument("--scenes", type=int, help="scenes of the benchmark cache (default 2)")
     parser.add_argument("--quick", action="store_true", help="small numbers, for a smoke test (< 1 min)")
+    add_update_flag(parser)
     args = parser.parse_args(argv)
     frames = args.frames if args.frames is not None else (2 if args.quick else 20)
     scenes = args.scenes if args.scenes is not None else (1 if args.quick else 2)
@@ -550,7 +551,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         report_cache_bytes(report, cache_dir, time.perf_counter() - t0)
         report_loader(report, cache_dir, passes)
         report_image_sizes(report, build_sized_caches(Path(tmp), cache_dir, frames_r2), passes)
-    print(f"wrote section 'foundation' of {report.write()}")
+    report.write(update=args.update)
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from _report import Report
+from _report import Report, add_update_flag, output_path
 
 from phigenesis import geometry, prep
 from phigenesis._open3d import open3d
@@ -158,6 +158,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--spacing", type=float, nargs="+", default=[0.05, 0.1, 0.2])
     ap.add_argument("--threads", type=int, default=2)
+    add_update_flag(ap)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     work = args.work
@@ -199,7 +200,7 @@ def main() -> None:
             ]
         )
     assert edited is not None
-    picture(work / "plain", edited, Path(__file__).resolve().parent.parent / PICTURE)
+    picture(work / "plain", edited, output_path(PICTURE, args.update))
     report = Report(
         "insert",
         "Scene editing: an inserted asset against its exact ray-cast (benchmarks/insert.py)",
@@ -235,7 +236,7 @@ def main() -> None:
         f"![an inserted car]({PICTURE})\n\nThe FRONT camera at three frames: rendered without the asset, "
         f"with it (spacing {args.spacing[0]:g} m), and the edited frame's rendered depth: `{PICTURE}`."
     )
-    report.write()
+    report.write(update=args.update)
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ pedestrians). Metrics per track type: centre error mean and p95 (m), yaw error m
 recall (share of the truth boxes that get a box) and spurious boxes (boxes where the object does
 not exist); then boxes per second of each method and the drift of parked objects.
 
-Writes the ``interpolation`` section of BENCHMARKS.md. No timing is asserted anywhere.
+``--update`` writes the ``interpolation`` section of BENCHMARKS.md. No timing is asserted anywhere.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from _report import Report
+from _report import Report, add_update_flag
 
 from phigenesis import geometry
 from phigenesis.data import taxonomy as tx
@@ -350,6 +350,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seconds", type=float, default=20.0, help="scene length")
     parser.add_argument("--tracks", type=int, default=8, help="tracks of each type per scene")
     parser.add_argument("--seed", type=int, default=0)
+    add_update_flag(parser)
     args = parser.parse_args(argv)
     report = Report(
         "interpolation",
@@ -393,7 +394,7 @@ def main(argv: list[str] | None = None) -> None:
         "Boxes produced per second of interpolation, one process (ctra, hermite and linear include "
         "building the tracks, and ctra its window fits, once per scene, as the stage does).",
     )
-    report.write()
+    report.write(update=args.update)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ Frames are built from the synthetic rigs' calibrations with stand-in content (sm
 images stored as JPEG at quality 95, random depth and classes, a 64 x 1024 sweep with 10 %
 dropouts whose origin moves 1.5 m during the revolution): packing costs do not depend on what the
 pixels show, and rendering 480 x 720 scenes would take minutes. Run:
-``.venv/bin/python benchmarks/rangeview.py`` (writes the ``rangeview`` section of BENCHMARKS.md).
+``.venv/bin/python benchmarks/rangeview.py`` (``--update`` writes the ``rangeview`` section of BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from collections.abc import Callable
 
 import cv2
 import numpy as np
-from _report import Report
+from _report import Report, add_update_flag
 
 from phigenesis.data import rangeview as rvm
 from phigenesis.data.lidar_range import lidar_range_image
@@ -116,6 +116,7 @@ def measure(rig: str, height: int, width: int, uniform: bool, repeats: int) -> d
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=20)
+    add_update_flag(parser)
     args = parser.parse_args(argv)
     report = Report("rangeview", "Range views: speed and size", __doc__.split("\n\n", 1)[1])
     rows, sizes = [], []
@@ -168,7 +169,7 @@ def main(argv: list[str] | None = None) -> None:
         "The range view stores the layout and the overlap map only; storing its RGB losslessly as well "
         "would cost the PNG size in brackets (the images are already stored as JPEG).",
     )
-    report.write()
+    report.write(update=args.update)
 
 
 if __name__ == "__main__":

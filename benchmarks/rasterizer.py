@@ -15,7 +15,7 @@ and back-propagates the sum of the colours, depth and alpha.
 Every (configuration, backend, forward or forward+backward) runs in its own subprocess, so the peak RSS
 (``ru_maxrss``) is that measurement's alone (it includes the interpreter, torch and the scene). The slow
 paths run only where they finish in reasonable time (see ``TILED_ROWS`` and ``REFERENCE_ROWS``).
-Writes the ``rasterizer`` section of BENCHMARKS.md. No timing is asserted anywhere.
+``--update`` writes the ``rasterizer`` section of BENCHMARKS.md. No timing is asserted anywhere.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
-from _report import Report
+from _report import Report, add_update_flag
 
 from phigenesis.models.rasterizer import RenderOutput, native_available, rasterize, rasterize_reference
 
@@ -243,6 +243,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds allowed to one measurement")
     parser.add_argument("--worker", help=argparse.SUPPRESS)  # internal: one measurement, JSON spec
+    add_update_flag(parser)
     args = parser.parse_args(argv)
     if args.worker:
         print("RESULT " + json.dumps(worker(json.loads(args.worker))), flush=True)
@@ -407,7 +408,7 @@ def main(argv: list[str] | None = None) -> None:
     )
 
     report.table("Goals", ["goal", "measured", "met"], goal_rows(results))
-    report.write()
+    report.write(update=args.update)
 
 
 def goal_rows(results: dict) -> list[list[str]]:

@@ -35,7 +35,7 @@ from importlib import metadata
 from pathlib import Path
 
 import torch
-from _report import Report, cpu_model, ram_gib
+from _report import Report, add_update_flag, cpu_model, ram_gib
 from rasterizer import CAMERAS, COUNTS, SIZES, TILED_ROWS, _loss, _visible, make_cameras, make_scene
 
 from phigenesis.models.rasterizer import RenderOutput, gsplat_available, native_available, rasterize
@@ -207,7 +207,7 @@ def _ratio(slow: dict | None, fast: dict | None) -> str:
     return f"{ratio:,.0f}x" if ratio >= 10 else f"{ratio:.1f}x"
 
 
-def report(path: Path) -> None:
+def report(path: Path, update: bool) -> None:
     """Writes the ``rasterizer_gpu`` section of BENCHMARKS.md from a ``--measure`` file."""
     data = json.loads(path.read_text())
     m, v = data["machine"], data["machine"]["versions"]
@@ -326,7 +326,7 @@ def report(path: Path) -> None:
         "the summed colours, depth and alpha, relative to the largest native gradient of that input.",
     )
     rep.text(_summary(data))
-    rep.write()
+    rep.write(update=update)
 
 
 def _summary(data: dict) -> str:
@@ -359,11 +359,12 @@ def main(argv: list[str] | None = None) -> None:
     action.add_argument("--report", type=Path, help="write the BENCHMARKS.md section from this JSON file")
     parser.add_argument("--commit", default="unknown", help="the commit measured (the GPU copy has no git)")
     parser.add_argument("--quick", action="store_true", help="10k Gaussians at 80 x 120 only")
+    add_update_flag(parser)
     args = parser.parse_args(argv)
     if args.measure:
         measure(args.measure, args.commit, args.quick)
     else:
-        report(args.report)
+        report(args.report, args.update)
 
 
 if __name__ == "__main__":

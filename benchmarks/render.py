@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _report import Report
+from _report import Report, add_update_flag, output_path
 
 from phigenesis import prep
 from phigenesis.data.shards import CacheReader
@@ -87,6 +87,7 @@ def main() -> None:
     ap.add_argument("--ckpt", type=Path, help="a Stage 1 checkpoint for the stage1 rows")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--history", type=int, default=5, help="history frames of the second row per geometry")
+    add_update_flag(ap)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     work = args.work
@@ -149,14 +150,14 @@ def main() -> None:
             + ("" if args.ckpt else " No Stage 1 checkpoint was given to this run, so it has no stage1 rows.")
         ),
     )
-    picture = _random_rigs_picture(source, work, Path(__file__).resolve().parent.parent / PICTURE)
+    picture = _random_rigs_picture(source, work, output_path(PICTURE, args.update))
     report.text(
         f"![one frame for three random rigs]({PICTURE})\n\n"
         "One frame of the first scene rendered (truth geometry) for three random rigs (`--rig random`, "
         "seeds 0, 1, 2: field of view, image size, mounting height, pitch, yaw and lateral offset drawn "
         f"around the waymo5 rig), one row per rig, its cameras left to right: `{picture.name}`."
     )
-    report.write()
+    report.write(update=args.update)
 
 
 PICTURE = "docs/images/render_random_rigs.png"

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks._report import Report
+from benchmarks._report import Report, add_update_flag
 
 #: Frames of whole datasets at their native camera rate (../shared/reference/sensors.md):
 #: Waymo Perception 1150 segments x ~198.5 frames; nuScenes trainval 850 scenes x ~240 frames.
@@ -256,7 +256,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--render-scale", type=int, default=4, help="image render scale of the datasets")
     parser.add_argument("--error-frames", type=int, default=3, help="real-size frames scored against truth")
     parser.add_argument("--baseline", help="an older checkout: its package gives the 'before' error column")
-    parser.add_argument("--update", action="store_true", help="write the section into BENCHMARKS.md")
+    add_update_flag(parser)
     parser.add_argument("--data-only", action="store_true", help="only write the datasets, then stop")
     parser.add_argument("--reuse", action="store_true", help="reuse the figures of runs already measured")
     args = parser.parse_args(argv)
@@ -436,8 +436,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     report.table(
         "Goals", ["goal", "target", "measured", "met"], [[*g[:3], "yes" if g[3] else "**no**"] for g in goals]
     )
-    if args.update:
-        print(f"wrote {report.write()}")
+    report.write(update=args.update)
 
 
 #: The synthetic source at real size that an older checkout also reads: the Waymo preset's cameras

@@ -22,7 +22,7 @@ Usage (from the repository root)::
    panoptic labels in the unified taxonomy), runs the depth stages, and scores the same three
    ways against its labels (the segmenter sees the images resized to 160 px high).
 
-Writes the ``semantics`` section of BENCHMARKS.md. No timing is asserted anywhere.
+``--update`` writes the ``semantics`` section of BENCHMARKS.md. No timing is asserted anywhere.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _report import Report
+from _report import Report, add_update_flag
 
 from phigenesis import prep
 from phigenesis.data import taxonomy as tx
@@ -230,6 +230,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--work", default="/tmp/phigenesis-semantics-benchmark")
     parser.add_argument("--reuse", action="store_true", help="reuse a checkpoint trained before in --work")
     parser.add_argument("--no-waymo", action="store_true")
+    add_update_flag(parser)
     args = parser.parse_args(argv)
     torch.set_num_threads(2)
     work = Path(args.work)
@@ -307,7 +308,7 @@ def main(argv: list[str] | None = None) -> None:
             ["class", "share of pixels %", *(m.name for m in wm)],
             class_rows(wm),
         )
-    report.write()
+    report.write(update=args.update)
 
 
 if __name__ == "__main__":

@@ -52,7 +52,7 @@ import time
 from pathlib import Path
 
 import yaml
-from _report import REPO_ROOT, Report
+from _report import REPO_ROOT, Report, add_update_flag, output_path
 
 from phigenesis import prep
 from phigenesis.models.rasterizer import native_available
@@ -190,10 +190,13 @@ def main() -> None:
     ap.add_argument("--baseline", type=Path, help="an earlier Stage 1 checkpoint to score beside the new one")
     ap.add_argument("--baseline-name", default="old", help="its name in the held-out table (default old)")
     ap.add_argument("--baseline-note", default="", help="what the baseline is, said under the held-out table")
-    ap.add_argument("--picture", type=Path, default=REPO_ROOT / "docs/images/stage1_eval.png")
+    ap.add_argument(
+        "--picture", type=Path, help="default docs/images/stage1_eval.png with --update, else benchmarks/out/"
+    )
     ap.add_argument(
         "--reuse", action="store_true", help="keep trained runs in --work (and their timings, timings.json)"
     )
+    add_update_flag(ap)
     args = ap.parse_args()
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
@@ -276,7 +279,7 @@ def main() -> None:
         timings_path.write_text(json.dumps(timings))
     plan = timings.get("stage1_plan", "")  # how the reused run's steps were chosen
     result = work / "eval.json"
-    picture = args.picture
+    picture = args.picture or output_path("docs/images/stage1_eval.png", args.update)
     timings["eval"] = _run(
         f"{BIN}/phigenesis-eval stage1 --ckpt {s1_run / 'model.safetensors'} --shards {eval_cache} "
         f"--out {result} --picture {picture} --clips-per-scene {args.clips_per_scene} --threads 2".split()
@@ -342,7 +345,7 @@ def main() -> None:
         report.table(*_wide_table(wide))
     report.table(*_goals_table(metrics, wide.get("new")))
     report.text("![input, render, depth and semantics of a held-out clip](docs/images/stage1_eval.png)")
-    report.write()
+    report.write(update=args.update)
 
 
 def _speed_table(

@@ -30,8 +30,8 @@ Usage (from the repository root, on a quiet machine)::
    neither (the network alone), ``--no-paste-rows`` anchored but not pasted.
 5. An omega sweep of the localization-potential model of the first seed.
 
-Writes the ``stage2`` section of BENCHMARKS.md (mean +- std over the seeds) and a picture per row.
-No timing is asserted anywhere; runs side by side share the machine, so their step times are not
+``--update`` writes the ``stage2`` section of BENCHMARKS.md (mean +- std over the seeds) and a picture
+per row. No timing is asserted anywhere; runs side by side share the machine, so their step times are not
 a quiet machine's.
 """
 
@@ -49,7 +49,7 @@ import time
 from pathlib import Path
 
 import yaml
-from _report import REPO_ROOT, Report
+from _report import REPO_ROOT, Report, add_update_flag, output_path
 
 from phigenesis import prep
 from phigenesis.infer.generate import GenerateOptions
@@ -209,6 +209,7 @@ def main() -> None:
         action="store_true",
         help="also evaluate every geometry row anchored but not pasted (rollouts to --rollout-frames)",
     )
+    add_update_flag(ap)
     args = ap.parse_args()
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
@@ -365,7 +366,9 @@ def main() -> None:
     _report_tables(
         report, args, rows, variant_rows, runs, results, sweep, precompute_s, train_wall, eval_wall
     )
-    picture = _rows_picture([(name, runs[(name, args.seeds[0])] / "eval.png") for name, _, _ in rows])
+    picture = _rows_picture(
+        [(name, runs[(name, args.seeds[0])] / "eval.png") for name, _, _ in rows], args.update
+    )
     if picture is not None:
         report.text(
             f"![history, condition render, u, generated frame and truth at +10, one block per row, seed "
@@ -382,7 +385,7 @@ def main() -> None:
         else ""
     )
     report.text(f"The whole run took {sum(spent):.1f} min{parts}.")
-    report.write()
+    report.write(update=args.update)
 
 
 def _intro(args: argparse.Namespace) -> str:
@@ -418,9 +421,10 @@ def _intro(args: argparse.Namespace) -> str:
     )
 
 
-def _rows_picture(pictures: list[tuple[str, Path]]) -> Path | None:
+def _rows_picture(pictures: list[tuple[str, Path]], update: bool) -> Path | None:
     """Stacks the evaluations' pictures (history, condition, u, generated, truth), each under a bar
-    naming its row, into docs/images/stage2_rows.png; None when none exists."""
+    naming its row, into docs/images/stage2_rows.png (``update``; else benchmarks/out/); None when
+    none exists."""
     import cv2
     import numpy as np
 
@@ -434,7 +438,7 @@ def _rows_picture(pictures: list[tuple[str, Path]]) -> Path | None:
         blocks += [bar, image]
     if not blocks:
         return None
-    out = REPO_ROOT / "docs" / "images" / "stage2_rows.png"
+    out = output_path("docs/images/stage2_rows.png", update)
     cv2.imwrite(str(out), np.concatenate(blocks), [cv2.IMWRITE_PNG_COMPRESSION, 9])
     return out
 

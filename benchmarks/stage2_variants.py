@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 import yaml
-from _report import REPO_ROOT, Report
+from _report import REPO_ROOT, Report, add_update_flag
 from stage2 import BIN, CEILING, RENDER_ONLY, _eval_cmd, _fixed_row, _in_pairs, _metric
 
 #: (name, config changes) of the variants; the first row is the ablation's own run.
@@ -51,6 +51,7 @@ def main() -> None:
     ap.add_argument("--sample-steps", type=int, default=10)
     ap.add_argument("--only", nargs="*", help="train and evaluate only these variants (the table shows all)")
     ap.add_argument("--fid-model", type=Path, help="local TorchScript Inception (default_1.pt) for FID/KID")
+    add_update_flag(ap)
     args = ap.parse_args()
     work = args.work
     for need in ("train/manifest.json", "eval/manifest.json", "stage1/model.safetensors", "latents-stage1"):
@@ -121,7 +122,7 @@ def main() -> None:
             fid_rows.append([name, *[_metric(results, name, have[name], s, m, 3) for s, m in cols]])
         report.table("Rollout FID / KID", ["row", *[f"{s} {m.upper()}" for s, m in cols]], fid_rows)
     report.text(f"The whole run took {(time.perf_counter() - t_all) / 60:.1f} min.")
-    report.write()
+    report.write(update=args.update)
 
 
 if __name__ == "__main__":

@@ -62,7 +62,7 @@ import cv2
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-from _report import Report, round_ratio
+from _report import Report, add_update_flag, round_ratio
 
 from phigenesis import geometry
 from phigenesis.data.pipeline import PipelineSpec, load_pipeline
@@ -1005,6 +1005,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
     parser.add_argument("--quick", action="store_true", help="small numbers, for a smoke test (< 1 min)")
     parser.add_argument("--memory-probe", help=argparse.SUPPRESS)  # internal: see peak_memory
+    add_update_flag(parser)
     args = parser.parse_args(argv)
     keep_freed_memory()  # as phigenesis-prep does, for every variant alike
     avoid_huge_page_faults()
@@ -1072,7 +1073,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         f"The run took {total_s:.0f} s ({setup_s:.0f} s of it rendering the frame and writing the inputs)."
     )
     print(report.parts[-1])
-    print(f"wrote section 'waymo' of {report.write()}")
+    report.write(update=args.update)
 
 
 if __name__ == "__main__":
