@@ -18,13 +18,41 @@ Hierarchy::
       TrainingDivergedError  a run reached a non-finite loss, gradient or weight (it stops there)
 
 The dataset and checkpoint errors are also ``ValueError`` s, as they were before this module.
+
+A message that tells the caller what to pass names the argument with :func:`argument`: a Python
+caller reads the library's keyword (``overwrite=True``), the command line prints the flag
+(``--overwrite``, :meth:`PhiGenesisError.command_line_message`).
 """
 
 from __future__ import annotations
 
+import re
+
+#: An argument named in a message: its Python spelling and its command-line spelling between
+#: unit separators (a control character that file names practically never hold).
+_ARGUMENT = re.compile("\x1f([^\x1f|]*)\\|([^\x1f]*)\x1f")
+
+
+def argument(python: str, flag: str) -> str:
+    """Names an argument inside a :class:`PhiGenesisError` message: ``python`` (the library
+    function's keyword, e.g. ``overwrite=True``) where the error reaches Python code, ``flag``
+    (``--overwrite``) where a command prints it."""
+    return f"\x1f{python}|{flag}\x1f"
+
+
+def _spelled(message: str, command_line: bool) -> str:
+    return _ARGUMENT.sub(lambda m: m.group(2 if command_line else 1), message)
+
 
 class PhiGenesisError(Exception):
     """An input the toolkit cannot use; the message names the file, the record and the field."""
+
+    def __str__(self) -> str:
+        return _spelled(super().__str__(), command_line=False)
+
+    def command_line_message(self) -> str:
+        """The message with the arguments it names spelled as command-line flags."""
+        return _spelled(super().__str__(), command_line=True)
 
 
 class PrepError(PhiGenesisError):

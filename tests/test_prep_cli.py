@@ -208,6 +208,27 @@ def test_a_run_killed_part_way_resumes_to_exactly_the_frames_of_an_uninterrupted
 # Bad --out
 
 
+def test_a_cache_made_otherwise_is_refused_in_the_callers_language(
+    tiny_pipeline: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Python callers read the keyword to pass (``overwrite=True``), the command line the flag."""
+    out = tmp_path / "cache"
+    assert main(cli_args(out, tiny_pipeline, scenes=1, frames=2)) == 0
+    capsys.readouterr()
+    with pytest.raises(PrepError) as refused:
+        prep.synthetic(
+            out, scenes=1, frames=2, seed=CLI_SEED + 1, height=32, width=48, pipeline=tiny_pipeline
+        )
+    message = str(refused.value)
+    assert "use overwrite=True to replace it or choose another out" in message and "--" not in message
+    args = cli_args(out, tiny_pipeline, scenes=1, frames=2)
+    args[args.index("--seed") + 1] = str(CLI_SEED + 1)
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "use --overwrite to replace it or choose another --out" in err and "overwrite=True" not in err
+    assert "\x1f" not in err and "\x1f" not in message
+
+
 def test_out_that_is_an_existing_file_is_refused_and_the_file_untouched(
     tiny_pipeline: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -198,7 +198,7 @@ def test_the_rendered_cache_verifies_opens_with_plain_pyarrow_and_resumes(
     again = render(None, cache, "random", out_dir, geometry="cache", seed=3, progress=False)
     assert again.skipped == [SCENE] and again.frames == 0 and not leftover.exists()
     assert verify_cache(out_dir).ok
-    with pytest.raises(PrepError, match=r"other arguments \(seed 3 -> 4\); choose another --out"):
+    with pytest.raises(PrepError, match=r"other arguments \(seed 3 -> 4\); choose another out$"):
         render(None, cache, "random", out_dir, geometry="cache", seed=4, progress=False)
 
 

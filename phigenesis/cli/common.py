@@ -190,10 +190,12 @@ def setup_logging(verbose: bool) -> None:
 
 def user_message(error: BaseException) -> str:
     """The one-line message of an error a user caused: the error's own message (a file error as
-    ``PATH: reason``), never a class path."""
+    ``PATH: reason``; the arguments it names as flags), never a class path."""
     if isinstance(error, OSError) and error.filename and error.strerror:
         return f"{error.filename}: {error.strerror}"
-    if isinstance(error, PhiGenesisError | ValueError | OSError):
+    if isinstance(error, PhiGenesisError):
+        return error.command_line_message() or describe(error)
+    if isinstance(error, ValueError | OSError):
         return str(error) or describe(error)
     return describe(error)
 

@@ -55,7 +55,11 @@ from phigenesis.data.shards import (
     fsync_dir,
     scene_id_problem,
 )
-from phigenesis.errors import PrepError
+from phigenesis.errors import PrepError, argument
+
+#: The output folder and the overwrite switch, as a message names them (Python or command line).
+OUT = argument("out", "--out")
+OVERWRITE = argument("overwrite=True", "--overwrite")
 
 log = logging.getLogger("phigenesis.prep")
 
@@ -142,17 +146,17 @@ class CacheRun:
 def check_out_dir(out: Path) -> None:
     """Creates ``out`` if missing; PrepError if it is a file, cannot be created or is not writable."""
     if out.exists() and not out.is_dir():
-        raise PrepError(f"--out {out} is a file, not a directory")
+        raise PrepError(f"{OUT} {out} is a file, not a directory")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise PrepError(f"--out {out} cannot be created: {e.strerror or e}") from e
+        raise PrepError(f"{OUT} {out} cannot be created: {e.strerror or e}") from e
     probe = out / f".write-probe{TMP_MARKER}{uuid.uuid4().hex[:8]}"
     try:
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as e:
-        raise PrepError(f"--out {out} is not writable: {e.strerror or e}") from e
+        raise PrepError(f"{OUT} {out} is not writable: {e.strerror or e}") from e
 
 
 def refuse_links(cache_dir: Path) -> None:
@@ -298,25 +302,25 @@ def _open_existing(
     if not (out / MANIFEST_NAME).exists():
         if _is_foreign(out):
             raise PrepError(
-                f"--out {out} is not empty and holds no phigenesis cache; choose a new or empty directory"
+                f"{OUT} {out} is not empty and holds no phigenesis cache; choose a new or empty directory"
             )
         return None, False
     try:
         manifest = Manifest.load(out)
     except CacheError as e:
         if not overwrite:
-            advice = "Choose another --out"
+            advice = f"Choose another {OUT}"
             if overwrite is False:
-                advice = "Rerun with --overwrite to rebuild the cache from scratch"
+                advice = f"Rerun with {OVERWRITE} to rebuild the cache from scratch"
             raise PrepError(f"{e}. {advice}.") from e
         log.warning("replacing the cache in %s: %s", out, e)
         return None, True
     if manifest.fingerprint == fp:
         return manifest, False
     if not overwrite:
-        advice = "choose another --out"
+        advice = f"choose another {OUT}"
         if overwrite is False:
-            advice = "use --overwrite to replace it or " + advice
+            advice = f"use {OVERWRITE} to replace it or {advice}"
         raise PrepError(
             f"{out} holds a cache made with other arguments "
             f"({_describe_difference(manifest, source, arguments, pipeline)}); {advice}"

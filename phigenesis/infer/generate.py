@@ -83,7 +83,7 @@ from phigenesis.data.records import (
 )
 from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
 from phigenesis.data.shards import MANIFEST_NAME, SceneEntry, ShardInfo, ShardWriter, atomic_write_bytes
-from phigenesis.errors import PhiGenesisError
+from phigenesis.errors import CheckpointError, PhiGenesisError, argument
 from phigenesis.infer.buffer import BufferConfig, GaussianBuffer
 from phigenesis.infer.conditions import (
     GEOMETRY_SOURCES,
@@ -674,7 +674,6 @@ def trained_lp_trust(train: dict[str, Any], where: str) -> LpTrust:
     """The localization potential's mapping the Stage 2 checkpoint ``where``, with training config
     ``train``, was trained with: its ``lp_trust``, or the one there was before the choice existed
     (:data:`LEGACY_LP_TRUST`); CheckpointError for another value."""
-    from phigenesis.errors import CheckpointError
 
     try:
         return check_lp_trust(
@@ -688,7 +687,6 @@ def trained_geometry(train: dict[str, Any], where: str) -> str:
     """The geometry source the Stage 2 checkpoint ``where``, with training config ``train``, was
     trained on (its condition renders): its ``geometry``, ``stage1`` when the config predates the
     field; CheckpointError for another value."""
-    from phigenesis.errors import CheckpointError
 
     geometry = train.get("geometry", "stage1")
     if geometry not in GEOMETRY_SOURCES:
@@ -718,7 +716,8 @@ class Stage2Runner:
         self.denoiser, self.train = _stage2_checkpoint(ckpt)
         stage1_path = stage1 or self.train.get("stage1_checkpoint")
         if not stage1_path:
-            raise ValueError(f"{ckpt}: names no Stage 1 checkpoint; pass --stage1")
+            stage1_arg = argument("stage1=", "--stage1")
+            raise CheckpointError(f"{ckpt}: names no Stage 1 checkpoint; pass {stage1_arg}")
         self.stage1_path = str(stage1_path)
         self.stage1 = load_stage1(stage1_path)
         self.window = int(self.train["window_frames"])

@@ -49,6 +49,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from phigenesis.data.taxonomy import GROUND_IDS, IGNORE_ID, SKY
+from phigenesis.errors import argument
 from phigenesis.models.depth_bins import DepthBins
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.losses import edge_aware_smoothness, log_depth_loss, photometric_loss, semantic_loss
@@ -190,8 +191,8 @@ class Stage1TrainConfig:
         if "vae_checkpoint" not in values and not given.get("vae_checkpoint"):
             raise ConfigError(
                 f"{path}: vae_checkpoint is missing: Stage 1 trains on a frozen, trained VAE "
-                "(phigenesis-train vae); name its checkpoint here or pass --vae (null: an untrained "
-                "VAE, for tests only)"
+                "(phigenesis-train vae); name its checkpoint here or pass "
+                f"{argument('vae_checkpoint=', '--vae')} (null: an untrained VAE, for tests only)"
             )
         return from_mapping(cls, values, str(path), **given)
 
@@ -454,7 +455,10 @@ def check_run_folder(out: Path, cfg: Any, resume: bool) -> Path | None:
     if not resume:
         evidence = run_evidence(out)
         if evidence is not None:
-            raise ValueError(f"{out}: holds a run already ({evidence}); pass --resume or another --out")
+            raise CheckpointError(
+                f"{out}: holds a run already ({evidence}); pass {argument('resume=True', '--resume')} "
+                f"or another {argument('out', '--out')}"
+            )
         return None
     before = read_run_config(out)
     now = {k: v for k, v in cfg.to_dict().items() if k not in RESULT_NEUTRAL_FIELDS}
