@@ -1,5 +1,6 @@
-"""A cache is readable by other tools the README names, as the README shows it: Hugging Face
-``datasets`` and DuckDB, each run from the README's own snippet, without importing phigenesis."""
+"""A cache is readable by other tools the README names, as the README shows it: pandas, Polars,
+Hugging Face ``datasets`` and DuckDB, each run from the README's own snippet, without importing
+phigenesis."""
 
 from __future__ import annotations
 
@@ -66,6 +67,29 @@ def test_duckdb_queries_a_cache_through_pyarrow_as_the_readme_shows(tiny_cache: 
         '\ncars = duckdb.sql("SELECT count(*) FROM frames, unnest(boxes) AS t(b) "'
         "\"WHERE b.class_name = 'car'\")"
         "\nassert cars.fetchall()[0][0] > 0"
+    )
+    out = run_python(code, tmp_path)
+    assert "synthetic-s7-0000" in out and "synthetic-s7-0001" in out
+
+
+def test_pandas_reads_a_cache_as_the_readme_shows(tiny_cache: Path, tmp_path: Path) -> None:
+    code = readme_snippet("pandas", tiny_cache)
+    code += (
+        "\nassert list(frames.columns) == ['scene_id', 'frame_index', 'frame_timestamp_micros']"
+        "\nassert frames.groupby('scene_id').size().to_dict() == {'synthetic-s7-0000': 3}, frames"
+        "\nassert len(boxes) > 0 and boxes['center_world'].map(len).eq(3).all()"
+    )
+    out = run_python(code, tmp_path)
+    assert "synthetic-s7-0000" in out
+
+
+def test_polars_scans_a_cache_as_the_readme_shows(tiny_cache: Path, tmp_path: Path) -> None:
+    code = readme_snippet("polars", tiny_cache)
+    code += (
+        "\nassert per_scene['scene_id'].to_list() == ['synthetic-s7-0000', 'synthetic-s7-0001']"
+        "\nassert per_scene['frames'].to_list() == [3, 3] and (per_scene['boxes_per_frame'] > 0).all()"
+        "\ncars = frames.select(pl.col('boxes').explode().struct.field('class_name'))"
+        "\nassert cars.filter(pl.col('class_name') == 'car').collect().height > 0"
     )
     out = run_python(code, tmp_path)
     assert "synthetic-s7-0000" in out and "synthetic-s7-0001" in out
