@@ -386,6 +386,24 @@ def test_a_toolkit_error_reads_as_its_own_message_with_exit_2(
     ]
 
 
+def test_train_stage1_with_a_missing_vae_names_the_config_key_and_the_flag_and_leaves_no_run_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Run from another directory, the tiny config's relative VAE path finds nothing."""
+    monkeypatch.chdir(tmp_path)
+    config = Path(__file__).resolve().parents[1] / "configs/stage1/tiny.yaml"
+    argv = ["stage1", "--shards", str(tmp_path / "cache"), "--out", "run", "--config", str(config)]
+    assert train_cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "runs/vae-tiny/model.safetensors: VAE checkpoint not found" in err
+    assert "the config's vae_checkpoint" in err and str(tmp_path) in err and "pass --vae" in err
+    assert not (tmp_path / "run").exists()
+    with pytest.raises(CheckpointError, match=r"pass vae_checkpoint= to name another"):
+        cfg = phigenesis.train.stage1.Stage1TrainConfig.load(config, steps=1)
+        phigenesis.train.stage1.train_stage1(tmp_path / "cache", tmp_path / "run", cfg, progress=False)
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_file_error_names_the_file_and_the_reason_without_errno(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -631,3 +631,33 @@ def test_a_ctrl_c_while_a_log_row_is_written_arrives_after_the_row_is_complete(t
     assert written == [True]
     assert read_metrics(tmp_path) == [{"step": 1.0, "loss": 0.5}]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_run_from_step_0_leaves_one_event_file_and_a_resumed_run_keeps_the_earlier_steps(
+    tmp_path: Path,
+) -> None:
+    """A restarted run's TensorBoard folder holds its own curve only, as its metrics.csv does."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from phigenesis.train.runner import MetricsLog
+
+    def steps() -> list[int]:
+        events = EventAccumulator(str(tmp_path / "tb"))
+        events.Reload()
+        return [e.step for e in events.Scalars("loss")]
+
+    killed = MetricsLog(tmp_path, ["loss"])
+    for step in (1, 2, 3):
+        killed.log(step, {"loss": 9.0})
+    killed.close()
+    (tmp_path / "tb" / "notes.txt").write_text("kept")
+    restarted = MetricsLog(tmp_path, ["loss"])
+    restarted.log(1, {"loss": 1.0})
+    restarted.close()
+    assert len(list((tmp_path / "tb").glob("events.out.tfevents.*"))) == 1
+    assert (tmp_path / "tb" / "notes.txt").read_text() == "kept"
+    assert steps() == [1]
+    resumed = MetricsLog(tmp_path, ["loss"], resume_step=1)
+    resumed.log(2, {"loss": 0.5})
+    resumed.close()
+    assert steps() == [1, 2]

@@ -217,7 +217,10 @@ class MetricsLog:
     ``resume_step``: rows after this step (written by a run that was killed before its next
     checkpoint) are dropped, so the resumed run writes them again; the file is rewritten under a
     temporary name, so an interrupt never loses the rows kept. A row whose step is not a number
-    raises :class:`CheckpointError` naming the file and line.
+    raises :class:`CheckpointError` naming the file and line. TensorBoard gets the same: a resumed
+    run's event file purges the steps after ``resume_step`` (TensorBoard's ``purge_step``), and a
+    run that starts from step 0 removes the event files an earlier run left in ``tb/``, as it
+    empties the CSV, so no killed run's curve is mixed in.
     """
 
     def __init__(
@@ -241,7 +244,10 @@ class MetricsLog:
             try:
                 from torch.utils.tensorboard import SummaryWriter
 
-                self._tb = SummaryWriter(str(Path(out_dir) / "tb"), purge_step=(resume_step or 0) + 1)
+                tb_dir = Path(out_dir) / "tb"
+                if resume_step is None:
+                    _remove_event_files(tb_dir)
+                self._tb = SummaryWriter(str(tb_dir), purge_step=(resume_step or 0) + 1)
             except ImportError:  # tensorboard not installed: the CSV is the log
                 log.warning("tensorboard is not installed; logging to %s only", self.path)
 
@@ -265,6 +271,22 @@ class MetricsLog:
     def close(self) -> None:
         if self._tb is not None:
             self._tb.close()
+
+
+def _remove_event_files(tb_dir: Path) -> None:
+    """Removes the TensorBoard event files of an earlier run from ``tb_dir`` (only those: plain
+    files named ``events.out.tfevents.*``), saying how many."""
+    if not tb_dir.is_dir() or tb_dir.is_symlink():
+        return
+    stale = [p for p in tb_dir.glob("events.out.tfevents.*") if p.is_file() and not p.is_symlink()]
+    for path in stale:
+        path.unlink()
+    if stale:
+        log.info(
+            "%s: removed %d TensorBoard event file(s) of an earlier run (this run starts at step 0)",
+            tb_dir,
+            len(stale),
+        )
 
 
 def _rows_up_to(path: Path, step: int) -> list[dict[str, str]]:

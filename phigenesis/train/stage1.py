@@ -217,6 +217,12 @@ def build_model(config: Stage1TrainConfig) -> Stage1Model:
     model = create_overridden(config.model, config.model_overrides, "Stage1TrainConfig")
     assert isinstance(model, Stage1Model)
     if config.vae_checkpoint:
+        if not Path(config.vae_checkpoint).exists():
+            raise CheckpointError(
+                f"{config.vae_checkpoint}: VAE checkpoint not found (the config's vae_checkpoint, read "
+                f"relative to the working directory {os.getcwd()}); train one with phigenesis-train vae "
+                f"or pass {argument('vae_checkpoint=', '--vae')} to name another"
+            )
         vae = load_checkpoint(config.vae_checkpoint, kind="vae").model
         try:
             model.load_vae(vae)  # type: ignore[arg-type]
@@ -512,7 +518,6 @@ def _train(
     progress: bool,
     time_limit_s: float | None = None,
 ) -> Stage1Run:
-    out.mkdir(parents=True, exist_ok=True)
     resume_from = check_run_folder(out, cfg, resume)
     torch.manual_seed(cfg.seed)
     model = build_model(cfg)
@@ -524,6 +529,7 @@ def _train(
         cfg.semantic_target,  # type: ignore[arg-type]
         cache_mb=cfg.cache_mb / 3,
     )
+    out.mkdir(parents=True, exist_ok=True)  # only once the VAE and the cache are known to load
     features = VaeFeatureCache(model, cache_bytes - cache_bytes // 3)
     optimizer = torch.optim.AdamW(model.trainable_parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0
