@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+import cv2
 import pyarrow as pa
 import pyarrow.ipc as ipc
 import pytest
@@ -472,6 +473,14 @@ def test_a_generated_cache_passes_verify_and_the_loader_reads_its_rendered_depth
     report = verify_cache(out)
     assert not report.errors and report.frames == 7
     assert (out / "strip.png").stat().st_size > 0 and len(result.plys) == 2
+    # The strip: a header of camera names, then each shown frame's generated and condition rows,
+    # labelled in a left margin.
+    strip = cv2.imread(str(out / "strip.png"))
+    n, views, h, w = result.rollout.images.shape[:4]
+    assert strip.shape[:2] == (20 + 2 * min(n, 8) * h, 150 + views * w)
+    margin = strip[20:, :150]
+    assert all((margin[r * h : (r + 1) * h] > 100).any() for r in range(2 * min(n, 8)))  # every row named
+    assert (strip[:20, 150:] > 100).any()  # camera names over the columns
     sample = FrameDataset(out, fields=["images", "cameras", "depth", "pseudo"])[0]
     assert sample["images"].shape == (5, 3, *SIZE) and sample["frame_index"] == 0
     rendered = records.DENSE_ORIGINS.index("rendered")
@@ -482,7 +491,9 @@ def test_a_generated_cache_passes_verify_and_the_loader_reads_its_rendered_depth
     moved = sample["camera_world_from_ego"][:, :3, 3] - recorded["camera_world_from_ego"][:, :3, 3]
     left = recorded["world_from_ego"][:3, 1]
     assert torch.allclose(moved.double(), 2.0 * left.double().expand(5, 3), atol=1e-6)
-    assert json.loads((out / "generate.json").read_text())["windows"] == 2
+    report = json.loads((out / "generate.json").read_text())
+    assert report["windows"] == 2 and "shift" not in report
+    assert report["sampling"]["time_shift"] == 1.0 and report["sampling"]["steps"] >= 1
     # The cache records the mapping the rollout used: the checkpoint's, as options left it open.
     assert json.loads((out / "manifest.json").read_text())["arguments"]["lp_trust"] == "stable"
 

@@ -58,6 +58,7 @@ import math
 import os
 import re
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -70,6 +71,7 @@ from torch import Tensor
 from phigenesis import __version__
 from phigenesis.data import records
 from phigenesis.data.cache_run import writing_cache
+from phigenesis.data.colormap import FONT, PANEL_RGB, TEXT_RGB
 from phigenesis.data.records import (
     MAX_USER_MICROS,
     Boxes,
@@ -613,22 +615,44 @@ def write_generated_scene(
     return SceneEntry(scene_id, "generated", len(frames), "complete", [s.path for s in shards]), shards
 
 
-def save_strip(result: Rollout, path: Path, max_rows: int = 8) -> Path:
-    """A PNG of generated frames (rows, at most ``max_rows`` spread over the rollout), the views of
-    each side by side, with the condition render of the same frame below each."""
-    n = result.images.shape[0]
+def save_strip(
+    result: Rollout, path: Path, camera_names: Sequence[str] = (), start: int = 0, max_rows: int = 8
+) -> Path:
+    """A PNG of generated frames (at most ``max_rows`` spread over the rollout, each named in a
+    left margin by its frame index in the generated cache and its frame in the source scene,
+    ``start`` + index), the views side by side under their camera names, each generated row
+    followed by the condition render it was generated from."""
+    n, views = result.images.shape[:2]
     rows = sorted(set(np.linspace(0, n - 1, min(n, max_rows)).round().astype(int).tolist()))
-    lines = []
+    h, w = result.images.shape[2:4]
+    names = list(camera_names) or [f"view {j}" for j in range(views)]
+    margin, scale = 150, 0.4
+    lines = [_strip_header(names, w, margin, scale, f"{len(rows)} of {n} frames")]
     for i in rows:
-        gen = torch.cat(list(result.images[i]), dim=1)  # [H, V*W, 3]
-        cond = torch.cat(list(result.condition_rgb[i]), dim=1)
-        lines += [gen, cond]
-    picture = (torch.cat(lines, dim=0).numpy() * 255).round().clip(0, 255).astype(np.uint8)
+        for kind, image in (("generated", result.images[i]), ("condition", result.condition_rgb[i])):
+            body = (torch.cat(list(image), dim=1).numpy() * 255).round().clip(0, 255).astype(np.uint8)
+            label = np.full((h, margin, 3), PANEL_RGB, np.uint8)
+            for k, text in enumerate((f"frame {i}", f"(scene {start + i})", kind)):
+                cv2.putText(label, text, (4, 14 + 16 * k), FONT, scale, TEXT_RGB, 1, cv2.LINE_AA)
+            lines.append(np.concatenate([label, body], axis=1))
+    picture = np.concatenate(lines, axis=0)
     ok, png = cv2.imencode(".png", cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
     if not ok:
         raise ValueError(f"{path}: cannot encode the strip")
     atomic_write_bytes(path, png.tobytes())
     return path
+
+
+def _strip_header(names: list[str], view_width: int, margin: int, scale: float, note: str) -> np.ndarray:
+    """(20, margin + V * view_width, 3) uint8: ``note`` over the margin, each camera's name over
+    its column (cut to the column's width)."""
+    header = np.full((20, margin + view_width * len(names), 3), PANEL_RGB, np.uint8)
+    cv2.putText(header, note, (4, 14), FONT, scale, TEXT_RGB, 1, cv2.LINE_AA)
+    for j, name in enumerate(names):
+        while name and cv2.getTextSize(name, FONT, scale, 1)[0][0] > view_width - 6:
+            name = name[:-1]
+        cv2.putText(header, name, (margin + j * view_width + 3, 14), FONT, scale, TEXT_RGB, 1, cv2.LINE_AA)
+    return header
 
 
 # --------------------------------------------------------------------------------------------
@@ -866,10 +890,12 @@ def generate(
             generated_id,
             {"generated_from": scene, "start": start},
         )
-        strip, plys = _write_extras(out, result)
+        strip, plys = _write_extras(out, result, list(clip.camera_names), start)
         seconds = time.perf_counter() - t0
         report = {
-            **arguments,
+            **{k: v for k, v in arguments.items() if k not in options.__dict__},
+            # The sampler's options apart, so its time shift is not read as the trajectory's shift.
+            "sampling": {("time_shift" if k == "shift" else k): v for k, v in options.__dict__.items()},
             "windows": len(result.windows),
             "window_frames": runner.window,
             "seconds": seconds,
@@ -903,12 +929,12 @@ def _generated_calibrations(runner: Stage2Runner, clip: Any, start: int) -> list
     ]
 
 
-def _write_extras(out: Path, result: Rollout) -> tuple[Path, list[Path]]:
+def _write_extras(out: Path, result: Rollout, camera_names: list[str], start: int) -> tuple[Path, list[Path]]:
     """Writes the rollout's ``strip.png`` and ``gaussians/window-KKK.ply`` (each window's Gaussians
     added to the buffer) into ``out``; returns their paths."""
     from phigenesis.export.ply import write_ply
 
-    strip = save_strip(result, out / "strip.png")
+    strip = save_strip(result, out / "strip.png", camera_names, start)
     (out / "gaussians").mkdir(exist_ok=True)
     plys = [
         write_ply(g, out / "gaussians" / f"window-{i:03d}.ply")
