@@ -547,3 +547,64 @@ def test_the_real_sample_skip_message_and_the_readme_name_every_place_the_tests_
     flat = " ".join(README.split())
     for place in ("$PHIGENESIS_WAYMO_SAMPLES", "../shared/data/waymo/", "/work/shared/data/waymo/"):
         assert place in flat
+
+
+def test_a_resumed_run_that_had_finished_says_so_instead_of_an_empty_last_step(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    finished = phigenesis.train.stage1.Stage1Run(tmp_path, tmp_path / "model.safetensors", 40, {}, 0.1)
+    monkeypatch.setattr(phigenesis.train.stage1, "train_stage1", lambda *a, **k: finished)
+    config = Path(__file__).resolve().parents[1] / "configs/stage1/tiny.yaml"
+    argv = [
+        "stage1",
+        "--shards",
+        "c",
+        "--out",
+        str(tmp_path),
+        "--config",
+        str(config),
+        "--vae",
+        "v",
+        "--resume",
+    ]
+    assert train_cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "the run had already finished its 40 steps; nothing to do" in out and "last step" not in out
+
+
+def test_render_names_the_ply_files_it_wrote(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import phigenesis.infer.rig_render as rig_render
+    from phigenesis.cli import render as render_cli
+
+    plys = tmp_path / "edited"
+    plys.mkdir()
+    (plys / "scene-a.ply").write_bytes(b"ply")
+    result = rig_render.RenderResult(tmp_path / "out", ["scene-a"], [], 3, 1.0, {})
+    monkeypatch.setattr(rig_render, "render", lambda *a, **k: result)
+    argv = ["--shards", "c", "--rig", "nuscenes6", "--out", str(tmp_path / "out"), "--geometry", "cache"]
+    assert render_cli.main([*argv, "--export-ply", str(plys)]) == 0
+    out = capsys.readouterr().out
+    assert f"edited Gaussians: {plys / 'scene-a.ply'}" in out and "<scene id>" not in out
+
+
+def test_the_stage2_table_shows_the_vae_ceiling_beside_the_generated_frames() -> None:
+    metrics = {"images": 4, "psnr_db": 18.5, "ssim": 0.61, "abs_rel": 0.12, "fid": 80.0, "kid": 0.05}
+    ceiling = {"images": 4, "psnr_db": 27.25, "ssim": 0.875, "fid": 12.5}
+    report = {
+        "sections": {
+            "rollout@5": {
+                "generated": metrics,
+                "render_only": {"psnr_db": 15.0},
+                "vae_reconstruction": ceiling,
+            }
+        },
+        "clips": 2,
+        "seconds_per_frame": 1.5,
+    }
+    lines = eval_cli.format_stage2_table(report).splitlines()
+    assert "VAE ceiling" in lines[0] and lines[2].split()[0] == "rollout@5"
+    assert lines[2].split()[-3:] == ["27.25", "0.875", "12.50"]
+    del report["sections"]["rollout@5"]["vae_reconstruction"]
+    assert "VAE ceiling" not in eval_cli.format_stage2_table(report)

@@ -86,19 +86,30 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def format_stage2_table(report: dict[str, Any]) -> str:
-    """The Stage 2 report as a text table: one row per section, generated beside render only."""
-    lines = [
-        f"{'section':12s} {'images':>6s}  {'PSNR':>6s} {'SSIM':>6s} {'AbsRel':>6s} {'FID':>7s} {'KID':>7s}"
-        f"  | render only: {'PSNR':>6s} {'SSIM':>6s}"
-    ]
+    """The Stage 2 report as a text table: one row per section, the generated frames beside the
+    render alone (no diffusion) and the VAE's reconstruction of the truth (the ceiling of any
+    generated frame, when the report has it)."""
+    ceiling = any("vae_reconstruction" in e for e in report["sections"].values())
+    top = f"{'':12s} {'':6s}  {'generated':^34s}  | {'render only':^13s}"
+    head = f"{'section':12s} {'images':>6s}  {'PSNR':>6s} {'SSIM':>6s} {'AbsRel':>6s} {'FID':>7s} {'KID':>7s}"
+    head += f"  | {'PSNR':>6s} {'SSIM':>6s}"
+    if ceiling:
+        top += f"  | {'VAE ceiling':^20s}"
+        head += f"  | {'PSNR':>6s} {'SSIM':>6s} {'FID':>6s}"
+    lines = [top, head]
     for name, entry in report["sections"].items():
         g, r = entry["generated"], entry["render_only"]
-        lines.append(
+        row = (
             f"{name:12s} {int(g['images']):6d}  {_cell(g, 'psnr_db', '{:6.2f}')} "
             f"{_cell(g, 'ssim', '{:6.3f}')} {_cell(g, 'abs_rel', '{:6.3f}')} "
             f"{_cell(g, 'fid', '{:7.2f}')} {_cell(g, 'kid', '{:7.4f}')}"
-            f"  |              {_cell(r, 'psnr_db', '{:6.2f}')} {_cell(r, 'ssim', '{:6.3f}')}"
+            f"  | {_cell(r, 'psnr_db', '{:6.2f}')} {_cell(r, 'ssim', '{:6.3f}')}"
         )
+        if ceiling:
+            v = entry.get("vae_reconstruction")
+            row += f"  | {_cell(v, 'psnr_db', '{:6.2f}')} {_cell(v, 'ssim', '{:6.3f}')} "
+            row += _cell(v, "fid", "{:6.2f}")
+        lines.append(row)
     lines.append(f"{report['clips']} clips, {report['seconds_per_frame']:.2f} s per generated frame")
     return "\n".join(lines)
 
@@ -139,6 +150,8 @@ def _stage2(args: argparse.Namespace) -> int:
     print(format_stage2_table(report))
     if args.out:
         print(f"results: {args.out}")
+    if args.picture:
+        print(f"picture: {args.picture}")
     return 0
 
 

@@ -161,7 +161,9 @@ def _render(args: argparse.Namespace) -> int:
         print(f"already rendered, skipped: {', '.join(result.skipped)}")
     print(f"cache: {result.out} (phigenesis-prep verify {result.out})")
     if args.export_ply:
-        print(f"edited Gaussians: {Path(args.export_ply) / '<scene id>.ply'}")
+        written = [Path(args.export_ply) / f"{scene}.ply" for scene in result.scenes]
+        shown = ", ".join(str(p) for p in written if p.is_file()) or "none (every scene was already rendered)"
+        print(f"edited Gaussians: {shown}")
     return 0
 
 

@@ -119,8 +119,11 @@ def _train_stage2(args: argparse.Namespace) -> int:
     if result.checkpoint is None:
         print(f"stopped at step {result.steps_done}; continue with --resume")
         return 0
-    loss = result.last.get("loss", float("nan"))
-    print(f"{result.steps_done} steps in {result.seconds / 60:.1f} min; last loss {loss:.4f}")
+    if "loss" in result.last:
+        minutes = result.seconds / 60
+        print(f"{result.steps_done} steps in {minutes:.1f} min; last loss {result.last['loss']:.4f}")
+    else:  # a resumed run that had already finished: no step ran in this call
+        print(f"the run had already finished its {result.steps_done} steps; nothing to do")
     print(f"latent cache: {result.latents}")
     print(f"final checkpoint: {result.checkpoint}")
     return 0
@@ -150,7 +153,10 @@ def _train_stage1(args: argparse.Namespace) -> int:
         f"{k} {result.last[k]:.4f}" for k in ("loss", "rgb", "depth", "semantic") if k in result.last
     )
     limit = " (the time limit ended it before the planned steps)" if result.stopped_by_time else ""
-    print(f"{result.steps_done} steps in {result.seconds / 60:.1f} min{limit}; last step: {losses}")
+    if losses:
+        print(f"{result.steps_done} steps in {result.seconds / 60:.1f} min{limit}; last step: {losses}")
+    else:  # a resumed run that had already finished: no step ran in this call
+        print(f"the run had already finished its {result.steps_done} steps; nothing to do")
     print(f"final checkpoint: {result.checkpoint}")
     return 0
 
