@@ -108,3 +108,25 @@ def test_stages_run_in_spec_order_on_every_frame_before_writing(tmp_path: Path):
     finally:
         STAGES.pop("test_only_shift_time", None)
         STAGES.pop("test_only_floor_time", None)
+
+
+def test_the_progress_bar_starts_with_the_scene_and_names_its_per_scene_work(tmp_path: Path):
+    """A scene's bar starts before its stages' per-scene work (so the rate and the ETA count it)
+    and says which stage is running; then one message per written frame."""
+    from phigenesis.data.pipeline import SceneTask, process_scene
+
+    spec = load_pipeline("synthetic")
+    messages: list[tuple[str, int, int, str]] = []
+
+    class Handle:
+        def put(self, item: tuple[str, int, int, str]) -> None:
+            messages.append(item)
+
+    args = {**TINY_PREP_ARGS, "scenes": 1, "frames": 2}
+    task = SceneTask(str(tmp_path), "synthetic", args, spec.to_dict(), "synthetic-s7-0000")
+    (tmp_path / "shards").mkdir()
+    result = process_scene(task, Handle())
+    assert result.error is None, result.error
+    stages = [st.name for st in spec.stages]
+    assert messages[: len(stages)] == [("synthetic-s7-0000", 0, 2, f"{s} (per scene)") for s in stages]
+    assert messages[len(stages) :] == [("synthetic-s7-0000", 1, 2, ""), ("synthetic-s7-0000", 2, 2, "")]

@@ -21,7 +21,7 @@ EXECUTORS: tuple[ExecutorName, ...] = ("local", "ray")
 
 T = TypeVar("T")
 R = TypeVar("R")
-ProgressMessage = tuple[str, int, int]
+ProgressMessage = tuple[str, int, int, str]
 
 
 class ProgressHandle(Protocol):

@@ -289,7 +289,10 @@ def process_scene(task: SceneTask, progress: ProgressHandle | None = None) -> Sc
         timings = StageTimings()
         scene = timings.scene_work("load", lambda: source.load(task.scene_id))
         scene.frames = timings.marked(scene.frames, "read")
+        total = len(scene.frames)
         for st in spec.stages:
+            if progress is not None:  # the bar runs from here, so its rate counts the scene's setup
+                progress.put((task.scene_id, 0, total, f"{st.name} (per scene)"))
             scene = timings.scene_work(
                 st.name, lambda st=st, scene=scene: run_stage(st.name, scene, st.params)
             )
@@ -298,7 +301,6 @@ def process_scene(task: SceneTask, progress: ProgressHandle | None = None) -> Sc
             spec.contents,
             {"phigenesis.source": scene.source, "phigenesis.scene_metadata": json.dumps(scene.metadata)},
         )
-        total = len(scene.frames)
         coverage = SceneCoverage(scene.scene_id)
         with ShardWriter(Path(task.cache_dir), scene.scene_id, schema, spec.shard_max_bytes) as writer:
             for i, frame in enumerate(timings.frames(scene.frames)):
@@ -306,7 +308,7 @@ def process_scene(task: SceneTask, progress: ProgressHandle | None = None) -> Sc
                 coverage.add(frame)
                 timings.written()
                 if progress is not None:
-                    progress.put((task.scene_id, i + 1, total))
+                    progress.put((task.scene_id, i + 1, total, ""))
         coverage.report()
         log.info("scene %s: %s", scene.scene_id, timings.describe())
         return SceneResult(
@@ -680,7 +682,8 @@ def _swap_staged(run: CacheRun, scenes_total: int) -> None:
 
 
 class _ProgressBars:
-    """One tqdm bar per running scene, fed by progress messages."""
+    """One tqdm bar per running scene, fed by progress messages: it starts when the scene's stages
+    start (so its rate and ETA include the per-scene work) and names the per-scene step running."""
 
     def __init__(self, enabled: bool):
         self.enabled = enabled
@@ -691,11 +694,18 @@ class _ProgressBars:
             return
         from tqdm import tqdm
 
-        key, done, total = msg
+        key, done, total, phase = msg
         bar = self.bars.get(key)
         if bar is None:
-            bar = self.bars[key] = tqdm(total=total, desc=key, unit="frame", leave=True, dynamic_ncols=True)
+            # smoothing 0: the rate is the scene's average since its start (setup included), as
+            # the summary's s/frame is, not the last frames' write rate.
+            bar = self.bars[key] = tqdm(
+                total=total, desc=key, unit="frame", leave=True, dynamic_ncols=True, smoothing=0
+            )
+        bar.set_postfix_str(phase, refresh=False)
         bar.update(done - bar.n)
+        if done == bar.n and phase:
+            bar.refresh()
 
     def finish(self, key: str) -> None:
         bar = self.bars.pop(key, None)
