@@ -25,6 +25,9 @@ COLUMNS = (
     ("abs_rel", "AbsRel", "{:6.3f}"),
     ("delta_1_25", "δ<1.25", "{:6.3f}"),
     ("miou", "mIoU", "{:6.3f}"),
+    ("psnr_dynamic_db", "dynPSNR", "{:6.2f}"),
+    ("epe3d_mps", "EPE3D", "{:6.3f}"),
+    ("acc5", "Acc5", "{:6.3f}"),
 )
 
 

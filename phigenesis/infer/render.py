@@ -70,13 +70,16 @@ class Rendered:
     """A scene rendered into N views: ``rgb`` [N, H, W, 3] with the background composited, ``depth``
     [N, H, W] metres (0 where nothing), ``alpha`` [N, H, W], ``semantic`` [N, H, W] uint8 (argmax
     of the class probabilities, sky where alpha < 0.5) and ``entropy`` [N, H, W], nats, the entropy
-    of each ray's depth distribution when the rasterizer reports one (else None)."""
+    of each ray's depth distribution when the rasterizer reports one (else None); ``velocity``
+    [N, H, W, 3] the Gaussians' world-frame velocity (m/s) blended as the depth is (0 where nothing),
+    when the views carry a truth flow to score it against (else None)."""
 
     rgb: Tensor
     depth: Tensor
     alpha: Tensor
     semantic: Tensor
     entropy: Tensor | None = None
+    velocity: Tensor | None = None
 
 
 def render_views(scene: GaussianScene, views: Views, background: Tensor) -> Rendered:
@@ -87,7 +90,10 @@ def render_views(scene: GaussianScene, views: Views, background: Tensor) -> Rend
     if len(scene) == 0:
         bg = background.expand(n, h, w, 3).float()
         zeros = torch.zeros(n, h, w)
-        return Rendered(bg, zeros, zeros.clone(), torch.full((n, h, w), SKY, dtype=torch.uint8))
+        velocity = None if views.flow is None else torch.zeros(n, h, w, 3)
+        return Rendered(
+            bg, zeros, zeros.clone(), torch.full((n, h, w), SKY, dtype=torch.uint8), velocity=velocity
+        )
     out = scene.render(
         views.world_from_camera.float(),
         views.intrinsics.float(),
@@ -95,13 +101,26 @@ def render_views(scene: GaussianScene, views: Views, background: Tensor) -> Rend
         h,
         views.time_s,
         semantics=True,
+        motion=views.flow is not None,
         entropy=scene.depth_entropy is not None,
     )
     rgb = (out.rgb + (1 - out.alpha[..., None]) * background).clamp(0.0, 1.0)
     assert out.semantic_probs is not None
     labels = out.semantic_probs.argmax(-1).to(torch.uint8)
     labels = torch.where(out.alpha < SKY_ALPHA, torch.full_like(labels, SKY), labels)
-    return Rendered(rgb=rgb, depth=out.depth, alpha=out.alpha, semantic=labels, entropy=out.depth_entropy)
+    velocity = None
+    if out.velocity is not None:  # premultiplied: the blend weights' average, as the depth is
+        alpha = out.alpha[..., None]
+        blended = out.velocity / alpha.clamp_min(1e-12)
+        velocity = torch.where(alpha > 0, blended, torch.zeros_like(blended))
+    return Rendered(
+        rgb=rgb,
+        depth=out.depth,
+        alpha=out.alpha,
+        semantic=labels,
+        entropy=out.depth_entropy,
+        velocity=velocity,
+    )
 
 
 def lift_views(views: Views, time_origin_micros: int = 0) -> GaussianScene:

@@ -38,10 +38,18 @@ as SurroundDepth averages). Depth is also scored per class of those semantics, p
 class's pixels (``model_by_class``), with each class's share of the pixels outside delta < 1.25: where
 the depth error is.
 
+The peers' metrics (:mod:`phigenesis.eval.scene_flow`, STORM's definitions), where the views have a
+truth flow (synthetic caches): ``psnr_dynamic_db`` and ``ssim_dynamic`` over the truth's moving
+surfaces (faster than 1 m/s), and the scene flow of the rendered Gaussians' velocity against the
+truth (m/s, world frame; non-ground pixels with a truth depth; a section's views are skipped when
+nothing in them moves): ``epe3d_mps``, ``acc5``, ``acc10``, ``outlier``, ``angle_rad`` and
+``flow_pixels``.
+
 Report keys of a section (:meth:`SectionScores.summary`, in :data:`METRICS` order): ``psnr_db``,
 ``ssim``, then per subset the depth metrics ``abs_rel``, ``sq_rel``, ``rmse_m``, ``rmse_log``,
 ``delta_1_25``, ``delta_1_25_2``, ``delta_1_25_3``, named plainly for ``all`` and with the subset
-as a suffix otherwise (``abs_rel_lidar``, ``rmse_m_no_lidar``; :func:`depth_key`), then ``miou``.
+as a suffix otherwise (``abs_rel_lidar``, ``rmse_m_no_lidar``; :func:`depth_key`), ``miou``, then
+``psnr_dynamic_db``, ``ssim_dynamic``, ``epe3d_mps``, ``acc5``, ``acc10``.
 Besides them (not in the gap): the same depth metrics pooled over all pixels of the section with a
 further ``_pooled`` suffix (``abs_rel_pooled``, ``abs_rel_lidar_pooled``), ``depth_pixels``
 (``_lidar``, ``_no_lidar``) the truth pixels scored, and ``depth_coverage``, the mean share of truth
@@ -81,6 +89,7 @@ from phigenesis.data.records import DENSE_ORIGINS, CameraCalibration, CameraTrut
 from phigenesis.data.shards import MANIFEST_NAME
 from phigenesis.data.taxonomy import CLASS_NAMES, IGNORE_ID, NUM_CLASSES
 from phigenesis.eval.depth_protocol import ALL, DEPTH_METRICS, DepthAccumulator
+from phigenesis.eval.scene_flow import FlowAccumulator, dynamic_mask, flow_pixels, masked_mean, masked_psnr
 from phigenesis.infer.render import Rendered, Views, lift_views, render_views, sky_background
 from phigenesis.models.losses import psnr, ssim
 from phigenesis.models.stage1 import Stage1Model
@@ -109,12 +118,22 @@ METRICS = (
     "ssim",
     *(depth_key(m, s) for s in DEPTH_SUBSETS for m in DEPTH_METRICS),
     "miou",
+    "psnr_dynamic_db",
+    "ssim_dynamic",
+    "epe3d_mps",
+    "acc5",
+    "acc10",
 )
 HIGHER_IS_BETTER = {
     "psnr_db": True,
     "ssim": True,
     **{depth_key(m, s): m.startswith("delta") for s in DEPTH_SUBSETS for m in DEPTH_METRICS},
     "miou": True,
+    "psnr_dynamic_db": True,
+    "ssim_dynamic": True,
+    "epe3d_mps": False,
+    "acc5": True,
+    "acc10": True,
 }
 
 
@@ -140,6 +159,9 @@ class SectionScores:
 
     psnr_db: list[float] = field(default_factory=list)
     ssim: list[float] = field(default_factory=list)
+    psnr_dynamic_db: list[float] = field(default_factory=list)
+    ssim_dynamic: list[float] = field(default_factory=list)
+    flow: FlowAccumulator = field(default_factory=FlowAccumulator)
     depth: DepthAccumulator = field(default_factory=lambda: DepthAccumulator(DEPTH_SUBSETS[1:]))
     coverage: list[float] = field(default_factory=list)
     confusion: np.ndarray = field(default_factory=lambda: np.zeros((NUM_CLASSES, NUM_CLASSES + 1), np.int64))
@@ -149,7 +171,15 @@ class SectionScores:
         """Scores every view of ``rendered`` against ``views``' truth (depth: see the module docstring)."""
         truth_rgb = views.images
         self.psnr_db += psnr(rendered.rgb, truth_rgb).tolist()
-        self.ssim += ssim(rendered.rgb, truth_rgb).mean(dim=(-2, -1)).tolist()
+        ssim_map = ssim(rendered.rgb, truth_rgb)
+        self.ssim += ssim_map.mean(dim=(-2, -1)).tolist()
+        if views.flow is not None:
+            moving = dynamic_mask(views.flow)
+            self.psnr_dynamic_db += masked_psnr(rendered.rgb, truth_rgb, moving)
+            self.ssim_dynamic += masked_mean(ssim_map, moving)
+            if rendered.velocity is not None:
+                valid = flow_pixels(views.depth, views.semantic)
+                self.flow.add(rendered.velocity, views.flow, valid)
         pred, truth = rendered.depth.numpy(), views.depth.numpy()
         covered = None if views.lidar_covered is None else views.lidar_covered.numpy()
         self.depth.add(pred, truth, {"lidar": covered, "no_lidar": None if covered is None else ~covered})
@@ -166,6 +196,8 @@ class SectionScores:
         """The section's values (keys in the module docstring): means over images, depth under the
         protocol per subset (per-image means, and pooled with ``_pooled``), the pooled mIoU."""
         out = {"psnr_db": _mean(self.psnr_db), "ssim": _mean(self.ssim)}
+        out |= {"psnr_dynamic_db": _mean(self.psnr_dynamic_db), "ssim_dynamic": _mean(self.ssim_dynamic)}
+        out |= self.flow.summary()
         pooled = self.depth.pooled()
         for suffix, scores in (("", self.depth.image_mean()), ("_pooled", pooled)):
             for subset in DEPTH_SUBSETS:
