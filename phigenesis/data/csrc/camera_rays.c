@@ -153,6 +153,20 @@ static double wrap_angle(double a) {
     return w >= PI ? w - two_pi : w;
 }
 
+/* fabs(wrap_angle(a)) <= half (a: a difference of two azimuths of the range view), as rangeview._overlap_reference decides it: wrapped by adding or subtracting 2 pi,
+ * and by wrap_angle's fmod only within 1e-9 of the limit, where the two could round apart. */
+static int within(double a, double half) {
+    const double two_pi = 2.0 * PI;
+    if (!(fabs(a) < 8.0 * PI)) return fabs(wrap_angle(a)) <= half; /* NaN, inf, far off */
+    double w = a;
+    while (w >= PI) w -= two_pi;
+    while (w < -PI) w += two_pi;
+    const double margin = fabs(w) - half;
+    if (margin > 1e-9) return 0;
+    if (margin < -1e-9) return 1;
+    return fabs(wrap_angle(a)) <= half;
+}
+
 /* The views' geometry for the overlap map, one entry per view (range-view order). */
 typedef struct {
     const double *rotation;   /* (V, 3, 3) ego_from_camera rotations, row-major */
@@ -206,7 +220,7 @@ void phigenesis_overlap(const float *rays, int64_t n, int64_t k, int64_t views,
         const double ray_azimuth = atan2(dir[1], dir[0]);
         for (int64_t j = 0; j < views; ++j) {
             if (j == k) continue;
-            if (!(fabs(wrap_angle(ray_azimuth - azimuth[2 * j])) <= azimuth[2 * j + 1])) continue;
+            if (!within(ray_azimuth - azimuth[2 * j], azimuth[2 * j + 1])) continue;
             double c[3];
             to_camera(dir, rotation + 9 * j, c);
             if (!in_view(c, intrinsics + 9 * j, distortion + 5 * j, r_max2[j], size[2 * j],
