@@ -283,7 +283,9 @@ class CameraRays:
         k = np.ascontiguousarray(intrinsics, np.float64)
         d = np.ascontiguousarray(distortion, np.float64).reshape(-1)
         if k.shape != (3, 3) or d.shape != (5,):
-            raise ValueError(f"camera rays: want a (3, 3) camera matrix and 5 coefficients, got {k.shape}, {d.shape}")
+            raise ValueError(
+                f"camera rays: want a (3, 3) camera matrix and 5 coefficients, got {k.shape}, {d.shape}"
+            )
         return int(self._undistort(width, height, _address(k), _address(d), float(r_max), _address(rays)))
 
     def rays_ego(self, rays: NDArray[np.float64], rotation: NDArray[np.float64]) -> NDArray[np.float32]:

@@ -212,9 +212,14 @@ def _overlap(
     kernel = load_camera_rays()
     if kernel is None or len(cals) > NO_VIEW:
         return _overlap_reference(k, rays, cals, views)
-    r_max2 = [geometry.max_monotonic_radius(c.distortion) ** 2 if c.distortion.any() else np.inf for c in cals]
+    r_max2 = [
+        geometry.max_monotonic_radius(c.distortion) ** 2 if c.distortion.any() else np.inf for c in cals
+    ]
     azimuth = [
-        (0.5 * (v.azimuth_min_rad + v.azimuth_max_rad), 0.5 * (v.azimuth_max_rad - v.azimuth_min_rad) + _AZIMUTH_SLACK)
+        (
+            0.5 * (v.azimuth_min_rad + v.azimuth_max_rad),
+            0.5 * (v.azimuth_max_rad - v.azimuth_min_rad) + _AZIMUTH_SLACK,
+        )
         for v in views
     ]
     return kernel.overlap(

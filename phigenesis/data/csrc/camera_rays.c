@@ -27,9 +27,9 @@
  * With exact = 0 the step divides once (by the determinant) instead of twice and skips the
  * clamp's square root well inside r_max: the same step to a few ulps, for the solves that go on
  * to convergence (the root does not depend on the path). Returns the residual max(|fx|, |fy|)
- * before the step. */
+ * before the step; *jacobian is the determinant of the distortion's Jacobian there. */
 static inline double newton_step(double *x_io, double *y_io, double tx, double ty, const double *d,
-                                 double r_max, int exact) {
+                                 double r_max, int exact, double *jacobian) {
     const double k1 = d[0], k2 = d[1], p1 = d[2], p2 = d[3], k3 = d[4];
     const double x = *x_io, y = *y_io;
     const double r2 = x * x + y * y;
@@ -42,6 +42,7 @@ static inline double newton_step(double *x_io, double *y_io, double tx, double t
     const double j10 = j01;
     const double j11 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x;
     double det = j00 * j11 - j01 * j10;
+    *jacobian = det;
     if (fabs(det) < 1e-12) det = 1e-12;
     double nx, ny;
     if (exact) {
@@ -68,17 +69,35 @@ static inline double newton_step(double *x_io, double *y_io, double tx, double t
 }
 
 /* Solves distort(x, y) = (tx, ty) from the start (*x, *y): Newton steps until the residual is
- * under CONVERGED, then one more. Returns 1 if it converged within max_steps, else 0 (the
- * point is then the last iterate). */
+ * under CONVERGED, then one more. Returns 1 if it converged within max_steps on the image's own
+ * sheet of the distortion (Jacobian determinant > 0: a distortion that is not one-to-one, its
+ * tangential terms folding the image over near the monotonic radius, also maps points of the
+ * fold-over sheet, where the determinant is negative, to some pixels), else 0 (the point is
+ * then the last iterate). */
 static int solve(double *x, double *y, double tx, double ty, const double *d, double r_max,
                  int max_steps) {
+    double jacobian;
     for (int i = 0; i < max_steps; ++i) {
-        if (newton_step(x, y, tx, ty, d, r_max, 0) <= CONVERGED) {
-            newton_step(x, y, tx, ty, d, r_max, 0);
+        if (newton_step(x, y, tx, ty, d, r_max, 0, &jacobian) <= CONVERGED) {
+            if (!(jacobian > 0.0)) return 0;
+            newton_step(x, y, tx, ty, d, r_max, 0, &jacobian);
             return 1;
         }
     }
     return 0;
+}
+
+/* geometry.undistort_normalized for one point: 20 steps from the distorted point (tx, ty), the
+ * reference's arithmetic. Returns 1 if the result distorts back within CONVERGED. */
+static int solve_as_reference(double *x, double *y, double tx, double ty, const double *d,
+                              double r_max) {
+    double jacobian, unused_x, unused_y;
+    *x = tx;
+    *y = ty;
+    for (int i = 0; i < REFERENCE_ITERATIONS; ++i) newton_step(x, y, tx, ty, d, r_max, 1, &jacobian);
+    unused_x = *x;
+    unused_y = *y;
+    return newton_step(&unused_x, &unused_y, tx, ty, d, r_max, 1, &jacobian) <= CONVERGED;
 }
 
 /* rays: (height * width, 3) float64 camera-frame rays (z = 1) of every pixel centre, row-major;
@@ -88,9 +107,10 @@ static int solve(double *x, double *y, double tx, double ty, const double *d, do
  * that the line through the two solutions above it (off by ~1e-7: two steps then reach rounding
  * level). Predicting from the rows above leaves the pixels of a row independent, so the CPU
  * overlaps their solves (the left neighbour's chain is latency-bound, three times slower). A
- * pixel that does not converge within 8 steps is solved again as geometry.undistort_normalized
- * does (20 steps from the distorted point, clamped to r_max), so it gets the reference's last
- * iterate. Returns how many pixels did not converge (no undistorted point maps to them). */
+ * pixel that does not converge within 8 steps (or converges on the fold-over sheet, see solve)
+ * is solved again as geometry.undistort_normalized does (20 steps from the distorted point,
+ * clamped to r_max), so it gets the reference's result. Returns how many pixels that leaves
+ * further than CONVERGED from a solution (no undistorted point maps to them). */
 int64_t phigenesis_undistort_grid(int64_t width, int64_t height, const double *k, const double *d,
                                   double r_max, double *rays) {
     int64_t unsolved = 0;
@@ -117,12 +137,7 @@ int64_t phigenesis_undistort_grid(int64_t width, int64_t height, const double *k
                 y = ty;
             }
             warm = solve(&x, &y, tx, ty, d, r_max, 8);
-            if (!warm) {
-                x = tx;
-                y = ty;
-                for (int i = 0; i < REFERENCE_ITERATIONS; ++i) newton_step(&x, &y, tx, ty, d, r_max, 1);
-                ++unsolved;
-            }
+            if (!warm && !solve_as_reference(&x, &y, tx, ty, d, r_max)) ++unsolved;
             row[3 * u] = x;
             row[3 * u + 1] = y;
             row[3 * u + 2] = 1.0;
