@@ -252,7 +252,7 @@ class CameraRays:
     def __init__(self, library: ctypes.CDLL):
         i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
         self._undistort = library.phigenesis_undistort_grid
-        self._undistort.argtypes = [i64, i64, ptr, ptr, f64, ptr]
+        self._undistort.argtypes = [i64, i64, ptr, ptr, f64, ptr, ptr]
         self._undistort.restype = i64
         self._rays_ego = library.phigenesis_rays_ego
         self._rays_ego.argtypes = [ptr, i64, ptr, ptr]
@@ -286,7 +286,12 @@ class CameraRays:
             raise ValueError(
                 f"camera rays: want a (3, 3) camera matrix and 5 coefficients, got {k.shape}, {d.shape}"
             )
-        return int(self._undistort(width, height, _address(k), _address(d), float(r_max), _address(rays)))
+        scratch = np.empty(6 * width + width // 8 + 1, np.float64)
+        return int(
+            self._undistort(
+                width, height, _address(k), _address(d), float(r_max), _address(rays), _address(scratch)
+            )
+        )
 
     def rays_ego(self, rays: NDArray[np.float64], rotation: NDArray[np.float64]) -> NDArray[np.float32]:
         """(N, 3) float32 unit directions, ego axes, of ``rays`` ((N, 3) float64 camera frame):

@@ -1,12 +1,15 @@
 /* A camera's per-calibration tables (phigenesis/data/native.py): undistorted pixel rays, their
  * ego-frame unit directions, and the range view's overlap map.
  *
- * Each is one pass over the image's pixels doing what the numpy references do
- * (camera_tables.undistorted_pixel_rays_reference, rangeview._rays_reference,
- * rangeview._overlap_reference), with the same arithmetic in the same order (the library is
- * built with -std=c99, so no multiply-add contraction changes a rounding): at 1920 x 1280 the
- * references spend about 1.3, 0.8 and 0.9 CPU-s per camera in numpy's passes over (H * W, 3)
- * float64 temporaries.
+ * Each is one pass over the image's pixels computing what the numpy references compute
+ * (camera_tables.undistorted_pixel_rays_reference, rangeview.camera_rays_ego_reference,
+ * rangeview._overlap_reference). The ego rays and the overlap map use the same arithmetic in
+ * the same order (the library is built with -std=c99, so no multiply-add contraction changes a
+ * rounding) and equal the references; the undistortion solves the same equation by Newton's
+ * method from a better start, to rounding level (the reference accepts OpenCV's points at a
+ * residual of 1e-12). At 1920 x 1280 the references spend about 1.3, 0.8 and 0.3 CPU-s per
+ * camera (OpenCV's fixed point; numpy's passes over (H * W, 3) float64 temporaries), the kernels
+ * 0.03, 0.02 and 0.06.
  *
  * Distortion is OpenCV's five coefficients (k1, k2, p1, p2, k3), as in phigenesis/geometry.py.
  */
@@ -100,46 +103,108 @@ static int solve_as_reference(double *x, double *y, double tx, double ty, const 
     return newton_step(&unused_x, &unused_y, tx, ty, d, r_max, 1, &jacobian) <= CONVERGED;
 }
 
+/* One Newton step without branches (so that a loop of them vectorises): newton_step's fast
+ * form, clamping by a select. Returns the residual before the step in *residual and the
+ * Jacobian's determinant there in *jacobian. */
+static inline void branchless_step(double *x_io, double *y_io, double tx, double ty, const double *d,
+                                   double r_max, double *residual, double *jacobian) {
+    const double k1 = d[0], k2 = d[1], p1 = d[2], p2 = d[3], k3 = d[4];
+    const double x = *x_io, y = *y_io;
+    const double r2 = x * x + y * y;
+    const double radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+    const double dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2);
+    const double fx = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - tx;
+    const double fy = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - ty;
+    const double j00 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x;
+    const double j01 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y;
+    const double j11 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x;
+    const double det = j00 * j11 - j01 * j01;
+    const double safe = fabs(det) < 1e-12 ? 1e-12 : det;
+    const double inverse = 1.0 / safe;
+    const double nx = x - (j11 * fx - j01 * fy) * inverse;
+    const double ny = y - (j00 * fy - j01 * fx) * inverse;
+    const double s2 = nx * nx + ny * ny;
+    const double scale = s2 > r_max * r_max ? r_max / sqrt(s2) : 1.0;
+    *x_io = nx * scale;
+    *y_io = ny * scale;
+    const double ax = fabs(fx), ay = fabs(fy);
+    *residual = ax > ay ? ax : ay;
+    *jacobian = det;
+}
+
+/* One image row below the second: every pixel starts from the line through the solutions of
+ * the two rows above (x2, y2: two rows up, x1, y1: one row up; off by ~1e-7) and takes three
+ * branchless Newton steps; ok[u] says whether the second step began within CONVERGED of a
+ * solution on the image's own sheet (the third then reaches rounding level). The loop has no
+ * branches and no dependency between pixels, so it runs four pixels a vector. */
+static void solve_row(int64_t width, double ty, const double *k, const double *d, double r_max,
+                      const double *restrict x2, const double *restrict y2,
+                      const double *restrict x1, const double *restrict y1, double *restrict x0,
+                      double *restrict y0, unsigned char *restrict ok) {
+    for (int64_t u = 0; u < width; ++u) {
+        const double tx = ((double)u - k[2] - k[1] * ty) / k[0];
+        double x = 2.0 * x1[u] - x2[u], y = 2.0 * y1[u] - y2[u];
+        double residual, jacobian;
+        branchless_step(&x, &y, tx, ty, d, r_max, &residual, &jacobian);
+        branchless_step(&x, &y, tx, ty, d, r_max, &residual, &jacobian);
+        ok[u] = (residual <= CONVERGED) & (jacobian > 0.0);
+        branchless_step(&x, &y, tx, ty, d, r_max, &residual, &jacobian);
+        x0[u] = x;
+        y0[u] = y;
+    }
+}
+
 /* rays: (height * width, 3) float64 camera-frame rays (z = 1) of every pixel centre, row-major;
  * k: the 3 x 3 camera matrix (row-major), d: the five distortion coefficients, r_max:
- * geometry.max_monotonic_radius(d). Each pixel is solved by Newton's method from a prediction:
- * in the first row its left neighbour's solution, in the second the solution above it, below
- * that the line through the two solutions above it (off by ~1e-7: two steps then reach rounding
- * level). Predicting from the rows above leaves the pixels of a row independent, so the CPU
- * overlaps their solves (the left neighbour's chain is latency-bound, three times slower). A
- * pixel that does not converge within 8 steps (or converges on the fold-over sheet, see solve)
- * is solved again as geometry.undistort_normalized does (20 steps from the distorted point,
- * clamped to r_max), so it gets the reference's result. Returns how many pixels that leaves
- * further than CONVERGED from a solution (no undistorted point maps to them). */
+ * geometry.max_monotonic_radius(d); scratch: 6 * width + width / 8 + 1 doubles. Each pixel is
+ * solved by Newton's method from a prediction: in the first row its left neighbour's solution,
+ * in the second the solution above it, below that the line through the two solutions above it
+ * (solve_row: three steps, four pixels at a time). A pixel that does not converge so (within 8
+ * steps in the first two rows), or converges on the fold-over sheet (see solve), is solved again
+ * from its prediction by up to 8 plain steps, then as geometry.undistort_normalized does (20
+ * steps from the distorted point, clamped to r_max), so it gets the reference's result. Returns
+ * how many pixels that leaves further than CONVERGED from a solution (no undistorted point maps
+ * to them). */
 int64_t phigenesis_undistort_grid(int64_t width, int64_t height, const double *k, const double *d,
-                                  double r_max, double *rays) {
+                                  double r_max, double *rays, double *scratch) {
     int64_t unsolved = 0;
+    /* The solutions of the last three rows, x and y apart (this row, one up, two up). */
+    double *xs[3] = {scratch, scratch + width, scratch + 2 * width};
+    double *ys[3] = {scratch + 3 * width, scratch + 4 * width, scratch + 5 * width};
+    unsigned char *ok = (unsigned char *)(scratch + 6 * width);
     for (int64_t v = 0; v < height; ++v) {
         const double ty = ((double)v - k[5]) / k[4];
-        double *row = rays + 3 * v * width;
-        const double *above = row - 3 * width, *above2 = row - 6 * width;
-        int warm = 0; /* first row: whether the left neighbour converged */
+        double *x0 = xs[v % 3], *y0 = ys[v % 3];
+        const double *x1 = xs[(v + 2) % 3], *y1 = ys[(v + 2) % 3];
+        const double *x2 = xs[(v + 1) % 3], *y2 = ys[(v + 1) % 3];
+        if (v >= 2) solve_row(width, ty, k, d, r_max, x2, y2, x1, y1, x0, y0, ok);
         for (int64_t u = 0; u < width; ++u) {
+            if (v >= 2 && ok[u]) continue;
             const double tx = ((double)u - k[2] - k[1] * ty) / k[0];
             double x = tx, y = ty;
             if (v >= 2) {
-                x = 2.0 * above[3 * u] - above2[3 * u];
-                y = 2.0 * above[3 * u + 1] - above2[3 * u + 1];
+                x = 2.0 * x1[u] - x2[u];
+                y = 2.0 * y1[u] - y2[u];
             } else if (v == 1) {
-                x = above[3 * u];
-                y = above[3 * u + 1];
-            } else if (warm) {
-                x = row[3 * u - 3];
-                y = row[3 * u - 2];
+                x = x1[u];
+                y = y1[u];
+            } else if (u > 0) {
+                x = x0[u - 1];
+                y = y0[u - 1];
             }
             if (!isfinite(x) || !isfinite(y)) {
                 x = tx;
                 y = ty;
             }
-            warm = solve(&x, &y, tx, ty, d, r_max, 8);
-            if (!warm && !solve_as_reference(&x, &y, tx, ty, d, r_max)) ++unsolved;
-            row[3 * u] = x;
-            row[3 * u + 1] = y;
+            if (!solve(&x, &y, tx, ty, d, r_max, 8) && !solve_as_reference(&x, &y, tx, ty, d, r_max))
+                ++unsolved;
+            x0[u] = x;
+            y0[u] = y;
+        }
+        double *row = rays + 3 * v * width;
+        for (int64_t u = 0; u < width; ++u) {
+            row[3 * u] = x0[u];
+            row[3 * u + 1] = y0[u];
             row[3 * u + 2] = 1.0;
         }
     }
