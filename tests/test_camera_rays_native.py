@@ -246,3 +246,37 @@ def test_a_distorted_calibration_copy_gets_its_own_rays() -> None:
     other = dataclasses.replace(cal, distortion=np.array([0.1, 0.0, 0.0, 0.0, 0.0]))
     a, b = camera_tables.pixel_rays_cam(cal), camera_tables.pixel_rays_cam(other)
     assert np.abs(a - b).max() > 1e-3
+
+
+@needs_kernel
+def test_native_ego_body_depth_equals_the_reference_inside_across_and_along_the_boxes() -> None:
+    """Three boxes around a camera pitched down 40 degrees: one holds the camera (entry depth
+    0), one is straddled by the image plane, one has faces parallel to the pixel rays' axes (a
+    ray along a slab's plane: 0/0 in the slab test). The one-pass kernel equals the numpy
+    reference and the one-box-a-pass kernel (ray_box.c) exactly."""
+    cal = camera("DOWN", 0.0, 64, 48, 40.0, (-0.2, 0.05, 0.001, 0.0, 0.0), pitch_deg=40.0)
+    boxes = [
+        {"center_ego": [0.0, 0.0, 1.5], "size_lwh": [0.4, 0.4, 0.4]},  # holds the camera
+        {"center_ego": [2.0, 0.0, 0.6], "size_lwh": [3.0, 2.0, 1.2]},
+        {"center_ego": [1.0, 1.0, 1.0], "size_lwh": [2.0, 2.0, 1.0]},  # a face through the camera
+    ]
+    rays = camera_tables.undistorted_pixel_rays(cal)
+    reference = camera_tables.ego_body_depth_from_rays(cal, boxes, rays)
+    fast = camera_tables.ego_body_depth_native(cal, boxes, rays)
+    assert fast is not None and np.array_equal(fast, reference)
+    assert (reference == 0).all()  # the camera is inside the first box
+    outside = boxes[1:]
+    reference = camera_tables.ego_body_depth_from_rays(cal, outside, rays)
+    fast = camera_tables.ego_body_depth_native(cal, outside, rays)
+    hit = np.isfinite(reference)
+    assert 0.1 < hit.mean() < 1.0 and (reference[hit] < 1e-6).any() and (reference[hit] > 0.5).any()
+    assert np.array_equal(fast, reference)
+    one_box_a_pass = np.full((cal.height, cal.width), np.inf, np.float32)
+    camera_from_ego = geometry.invert_transform(cal.ego_from_camera)
+    for b in outside:
+        box_from_camera = geometry.invert_transform(
+            camera_from_ego @ geometry.make_transform(np.eye(3), b["center_ego"])
+        )
+        half = 0.5 * np.asarray(b["size_lwh"], np.float64)
+        native.load_ray_box().near_side(rays, box_from_camera, half, one_box_a_pass)
+    assert np.array_equal(fast, one_box_a_pass)

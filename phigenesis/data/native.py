@@ -260,6 +260,32 @@ class CameraRays:
         self._overlap = library.phigenesis_overlap
         self._overlap.argtypes = [ptr, i64, i64, i64] + [ptr] * 8
         self._overlap.restype = None
+        self._boxes_near = library.phigenesis_ray_boxes_near
+        self._boxes_near.argtypes = [ptr, i64, i64, ptr, ptr, ptr]
+        self._boxes_near.restype = None
+
+    def boxes_near(
+        self,
+        rays: NDArray[np.float64],
+        box_from_camera: NDArray[np.float64],
+        half_sizes: NDArray[np.float64],
+        near: NDArray[np.float32],
+    ) -> None:
+        """Lowers ``near`` ((N,) or (H, W) float32, C order, in place) to the least depth at which
+        each ray of ``rays`` ((N, 3) float64, C order, camera frame, z = 1) enters one of B boxes
+        (0 from inside), rounded to float32: :meth:`RayBox.near_side` of every box in one pass.
+        ``box_from_camera``: (B, 4, 4) transforms; ``half_sizes``: (B, 3) metres."""
+        n = near.size
+        if rays.shape != (n, 3) or rays.dtype != np.float64 or not rays.flags.c_contiguous:
+            raise ValueError(f"camera rays: rays must be a C-order ({n}, 3) float64 array")
+        if near.dtype != np.float32 or not near.flags.c_contiguous or not near.flags.writeable:
+            raise ValueError("camera rays: near must be a writable C-order float32 array")
+        b = len(box_from_camera)
+        matrices = np.ascontiguousarray(np.asarray(box_from_camera, np.float64).reshape(b, 4, 4)[:, :3, :4])
+        half = np.ascontiguousarray(half_sizes, np.float64)
+        if half.shape != (b, 3):
+            raise ValueError(f"camera rays: want ({b}, 3) half sizes, got {half.shape}")
+        self._boxes_near(_address(rays), n, b, _address(matrices), _address(half), _address(near))
 
     def undistort_grid(
         self,

@@ -16,6 +16,12 @@
 #include <math.h>
 #include <stdint.h>
 
+/* Floating-point traps are never enabled here, so GCC may evaluate both sides of a select (the
+ * branchless loops vectorise only so); the values computed are the same. */
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC optimize("no-trapping-math")
+#endif
+
 /* The residual (normalised units) under which a pixel's solve has converged; one more Newton
  * step then leaves it at rounding level (camera_tables.UNDISTORT_TOLERANCE). */
 #define CONVERGED 1e-12
@@ -314,5 +320,56 @@ void phigenesis_overlap(const float *rays, int64_t n, int64_t k, int64_t views,
         }
         owner[p] = (uint8_t)best_view;
         count[p] = (uint8_t)seen;
+    }
+}
+
+/* np.minimum / np.maximum of two doubles: NaN if either is (branchless). */
+static inline double nan_min(double a, double b) { return ((a != a) | (b != b)) ? a + b : (a < b ? a : b); }
+static inline double nan_max(double a, double b) { return ((a != a) | (b != b)) ? a + b : (a > b ? a : b); }
+/* np.fmax / np.fmin: a NaN operand is skipped (branchless). */
+static inline double skip_max(double a, double b) { return a != a ? b : (b != b ? a : (a > b ? a : b)); }
+static inline double skip_min(double a, double b) { return a != a ? b : (b != b ? a : (a < b ? a : b)); }
+
+/* One box over rays [p0, p1): near[p] = min(near[p], entry depth rounded to float32) where the
+ * ray enters the box (the slab test of camera_tables.ray_box_depths, its arithmetic). */
+static void box_near_span(const double *restrict rays, int64_t p0, int64_t p1,
+                          const double *restrict m, const double *restrict half,
+                          float *restrict near) {
+    const double m00 = m[0], m01 = m[1], m02 = m[2], o0 = m[3];
+    const double m10 = m[4], m11 = m[5], m12 = m[6], o1 = m[7];
+    const double m20 = m[8], m21 = m[9], m22 = m[10], o2 = m[11];
+    const double h0 = half[0], h1 = half[1], h2 = half[2];
+    for (int64_t p = p0; p < p1; ++p) {
+        const double rx = rays[3 * p], ry = rays[3 * p + 1], rz = rays[3 * p + 2];
+        const double d0 = m00 * rx + m01 * ry + m02 * rz;
+        const double d1 = m10 * rx + m11 * ry + m12 * rz;
+        const double d2 = m20 * rx + m21 * ry + m22 * rz;
+        const double a0 = (-h0 - o0) / d0, b0 = (h0 - o0) / d0;
+        const double a1 = (-h1 - o1) / d1, b1 = (h1 - o1) / d1;
+        const double a2 = (-h2 - o2) / d2, b2 = (h2 - o2) / d2;
+        /* t_near = fmax(fmax(lo0, lo1), lo2), t_far likewise, as ray_box_depths computes them. */
+        const double t_near = skip_max(skip_max(nan_min(a0, b0), nan_min(a1, b1)), nan_min(a2, b2));
+        const double t_far = skip_min(skip_min(nan_max(a0, b0), nan_max(a1, b1)), nan_max(a2, b2));
+        const double start = t_near > 0.0 ? t_near : 0.0;
+        const int hit = (fabs(t_near) < INFINITY) & (fabs(t_far) < INFINITY) & (t_far >= start);
+        const float entry = hit ? (float)start : INFINITY;
+        near[p] = entry < near[p] ? entry : near[p];
+    }
+}
+
+/* The ego body's depth (camera_tables.ego_body_depth_from_rays): rays (n, 3) float64 camera-frame
+ * rays (z = 1); boxes box_from_camera (boxes, 3, 4) row-major and half sizes (boxes, 3). near[p]
+ * becomes the least depth at which ray p enters a box (0 from inside), rounded to float32, where
+ * it enters one; it is left as is elsewhere. ray_box.c's phigenesis_ray_box_near per box, written
+ * without branches so that it runs several rays a vector, over blocks of rays that stay in
+ * cache while every box is tested. */
+void phigenesis_ray_boxes_near(const double *restrict rays, int64_t n, int64_t boxes,
+                               const double *restrict box_from_camera, const double *restrict half,
+                               float *restrict near) {
+    const int64_t block = 2048;
+    for (int64_t p0 = 0; p0 < n; p0 += block) {
+        const int64_t p1 = p0 + block < n ? p0 + block : n;
+        for (int64_t b = 0; b < boxes; ++b)
+            box_near_span(rays, p0, p1, box_from_camera + 12 * b, half + 3 * b, near);
     }
 }
