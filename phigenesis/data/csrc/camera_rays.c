@@ -239,29 +239,25 @@ static double wrap_angle(double a) {
     return w >= PI ? w - two_pi : w;
 }
 
-/* fabs(wrap_angle(a)) <= half (a: a difference of two azimuths of the range view), as rangeview._overlap_reference decides it: wrapped by adding or subtracting 2 pi,
- * and by wrap_angle's fmod only within 1e-9 of the limit, where the two could round apart. */
-static int within(double a, double half) {
-    const double two_pi = 2.0 * PI;
-    if (!(fabs(a) < 8.0 * PI)) return fabs(wrap_angle(a)) <= half; /* NaN, inf, far off */
-    double w = a;
-    while (w >= PI) w -= two_pi;
-    while (w < -PI) w += two_pi;
-    const double margin = fabs(w) - half;
-    if (margin > 1e-9) return 0;
-    if (margin < -1e-9) return 1;
-    return fabs(wrap_angle(a)) <= half;
-}
-
-/* The views' geometry for the overlap map, one entry per view (range-view order). */
+/* Whether a ray's azimuth is within a view's azimuth range (rangeview._overlap_reference's
+ * pre-test, |wrap_angle(atan2(y, x) - middle)| <= half), decided without atan2: for half in
+ * [0, pi] it holds when cos(azimuth - middle) >= cos(half), i.e. when
+ * f = x cos(middle) + y sin(middle) - |(x, y)| cos(half) >= 0. |f| / |(x, y)| is at most the
+ * angle to the range's edge, so where it exceeds 1e-9 the sign decides as atan2 would; within
+ * 1e-9, at a pole (x = y = 0), for half > pi or NaN the reference's own arithmetic does. */
 typedef struct {
-    const double *rotation;   /* (V, 3, 3) ego_from_camera rotations, row-major */
-    const double *intrinsics; /* (V, 3, 3) camera matrices */
-    const double *distortion; /* (V, 5) */
-    const double *r_max2;     /* (V,) squared monotonic radius; inf for an undistorted view */
-    const int64_t *size;      /* (V, 2) width, height */
-    const double *azimuth;    /* (V, 2) middle and half-width (slack included) of the span */
-} Views;
+    double middle, half, cos_middle, sin_middle, cos_half;
+} AzimuthRange;
+
+static int in_azimuth_range(double x, double y, const AzimuthRange *range) {
+    const double h = sqrt(x * x + y * y);
+    if (h > 0.0 && h < INFINITY && range->half <= PI) {
+        const double f = x * range->cos_middle + y * range->sin_middle - h * range->cos_half;
+        if (f > 1e-9 * h) return 1;
+        if (f < -1e-9 * h) return 0;
+    }
+    return fabs(wrap_angle(atan2(y, x) - range->middle)) <= range->half;
+}
 
 /* Ray (ego axes) into view j's camera axes, rounded as rangeview.to_camera rounds it. */
 static void to_camera(const double *dir, const double *r, double *c) {
@@ -291,11 +287,17 @@ static int in_view(const double *c, const double *k, const double *d, double r_m
 /* The overlap map of view k's n rays (rays: (n, 3) float32 unit directions, ego axes):
  * owner[p] is the view whose optical axis is nearest in angle among the views whose image holds
  * the direction (ties to the lower index; view k always holds its own), count[p] how many do.
- * Only views whose azimuth span (with its slack) holds the ray's azimuth are tested. */
+ * Only views whose azimuth span (with its slack) holds the ray's azimuth are tested; views <= 255
+ * (uint8 owners, 255 = no view). */
 void phigenesis_overlap(const float *rays, int64_t n, int64_t k, int64_t views,
                         const double *rotation, const double *intrinsics, const double *distortion,
                         const double *r_max2, const int64_t *size, const double *azimuth,
                         uint8_t *owner, uint8_t *count) {
+    AzimuthRange ranges[256];
+    for (int64_t j = 0; j < views && j < 256; ++j) {
+        const double middle = azimuth[2 * j], half = azimuth[2 * j + 1];
+        ranges[j] = (AzimuthRange){middle, half, cos(middle), sin(middle), cos(half)};
+    }
     for (int64_t p = 0; p < n; ++p) {
         const double dir[3] = {rays[3 * p], rays[3 * p + 1], rays[3 * p + 2]};
         double own[3];
@@ -303,10 +305,8 @@ void phigenesis_overlap(const float *rays, int64_t n, int64_t k, int64_t views,
         double best = own[2];
         int64_t best_view = k;
         int seen = 1;
-        const double ray_azimuth = atan2(dir[1], dir[0]);
         for (int64_t j = 0; j < views; ++j) {
-            if (j == k) continue;
-            if (!within(ray_azimuth - azimuth[2 * j], azimuth[2 * j + 1])) continue;
+            if (j == k || !in_azimuth_range(dir[0], dir[1], &ranges[j])) continue;
             double c[3];
             to_camera(dir, rotation + 9 * j, c);
             if (!in_view(c, intrinsics + 9 * j, distortion + 5 * j, r_max2[j], size[2 * j],
