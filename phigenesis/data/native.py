@@ -260,6 +260,9 @@ class CameraRays:
         self._overlap = library.phigenesis_overlap
         self._overlap.argtypes = [ptr, i64, i64, i64] + [ptr] * 8
         self._overlap.restype = None
+        self._points = library.phigenesis_undistort_points
+        self._points.argtypes = [ptr, i64, ptr, f64, ptr]
+        self._points.restype = i64
         self._boxes_near = library.phigenesis_ray_boxes_near
         self._boxes_near.argtypes = [ptr, i64, i64, ptr, ptr, ptr]
         self._boxes_near.restype = None
@@ -318,6 +321,21 @@ class CameraRays:
                 width, height, _address(k), _address(d), float(r_max), _address(rays), _address(scratch)
             )
         )
+
+    def undistort_points(
+        self, points: NDArray[np.float64], distortion: NDArray[np.float64], r_max: float
+    ) -> NDArray[np.float64]:
+        """(N, 2) float64 undistorted normalised coordinates of ``points`` ((N, 2) distorted ones,
+        camera frame, z = 1): :func:`~phigenesis.geometry.undistort_normalized` by Newton's
+        method (to rounding level where a solution exists, its last iterate where none does),
+        ``r_max`` = :func:`~phigenesis.geometry.max_monotonic_radius` of ``distortion`` (5,)."""
+        xy = np.ascontiguousarray(points, np.float64)
+        d = np.ascontiguousarray(distortion, np.float64).reshape(-1)
+        if xy.ndim != 2 or xy.shape[1] != 2 or d.shape != (5,):
+            raise ValueError(f"camera rays: want (N, 2) points and 5 coefficients, got {xy.shape}, {d.shape}")
+        out = np.empty_like(xy)
+        self._points(_address(xy), len(xy), _address(d), float(r_max), _address(out))
+        return out
 
     def rays_ego(self, rays: NDArray[np.float64], rotation: NDArray[np.float64]) -> NDArray[np.float32]:
         """(N, 3) float32 unit directions, ego axes, of ``rays`` ((N, 3) float64 camera frame):

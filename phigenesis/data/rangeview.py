@@ -140,9 +140,24 @@ def _azimuth_span(cal: CameraCalibration, axis_azimuth: float) -> tuple[float, f
             np.stack([np.full_like(vs, us[-1]), vs], 1),
         ]
     )
-    rays = geometry.unproject_pixels(edge, cal.intrinsics, cal.distortion) @ cal.ego_from_camera[:3, :3].T
+    rays = unproject_points(edge, cal) @ cal.ego_from_camera[:3, :3].T
     relative = geometry.wrap_angle(np.arctan2(rays[:, 1], rays[:, 0]) - axis_azimuth)
     return axis_azimuth + float(relative.min()), axis_azimuth + float(relative.max())
+
+
+def unproject_points(uv: NDArray[np.float64], cal: CameraCalibration) -> NDArray[np.float64]:
+    """Pixels ``uv`` ((N, 2) float64, u along the width) to (N, 3) camera-frame rays (z = 1):
+    :func:`~phigenesis.geometry.unproject_pixels`, with the native Newton solver
+    (``csrc/camera_rays.c``, equal to it to ~1e-15 wherever a ray exists) where it builds."""
+    kernel = load_camera_rays() if cal.distortion.any() else None
+    if kernel is None:
+        return geometry.unproject_pixels(uv, cal.intrinsics, cal.distortion)
+    k = cal.intrinsics
+    y_d = (uv[:, 1] - k[1, 2]) / k[1, 1]
+    x_d = (uv[:, 0] - k[0, 2] - k[0, 1] * y_d) / k[0, 0]
+    r_max = geometry.max_monotonic_radius(cal.distortion)
+    xy = kernel.undistort_points(np.stack([x_d, y_d], axis=-1), cal.distortion, r_max)
+    return np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
 
 
 def range_view_layout(calibrations: Sequence[CameraCalibration], align: Align = "horizon") -> RangeViewLayout:

@@ -217,6 +217,24 @@ int64_t phigenesis_undistort_grid(int64_t width, int64_t height, const double *k
     return unsolved;
 }
 
+/* points: (n, 2) float64 distorted normalised coordinates; out: (n, 2) their undistorted points
+ * (geometry.undistort_normalized), each solved from itself by up to 8 Newton steps on the
+ * image's own sheet (see solve), else as the reference (20 steps, clamped to r_max). Returns
+ * how many are left further than CONVERGED from a solution. */
+int64_t phigenesis_undistort_points(const double *points, int64_t n, const double *d, double r_max,
+                                    double *out) {
+    int64_t unsolved = 0;
+    for (int64_t p = 0; p < n; ++p) {
+        const double tx = points[2 * p], ty = points[2 * p + 1];
+        double x = tx, y = ty;
+        if (!solve(&x, &y, tx, ty, d, r_max, 8) && !solve_as_reference(&x, &y, tx, ty, d, r_max))
+            ++unsolved;
+        out[2 * p] = x;
+        out[2 * p + 1] = y;
+    }
+    return unsolved;
+}
+
 /* out: (n, 3) float32 unit directions, ego axes, of the (n, 3) float64 camera-frame rays:
  * rotated by ego_from_camera's rotation r (3 x 3, row-major), divided by their length,
  * rounded to float32. */
