@@ -301,3 +301,16 @@ def test_native_point_unprojection_equals_the_toolkit_newton_solver(distortion) 
     solved = np.abs(geometry.distort_normalized(rays[:, :2], cal.distortion) - target).max(axis=1) <= 1e-12
     assert np.abs(rays[solved] - reference[solved]).max() < 1e-13
     assert np.abs(rays[~solved] - reference[~solved]).max(initial=0.0) < 1e-12
+
+
+@needs_kernel
+def test_native_ray_components_equal_the_reference_nan_rays_included() -> None:
+    cal = camera("C", 30.0, 96, 64, 60.0, (-0.3, 0.09, 0.001, -0.002, -0.01))
+    rays = camera_tables.undistorted_pixel_rays(cal).copy()
+    rays[5 * 96 + 7, :2] = np.nan  # row 5, column 7
+    fast = camera_tables.ray_components_from_rays(cal, rays)
+    slow = camera_tables.ray_components_reference(cal, rays)
+    for name in ("x", "y", "norm", "column_x", "row_y"):
+        assert np.array_equal(getattr(fast, name), getattr(slow, name), equal_nan=True), name
+    assert np.isnan(fast.row_y[:, 5]).all() and np.isnan(fast.column_x[:, 7]).all()
+    assert np.isfinite(fast.row_y[:, 6]).all() and np.isfinite(fast.column_x[:, 8]).all()

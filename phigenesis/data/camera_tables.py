@@ -179,7 +179,21 @@ class RayComponents:
 
 def ray_components_from_rays(cal: CameraCalibration, rays_cam: NDArray[np.float64]) -> RayComponents:
     """:class:`RayComponents` of (H * W, 3) z = 1 camera-frame rays (computed in float64, then
-    rounded to float32)."""
+    rounded to float32): :func:`ray_components_reference`, in one pass with the native kernel
+    (``csrc/camera_rays.c``: 0.06 -> 0.01 CPU-s at 1920 x 1280) where it builds."""
+    from phigenesis.data.native import load_camera_rays
+
+    kernel = load_camera_rays()
+    if kernel is None or not rays_cam.flags.c_contiguous:
+        return ray_components_reference(cal, rays_cam)
+    out = RayComponents(*kernel.ray_components(rays_cam, cal.width, cal.height))
+    for a in (out.x, out.y, out.norm, out.column_x, out.row_y):
+        a.setflags(write=False)
+    return out
+
+
+def ray_components_reference(cal: CameraCalibration, rays_cam: NDArray[np.float64]) -> RayComponents:
+    """:func:`ray_components_from_rays` in numpy (the native kernel equals it exactly)."""
     h, w = cal.height, cal.width
     x = rays_cam[:, 0].reshape(h, w)
     y = rays_cam[:, 1].reshape(h, w)

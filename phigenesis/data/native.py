@@ -263,6 +263,9 @@ class CameraRays:
         self._points = library.phigenesis_undistort_points
         self._points.argtypes = [ptr, i64, ptr, f64, ptr]
         self._points.restype = i64
+        self._components = library.phigenesis_ray_components
+        self._components.argtypes = [ptr, i64, i64] + [ptr] * 5
+        self._components.restype = None
         self._boxes_near = library.phigenesis_ray_boxes_near
         self._boxes_near.argtypes = [ptr, i64, i64, ptr, ptr, ptr]
         self._boxes_near.restype = None
@@ -336,6 +339,26 @@ class CameraRays:
         out = np.empty_like(xy)
         self._points(_address(xy), len(xy), _address(d), float(r_max), _address(out))
         return out
+
+    def ray_components(
+        self, rays: NDArray[np.float64], width: int, height: int
+    ) -> tuple[
+        NDArray[np.float32],
+        NDArray[np.float32],
+        NDArray[np.float32],
+        NDArray[np.float64],
+        NDArray[np.float64],
+    ]:
+        """From (H * W, 3) float64 C-order rays (camera frame, z = 1, row-major pixels): the
+        (H, W) float32 planes x, y and ``sqrt(x^2 + y^2 + 1)``, each column's least and greatest
+        x ((2, W) float64) and each row's least and greatest y ((2, H)), in one pass."""
+        if rays.shape != (height * width, 3) or rays.dtype != np.float64 or not rays.flags.c_contiguous:
+            raise ValueError(f"camera rays: rays must be a C-order ({height * width}, 3) float64 array")
+        planes = [np.empty((height, width), np.float32) for _ in range(3)]
+        column_x, row_y = np.empty((2, width)), np.empty((2, height))
+        outputs = (*planes, column_x, row_y)
+        self._components(_address(rays), width, height, *(_address(a) for a in outputs))
+        return planes[0], planes[1], planes[2], column_x, row_y
 
     def rays_ego(self, rays: NDArray[np.float64], rotation: NDArray[np.float64]) -> NDArray[np.float32]:
         """(N, 3) float32 unit directions, ego axes, of ``rays`` ((N, 3) float64 camera frame):

@@ -235,6 +235,35 @@ int64_t phigenesis_undistort_points(const double *points, int64_t n, const doubl
     return unsolved;
 }
 
+/* A camera's ray components (camera_tables.ray_components_from_rays): from the (height * width, 3)
+ * float64 rays (z = 1), the float32 planes x, y and norm = sqrt(x^2 + y^2 + 1) (height, width),
+ * each column's least and greatest x (column_x: (2, width) float64) and each row's least and
+ * greatest y (row_y: (2, height)), NaN where a NaN ray is (as numpy's min and max). */
+void phigenesis_ray_components(const double *rays, int64_t width, int64_t height, float *x_out,
+                               float *y_out, float *norm_out, double *column_x, double *row_y) {
+    for (int64_t u = 0; u < width; ++u) {
+        column_x[u] = INFINITY;
+        column_x[width + u] = -INFINITY;
+    }
+    for (int64_t v = 0; v < height; ++v) {
+        double y_min = INFINITY, y_max = -INFINITY;
+        for (int64_t u = 0; u < width; ++u) {
+            const int64_t p = v * width + u;
+            const double x = rays[3 * p], y = rays[3 * p + 1];
+            x_out[p] = (float)x;
+            y_out[p] = (float)y;
+            norm_out[p] = (float)sqrt(x * x + y * y + 1.0);
+            /* a NaN, once met, stays: nothing compares below or above it */
+            y_min = (y < y_min) | (y != y) ? y : y_min;
+            y_max = (y > y_max) | (y != y) ? y : y_max;
+            column_x[u] = (x < column_x[u]) | (x != x) ? x : column_x[u];
+            column_x[width + u] = (x > column_x[width + u]) | (x != x) ? x : column_x[width + u];
+        }
+        row_y[v] = y_min;
+        row_y[height + v] = y_max;
+    }
+}
+
 /* out: (n, 3) float32 unit directions, ego axes, of the (n, 3) float64 camera-frame rays:
  * rotated by ego_from_camera's rotation r (3 x 3, row-major), divided by their length,
  * rounded to float32. */
