@@ -191,6 +191,12 @@ def overlap_both_ways(cals: list[CameraCalibration]) -> None:
         owner, count = rangeview._overlap(k, rays, ordered, layout.views)
         owner_ref, count_ref = rangeview._overlap_reference(k, rays, ordered, layout.views)
         assert np.array_equal(owner, owner_ref) and np.array_equal(count, count_ref), cal.name
+        # From the camera-frame rays, the directions made on the way (what the layout does).
+        owner_cam, count_cam = rangeview._overlap(k, camera_tables.pixel_rays_cam(cal), ordered, layout.views)
+        assert np.array_equal(owner_cam, owner_ref) and np.array_equal(count_cam, count_ref), cal.name
+        view = layout.views[k]
+        assert np.array_equal(layout.owner[view.rows, view.cols].ravel(), owner_ref)
+        assert np.array_equal(layout.coverage[view.rows, view.cols].ravel(), count_ref)
         shared += int((count > 1).sum())
     assert shared > 0
 

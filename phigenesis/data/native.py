@@ -260,6 +260,9 @@ class CameraRays:
         self._overlap = library.phigenesis_overlap
         self._overlap.argtypes = [ptr, i64, i64, i64] + [ptr] * 8
         self._overlap.restype = None
+        self._overlap_camera_rays = library.phigenesis_overlap_camera_rays
+        self._overlap_camera_rays.argtypes = [ptr, i64, i64, i64] + [ptr] * 8
+        self._overlap_camera_rays.restype = None
         self._points = library.phigenesis_undistort_points
         self._points.argtypes = [ptr, i64, ptr, f64, ptr]
         self._points.restype = i64
@@ -375,7 +378,7 @@ class CameraRays:
 
     def overlap(
         self,
-        rays: NDArray[np.float32],
+        rays: NDArray[np.float32] | NDArray[np.float64],
         view: int,
         rotations: NDArray[np.float64],
         intrinsics: NDArray[np.float64],
@@ -384,15 +387,17 @@ class CameraRays:
         sizes: NDArray[np.int64],
         azimuth: NDArray[np.float64],
     ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
-        """Owner and coverage ((N,) uint8) of view ``view``'s rays ((N, 3) float32 unit
-        directions, ego axes) among V views: ``rotations`` (V, 3, 3) ego_from_camera,
+        """Owner and coverage ((N,) uint8) of view ``view``'s rays among V views: ``rays`` (N, 3)
+        float32 unit directions in ego axes, or the view's (N, 3) float64 camera-frame rays
+        (z = 1), turned into those on the way (:meth:`rays_ego`'s arithmetic, without an (N, 3)
+        array of them); ``rotations`` (V, 3, 3) ego_from_camera,
         ``intrinsics`` (V, 3, 3), ``distortions`` (V, 5), ``r_max2`` (V,) squared monotonic radius
         (inf where a view has no distortion), ``sizes`` (V, 2) int64 width and height,
         ``azimuth`` (V, 2) middle and half-width (radians) of the azimuth range a ray must be in
         to be tested against the view."""
         n, v = len(rays), len(rotations)
-        if rays.shape != (n, 3) or rays.dtype != np.float32 or not rays.flags.c_contiguous:
-            raise ValueError("camera rays: overlap rays must be a C-order (N, 3) float32 array")
+        if rays.shape != (n, 3) or rays.dtype not in (np.float32, np.float64) or not rays.flags.c_contiguous:
+            raise ValueError("camera rays: overlap rays must be a C-order (N, 3) float32 or float64 array")
         if not 0 <= view < v or v > 255:
             raise ValueError(f"camera rays: view {view} of {v} views")
         checks = [
@@ -408,7 +413,8 @@ class CameraRays:
                 raise ValueError(f"camera rays: expected a C-order {np.dtype(dtype)} array of shape {shape}")
         owner = np.empty(n, np.uint8)
         count = np.empty(n, np.uint8)
-        self._overlap(
+        kernel = self._overlap if rays.dtype == np.float32 else self._overlap_camera_rays
+        kernel(
             _address(rays), n, view, v, *(_address(a) for a, _, _ in checks), _address(owner), _address(count)
         )
         return owner, count

@@ -196,7 +196,11 @@ def _layout(key: _Key) -> RangeViewLayout:
     owner = np.full((height, int(cols0[-1])), NO_VIEW, np.uint8)
     coverage = np.zeros_like(owner)
     for k, (p, cal) in enumerate(zip(views, cals, strict=True)):
-        own, count = _overlap(k, camera_rays_ego(cal).reshape(-1, 3), cals, views)
+        # With the kernel the directions are made from the camera-frame rays on the way: the
+        # layout leaves camera_rays_ego's 30 MB per 1920 x 1280 view to packing, which uses it.
+        kernel = load_camera_rays()
+        rays = pixel_rays_cam(cal) if kernel is not None else camera_rays_ego(cal).reshape(-1, 3)
+        own, count = _overlap(k, rays, cals, views)
         owner[p.rows, p.cols] = own.reshape(p.height, p.width)
         coverage[p.rows, p.cols] = count.reshape(p.height, p.width)
     for arr in (owner, coverage):
@@ -218,14 +222,21 @@ _AZIMUTH_SLACK = 1e-4
 
 
 def _overlap(
-    k: int, rays: NDArray[np.float32], cals: Sequence[CameraCalibration], views: Sequence[ViewPlacement]
+    k: int,
+    rays: NDArray[np.float32] | NDArray[np.float64],
+    cals: Sequence[CameraCalibration],
+    views: Sequence[ViewPlacement],
 ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
-    """Owner and coverage ((N,) uint8) of view ``k``'s rays ``(N, 3)`` (float32 unit directions,
-    ego axes) among all views ``cals``: :func:`_overlap_reference`, with the native kernel
+    """Owner and coverage ((N,) uint8) of view ``k``'s rays ``(N, 3)``: float32 unit directions
+    in ego axes (:func:`camera_rays_ego`), or float64 camera-frame rays, z = 1
+    (:func:`~phigenesis.data.camera_tables.pixel_rays_cam`, made into those directions on the
+    way), among all views ``cals``: :func:`_overlap_reference`, with the native kernel
     (``csrc/camera_rays.c``: one pass, the same arithmetic; 0.3 -> 0.06 CPU-s for a
     1920 x 1280 view among five) where it builds."""
     kernel = load_camera_rays()
     if kernel is None or len(cals) > NO_VIEW:
+        if rays.dtype != np.float32:
+            rays = camera_rays_ego(cals[k]).reshape(-1, 3)
         return _overlap_reference(k, rays, cals, views)
     r_max2 = [
         geometry.max_monotonic_radius(c.distortion) ** 2 if c.distortion.any() else np.inf for c in cals
@@ -238,7 +249,7 @@ def _overlap(
         for v in views
     ]
     return kernel.overlap(
-        np.ascontiguousarray(rays, np.float32),
+        np.ascontiguousarray(rays) if rays.dtype == np.float64 else np.ascontiguousarray(rays, np.float32),
         k,
         np.ascontiguousarray([c.ego_from_camera[:3, :3] for c in cals], np.float64),
         np.ascontiguousarray([c.intrinsics for c in cals], np.float64),

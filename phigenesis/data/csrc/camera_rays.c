@@ -267,14 +267,17 @@ void phigenesis_ray_components(const double *rays, int64_t width, int64_t height
 /* out: (n, 3) float32 unit directions, ego axes, of the (n, 3) float64 camera-frame rays:
  * rotated by ego_from_camera's rotation r (3 x 3, row-major), divided by their length,
  * rounded to float32. */
+/* One ray's unit direction in ego axes (r: ego_from_camera's rotation, row-major), each
+ * component divided by the length and rounded to float32. */
+static inline void ray_ego(const double *a, const double *r, float *out) {
+    double e[3];
+    for (int i = 0; i < 3; ++i) e[i] = a[0] * r[3 * i] + a[1] * r[3 * i + 1] + a[2] * r[3 * i + 2];
+    const double norm = sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]);
+    for (int i = 0; i < 3; ++i) out[i] = (float)(e[i] / norm);
+}
+
 void phigenesis_rays_ego(const double *rays, int64_t n, const double *r, float *out) {
-    for (int64_t p = 0; p < n; ++p) {
-        const double *a = rays + 3 * p;
-        double e[3];
-        for (int i = 0; i < 3; ++i) e[i] = a[0] * r[3 * i] + a[1] * r[3 * i + 1] + a[2] * r[3 * i + 2];
-        const double norm = sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]);
-        for (int i = 0; i < 3; ++i) out[3 * p + i] = (float)(e[i] / norm);
-    }
+    for (int64_t p = 0; p < n; ++p) ray_ego(rays + 3 * p, r, out + 3 * p);
 }
 
 /* geometry.wrap_angle: to [-pi, pi). */
@@ -331,6 +334,42 @@ static int in_view(const double *c, const double *k, const double *d, double r_m
     return u >= -0.5 && u < (double)width - 0.5 && v >= -0.5 && v < (double)height - 0.5;
 }
 
+/* One ray's owner and coverage (see phigenesis_overlap); dir: its unit direction in ego axes,
+ * float32 values held as float64. */
+static void overlap_one(const double *dir, int64_t k, int64_t views, const double *rotation,
+                        const double *intrinsics, const double *distortion, const double *r_max2,
+                        const int64_t *size, const AzimuthRange *ranges, uint8_t *owner,
+                        uint8_t *count) {
+    double own[3];
+    to_camera(dir, rotation + 9 * k, own);
+    double best = own[2];
+    int64_t best_view = k;
+    int seen = 1;
+    for (int64_t j = 0; j < views; ++j) {
+        if (j == k || !in_azimuth_range(dir[0], dir[1], &ranges[j])) continue;
+        double c[3];
+        to_camera(dir, rotation + 9 * j, c);
+        if (!in_view(c, intrinsics + 9 * j, distortion + 5 * j, r_max2[j], size[2 * j],
+                     size[2 * j + 1]))
+            continue;
+        ++seen;
+        if (c[2] > best || (c[2] == best && j < best_view)) {
+            best = c[2];
+            best_view = j;
+        }
+    }
+    *owner = (uint8_t)best_view;
+    *count = (uint8_t)seen;
+}
+
+/* The views' azimuth ranges (azimuth: (views, 2) middle and half-width) for in_azimuth_range. */
+static void azimuth_ranges(const double *azimuth, int64_t views, AzimuthRange *ranges) {
+    for (int64_t j = 0; j < views && j < 256; ++j) {
+        const double middle = azimuth[2 * j], half = azimuth[2 * j + 1];
+        ranges[j] = (AzimuthRange){middle, half, cos(middle), sin(middle), cos(half)};
+    }
+}
+
 /* The overlap map of view k's n rays (rays: (n, 3) float32 unit directions, ego axes):
  * owner[p] is the view whose optical axis is nearest in angle among the views whose image holds
  * the direction (ties to the lower index; view k always holds its own), count[p] how many do.
@@ -341,32 +380,36 @@ void phigenesis_overlap(const float *rays, int64_t n, int64_t k, int64_t views,
                         const double *r_max2, const int64_t *size, const double *azimuth,
                         uint8_t *owner, uint8_t *count) {
     AzimuthRange ranges[256];
-    for (int64_t j = 0; j < views && j < 256; ++j) {
-        const double middle = azimuth[2 * j], half = azimuth[2 * j + 1];
-        ranges[j] = (AzimuthRange){middle, half, cos(middle), sin(middle), cos(half)};
-    }
+    azimuth_ranges(azimuth, views, ranges);
     for (int64_t p = 0; p < n; ++p) {
         const double dir[3] = {rays[3 * p], rays[3 * p + 1], rays[3 * p + 2]};
-        double own[3];
-        to_camera(dir, rotation + 9 * k, own);
-        double best = own[2];
-        int64_t best_view = k;
-        int seen = 1;
-        for (int64_t j = 0; j < views; ++j) {
-            if (j == k || !in_azimuth_range(dir[0], dir[1], &ranges[j])) continue;
-            double c[3];
-            to_camera(dir, rotation + 9 * j, c);
-            if (!in_view(c, intrinsics + 9 * j, distortion + 5 * j, r_max2[j], size[2 * j],
-                         size[2 * j + 1]))
-                continue;
-            ++seen;
-            if (c[2] > best || (c[2] == best && j < best_view)) {
-                best = c[2];
-                best_view = j;
-            }
+        overlap_one(dir, k, views, rotation, intrinsics, distortion, r_max2, size, ranges, owner + p,
+                    count + p);
+    }
+}
+
+/* phigenesis_overlap of view k's camera-frame rays ((n, 3) float64, z = 1), each turned into its
+ * float32 unit direction in ego axes on the way (phigenesis_rays_ego's arithmetic): the same map
+ * without an (n, 3) float32 array of directions. The directions pass through a volatile float:
+ * GCC 12's SLP vectoriser at -O2 and above dropped the float32 rounding of two of the three
+ * components when ray_ego was inlined here (one pixel of the real Waymo rig then changed owner). */
+void phigenesis_overlap_camera_rays(const double *rays, int64_t n, int64_t k, int64_t views,
+                                    const double *rotation, const double *intrinsics,
+                                    const double *distortion, const double *r_max2,
+                                    const int64_t *size, const double *azimuth, uint8_t *owner,
+                                    uint8_t *count) {
+    AzimuthRange ranges[256];
+    azimuth_ranges(azimuth, views, ranges);
+    for (int64_t p = 0; p < n; ++p) {
+        float rounded[3];
+        ray_ego(rays + 3 * p, rotation + 9 * k, rounded);
+        double dir[3];
+        for (int i = 0; i < 3; ++i) {
+            volatile float component = rounded[i];
+            dir[i] = component;
         }
-        owner[p] = (uint8_t)best_view;
-        count[p] = (uint8_t)seen;
+        overlap_one(dir, k, views, rotation, intrinsics, distortion, r_max2, size, ranges, owner + p,
+                    count + p);
     }
 }
 
