@@ -1,11 +1,13 @@
 """The data pipeline's C kernels (``csrc/*.c``), compiled on first use into one library: the Waymo
 reader's range-image kernel (``range_points.c``), the shard writer's CRC-32C combination
 (``crc32c_combine.c``), the pseudo labels' box rule (``box_labels.c``), depth completion's
-fine pass (``complete_fine.c``) and the depth projection's ray-box test (``ray_box.c``: the far
-side of a moving vehicle along each ray of its footprint, one pass instead of numpy's fifteen).
+fine pass (``complete_fine.c``), the depth projection's ray-box test (``ray_box.c``: the far
+side of a moving vehicle along each ray of its footprint, one pass instead of numpy's fifteen) and
+a camera's per-calibration tables (``camera_rays.c``: undistorted pixel rays, their ego-frame
+directions and the range view's overlap map).
 
 Entry points: :func:`load_range_points`, :func:`load_crc32c_combine`, :func:`load_box_labels`,
-:func:`load_complete_fine`, :func:`load_ray_box`.
+:func:`load_complete_fine`, :func:`load_ray_box`, :func:`load_camera_rays`.
 
 Turning a Waymo frame's range images into points was a quarter of the v1 reader's time in numpy
 (16 ms of 65 ms a frame: a mask, a gather per channel, the ray arithmetic and the concatenation, each
@@ -45,6 +47,7 @@ SOURCES = (
     Path(__file__).parent / "csrc" / "box_labels.c",
     Path(__file__).parent / "csrc" / "complete_fine.c",
     Path(__file__).parent / "csrc" / "ray_box.c",
+    Path(__file__).parent / "csrc" / "camera_rays.c",
 )
 LIBRARY_NAME = "libphigenesis_data"
 CFLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fPIC", "-shared", "-std=c99")
@@ -242,12 +245,188 @@ class RayBox:
         )
 
 
+class CameraRays:
+    """The loaded ``camera_rays.c``: a camera's undistorted pixel rays, their ego-frame unit
+    directions and the range view's overlap map, each one pass over the image."""
+
+    def __init__(self, library: ctypes.CDLL):
+        i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+        self._undistort = library.phigenesis_undistort_grid
+        self._undistort.argtypes = [i64, i64, ptr, ptr, f64, ptr, ptr]
+        self._undistort.restype = i64
+        self._rays_ego = library.phigenesis_rays_ego
+        self._rays_ego.argtypes = [ptr, i64, ptr, ptr]
+        self._rays_ego.restype = None
+        self._overlap = library.phigenesis_overlap
+        self._overlap.argtypes = [ptr, i64, i64, i64] + [ptr] * 8
+        self._overlap.restype = None
+        self._overlap_camera_rays = library.phigenesis_overlap_camera_rays
+        self._overlap_camera_rays.argtypes = [ptr, i64, i64, i64] + [ptr] * 8
+        self._overlap_camera_rays.restype = None
+        self._points = library.phigenesis_undistort_points
+        self._points.argtypes = [ptr, i64, ptr, f64, ptr]
+        self._points.restype = i64
+        self._components = library.phigenesis_ray_components
+        self._components.argtypes = [ptr, i64, i64] + [ptr] * 5
+        self._components.restype = None
+        self._boxes_near = library.phigenesis_ray_boxes_near
+        self._boxes_near.argtypes = [ptr, i64, i64, ptr, ptr, ptr]
+        self._boxes_near.restype = None
+
+    def boxes_near(
+        self,
+        rays: NDArray[np.float64],
+        box_from_camera: NDArray[np.float64],
+        half_sizes: NDArray[np.float64],
+        near: NDArray[np.float32],
+    ) -> None:
+        """Lowers ``near`` ((N,) or (H, W) float32, C order, in place) to the least depth at which
+        each ray of ``rays`` ((N, 3) float64, C order, camera frame, z = 1) enters one of B boxes
+        (0 from inside), rounded to float32: :meth:`RayBox.near_side` of every box in one pass.
+        ``box_from_camera``: (B, 4, 4) transforms; ``half_sizes``: (B, 3) metres."""
+        n = near.size
+        if rays.shape != (n, 3) or rays.dtype != np.float64 or not rays.flags.c_contiguous:
+            raise ValueError(f"camera rays: rays must be a C-order ({n}, 3) float64 array")
+        if near.dtype != np.float32 or not near.flags.c_contiguous or not near.flags.writeable:
+            raise ValueError("camera rays: near must be a writable C-order float32 array")
+        b = len(box_from_camera)
+        matrices = np.ascontiguousarray(np.asarray(box_from_camera, np.float64).reshape(b, 4, 4)[:, :3, :4])
+        half = np.ascontiguousarray(half_sizes, np.float64)
+        if half.shape != (b, 3):
+            raise ValueError(f"camera rays: want ({b}, 3) half sizes, got {half.shape}")
+        self._boxes_near(_address(rays), n, b, _address(matrices), _address(half), _address(near))
+
+    def undistort_grid(
+        self,
+        width: int,
+        height: int,
+        intrinsics: NDArray[np.float64],
+        distortion: NDArray[np.float64],
+        r_max: float,
+        rays: NDArray[np.float64],
+    ) -> int:
+        """Fills ``rays`` ((H * W, 3) float64, C order, row-major pixels) with the camera-frame ray
+        (z = 1) of every pixel centre, distortion undone by Newton's method
+        (:func:`~phigenesis.geometry.undistort_normalized`'s step, clamped to ``r_max`` =
+        :func:`~phigenesis.geometry.max_monotonic_radius`); ``intrinsics`` (3, 3), ``distortion``
+        (5,). Returns how many pixels no undistorted point maps to (they get the reference's last
+        iterate: 20 steps from the distorted point)."""
+        if rays.shape != (height * width, 3) or rays.dtype != np.float64 or not rays.flags.c_contiguous:
+            raise ValueError(f"camera rays: rays must be a C-order ({height * width}, 3) float64 array")
+        if not rays.flags.writeable:
+            raise ValueError("camera rays: rays must be writeable")
+        k = np.ascontiguousarray(intrinsics, np.float64)
+        d = np.ascontiguousarray(distortion, np.float64).reshape(-1)
+        if k.shape != (3, 3) or d.shape != (5,):
+            raise ValueError(
+                f"camera rays: want a (3, 3) camera matrix and 5 coefficients, got {k.shape}, {d.shape}"
+            )
+        scratch = np.empty(6 * width + width // 8 + 1, np.float64)
+        return int(
+            self._undistort(
+                width, height, _address(k), _address(d), float(r_max), _address(rays), _address(scratch)
+            )
+        )
+
+    def undistort_points(
+        self, points: NDArray[np.float64], distortion: NDArray[np.float64], r_max: float
+    ) -> NDArray[np.float64]:
+        """(N, 2) float64 undistorted normalised coordinates of ``points`` ((N, 2) distorted ones,
+        camera frame, z = 1): :func:`~phigenesis.geometry.undistort_normalized` by Newton's
+        method (to rounding level where a solution exists, its last iterate where none does),
+        ``r_max`` = :func:`~phigenesis.geometry.max_monotonic_radius` of ``distortion`` (5,)."""
+        xy = np.ascontiguousarray(points, np.float64)
+        d = np.ascontiguousarray(distortion, np.float64).reshape(-1)
+        if xy.ndim != 2 or xy.shape[1] != 2 or d.shape != (5,):
+            raise ValueError(f"camera rays: want (N, 2) points and 5 coefficients, got {xy.shape}, {d.shape}")
+        out = np.empty_like(xy)
+        self._points(_address(xy), len(xy), _address(d), float(r_max), _address(out))
+        return out
+
+    def ray_components(
+        self, rays: NDArray[np.float64], width: int, height: int
+    ) -> tuple[
+        NDArray[np.float32],
+        NDArray[np.float32],
+        NDArray[np.float32],
+        NDArray[np.float64],
+        NDArray[np.float64],
+    ]:
+        """From (H * W, 3) float64 C-order rays (camera frame, z = 1, row-major pixels): the
+        (H, W) float32 planes x, y and ``sqrt(x^2 + y^2 + 1)``, each column's least and greatest
+        x ((2, W) float64) and each row's least and greatest y ((2, H)), in one pass."""
+        if rays.shape != (height * width, 3) or rays.dtype != np.float64 or not rays.flags.c_contiguous:
+            raise ValueError(f"camera rays: rays must be a C-order ({height * width}, 3) float64 array")
+        planes = [np.empty((height, width), np.float32) for _ in range(3)]
+        column_x, row_y = np.empty((2, width)), np.empty((2, height))
+        outputs = (*planes, column_x, row_y)
+        self._components(_address(rays), width, height, *(_address(a) for a in outputs))
+        return planes[0], planes[1], planes[2], column_x, row_y
+
+    def rays_ego(self, rays: NDArray[np.float64], rotation: NDArray[np.float64]) -> NDArray[np.float32]:
+        """(N, 3) float32 unit directions, ego axes, of ``rays`` ((N, 3) float64 camera frame):
+        ``rotation`` (3, 3, ego_from_camera) applied, divided by the length, rounded."""
+        n = len(rays)
+        if rays.shape != (n, 3) or rays.dtype != np.float64 or not rays.flags.c_contiguous:
+            raise ValueError("camera rays: rays must be a C-order (N, 3) float64 array")
+        r = np.ascontiguousarray(rotation, np.float64)
+        if r.shape != (3, 3):
+            raise ValueError(f"camera rays: rotation must be (3, 3), got {r.shape}")
+        out = np.empty((n, 3), np.float32)
+        self._rays_ego(_address(rays), n, _address(r), _address(out))
+        return out
+
+    def overlap(
+        self,
+        rays: NDArray[np.float32] | NDArray[np.float64],
+        view: int,
+        rotations: NDArray[np.float64],
+        intrinsics: NDArray[np.float64],
+        distortions: NDArray[np.float64],
+        r_max2: NDArray[np.float64],
+        sizes: NDArray[np.int64],
+        azimuth: NDArray[np.float64],
+    ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+        """Owner and coverage ((N,) uint8) of view ``view``'s rays among V views: ``rays`` (N, 3)
+        float32 unit directions in ego axes, or the view's (N, 3) float64 camera-frame rays
+        (z = 1), turned into those on the way (:meth:`rays_ego`'s arithmetic, without an (N, 3)
+        array of them); ``rotations`` (V, 3, 3) ego_from_camera,
+        ``intrinsics`` (V, 3, 3), ``distortions`` (V, 5), ``r_max2`` (V,) squared monotonic radius
+        (inf where a view has no distortion), ``sizes`` (V, 2) int64 width and height,
+        ``azimuth`` (V, 2) middle and half-width (radians) of the azimuth range a ray must be in
+        to be tested against the view."""
+        n, v = len(rays), len(rotations)
+        if rays.shape != (n, 3) or rays.dtype not in (np.float32, np.float64) or not rays.flags.c_contiguous:
+            raise ValueError("camera rays: overlap rays must be a C-order (N, 3) float32 or float64 array")
+        if not 0 <= view < v or v > 255:
+            raise ValueError(f"camera rays: view {view} of {v} views")
+        checks = [
+            (rotations, np.float64, (v, 3, 3)),
+            (intrinsics, np.float64, (v, 3, 3)),
+            (distortions, np.float64, (v, 5)),
+            (r_max2, np.float64, (v,)),
+            (sizes, np.int64, (v, 2)),
+            (azimuth, np.float64, (v, 2)),
+        ]
+        for a, dtype, shape in checks:
+            if a.dtype != dtype or a.shape != shape or not a.flags.c_contiguous:
+                raise ValueError(f"camera rays: expected a C-order {np.dtype(dtype)} array of shape {shape}")
+        owner = np.empty(n, np.uint8)
+        count = np.empty(n, np.uint8)
+        kernel = self._overlap if rays.dtype == np.float32 else self._overlap_camera_rays
+        kernel(
+            _address(rays), n, view, v, *(_address(a) for a, _, _ in checks), _address(owner), _address(count)
+        )
+        return owner, count
+
+
 class _Kernels(NamedTuple):
     range_points: RangePoints
     crc32c_combine: Crc32cCombine
     box_labels: BoxLabels
     complete_fine: CompleteFine
     ray_box: RayBox
+    camera_rays: CameraRays
 
 
 def _load_library() -> _Kernels | None:
@@ -268,6 +447,7 @@ def _load_library() -> _Kernels | None:
                 BoxLabels(library),
                 CompleteFine(library),
                 RayBox(library),
+                CameraRays(library),
             )
         except (OSError, subprocess.SubprocessError, AttributeError) as error:
             _failure = str(error).splitlines()[0][:300] if str(error) else type(error).__name__
@@ -470,6 +650,12 @@ def load_ray_box() -> RayBox | None:
     return None if kernels is None else kernels.ray_box
 
 
+def load_camera_rays() -> CameraRays | None:
+    """The camera-table kernels, or ``None`` where the library cannot be built (:func:`_load_library`)."""
+    kernels = _load_library()
+    return None if kernels is None else kernels.camera_rays
+
+
 def failure_reason() -> str | None:
     """Why the kernels are not available (after a loader returned ``None``)."""
     return _failure
@@ -477,6 +663,7 @@ def failure_reason() -> str | None:
 
 __all__ = [
     "BoxLabels",
+    "CameraRays",
     "CompleteFine",
     "Crc32cCombine",
     "RangePoints",
@@ -484,6 +671,7 @@ __all__ = [
     "build_directory",
     "failure_reason",
     "load_box_labels",
+    "load_camera_rays",
     "load_complete_fine",
     "load_crc32c_combine",
     "load_range_points",
