@@ -95,6 +95,8 @@ INTERPOLATION_METHODS: tuple[InterpolationMethod, ...] = get_args(InterpolationM
 KeyframePose = Literal["model", "annotation"]
 KEYFRAME_POSES: tuple[KeyframePose, ...] = get_args(KeyframePose)
 ANNOTATED, INTERPOLATED, EXTRAPOLATED = (BOX_STATUSES.index(s) for s in BOX_STATUSES)
+#: Indices in :data:`ctra.MOTION_MODELS` of the models whose fitted yaw ``ctra`` uses.
+_STRAIGHT_MODELS = (ctra.MOTION_MODELS.index("cv"), ctra.MOTION_MODELS.index("ca"))
 #: Bits of a search key given to the time (microseconds); the piece index takes the bits above.
 _TIME_BITS = 40
 _TIME_OFFSET = 1 << (_TIME_BITS - 2)
@@ -337,12 +339,17 @@ class BoxTracks:
         )
         state = self._fit_state(np.arange(n), t_s)
         fitted = self.fits.fitted
+        # Yaw from the fit only where it is a straight model (the heading then is the direction
+        # of travel, which the centres fix far better than noisy annotated yaws); a turning
+        # model's yaw is a line in time whose misfit in real turns exceeds the annotations'
+        # noise (benchmarks/interpolation.py), so there the annotated yaws are interpolated.
+        self.fit_yaw = fitted & np.isin(self.fits.model, _STRAIGHT_MODELS)
         self.state = _State(
             center=np.where(fitted[:, None], state.center, self.ann.center_world),
             velocity=np.where(fitted[:, None], state.velocity, self.center_rate),
             acceleration=np.where(fitted[:, None], state.acceleration, np.nan),
-            yaw=np.where(fitted, state.yaw, self.yaw),
-            yaw_rate=np.where(fitted, state.yaw_rate, self.yaw_rate),
+            yaw=np.where(self.fit_yaw, state.yaw, self.yaw),
+            yaw_rate=np.where(self.fit_yaw, state.yaw_rate, self.yaw_rate),
         )
 
     def _fit_state(self, anchors: NDArray[np.int64], t_s: ArrayLike) -> _State:
@@ -528,13 +535,10 @@ class BoxTracks:
             state.center[i], state.velocity[i] * hh, state.center[j], state.velocity[j] * hh, s
         )
         velocity, acceleration = rate / hh, accel / hh**2
-        yaw = _hermite(
-            state.yaw[i, None],
-            (state.yaw_rate[i] * h)[:, None],
-            state.yaw[j, None],
-            (state.yaw_rate[j] * h)[:, None],
-            s,
-        )[0][:, 0]
+        m0, m1 = _monotone_tangents(state.yaw[i], state.yaw[j], h, state.yaw_rate[i], state.yaw_rate[j])
+        yaw = _hermite(state.yaw[i, None], (m0 * h)[:, None], state.yaw[j, None], (m1 * h)[:, None], s)[0][
+            :, 0
+        ]
         spans = fits.fitted[i] & fits.fitted[j] & (fits.window[i, 1] >= j) & (fits.window[j, 0] <= i)
         c = np.flatnonzero(spans)
         if len(c):
@@ -552,7 +556,8 @@ class BoxTracks:
                 + 2.0 * dw * (b.velocity - a.velocity)
                 + ddw * gap
             )
-            yaw[c] = (1.0 - w[:, 0]) * a.yaw + w[:, 0] * b.yaw
+            both = self.fit_yaw[i[c]] & self.fit_yaw[j[c]]
+            yaw[c[both]] = ((1.0 - w[:, 0]) * a.yaw + w[:, 0] * b.yaw)[both]
         yaw = np.clip(yaw, np.minimum(state.yaw[i], state.yaw[j]), np.maximum(state.yaw[i], state.yaw[j]))
         tilt = geometry.quaternion_slerp(self.tilt[i], self.tilt[j], s[:, 0])
         out.center_world[mask] = center
