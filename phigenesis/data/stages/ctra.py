@@ -8,7 +8,9 @@ that moves along its heading: heading ``theta(tau) = theta0 + omega * tau``, spe
     c(tau) = c0 + e^{i theta0} (v0 F1(tau, omega) + accel F2(tau, omega)),
     F_k(tau, omega) = int_0^tau s^(k - 1) e^{i omega s} ds                     (complex x + iy)
 
-and the annotated yaw is the heading (a vehicle's box points where it goes). A straight
+and the annotated yaw is the heading, plus (turning models only) a constant slip angle: a car's
+box centre sits ahead of its rear axle, so in a turn it moves at an angle to the box's yaw (in a
+steady turn of radius R, ``atan(d / R)`` for a centre d ahead of the axle). A straight
 accelerating object never turns its speed round within a fit: where ``v0 + accel * tau`` reaches
 zero it stands (it braked to a stop and waits, or it waited and then set off), so there ``tau``
 above becomes the time it has moved for (:func:`moving_time`). Nested models:
@@ -18,24 +20,29 @@ model      free parameters             motion
 =========  ==========================  ===================================================
 ``cv``     c0, v0, theta0              straight at constant speed
 ``ca``     c0, v0, theta0, accel       straight, constant acceleration (or to/from a stop)
-``ctrv``   c0, v0, theta0, omega       constant turn rate, constant speed
+``ctrv``   c0, v0, theta0, omega,      constant turn rate, constant speed
+           slip
 ``ctra``   c0, v0, theta0, accel,      constant turn rate and acceleration
-           omega
+           omega, slip
 =========  ==========================  ===================================================
 
 A window's fit is weighted least squares over its keyframes' centres (noise ``sigma_m`` per
 coordinate) and yaws (``sigma_rad``): Levenberg-Marquardt from a start that is exact for exact
 data (turn rate and heading from a straight-line fit of the yaws, the rest linear given them), so
 exact motion of a model is recovered to rounding. The height is a separate straight-line fit.
-The noise levels are the caller's or :func:`estimate_noise`'s (from the scene's keyframes).
+The noise levels are the caller's or :func:`estimate_noise`'s (from the keyframes of the scene's
+moving objects: offboard-smoothed labels hold parked objects still, and their residuals would
+drive the estimate to its floor).
 
 :func:`fit_tracks` fits every window of 3 to ``2 * half_window + 1`` consecutive keyframes of each
 track piece with every model, keeps per window the model with the lowest BIC, accepts it where
 its residuals are consistent with the noise (position and yaw chi-square each below their 99 %
 point), and gives each keyframe (anchor) the accepted window fit whose centre at the anchor has
-the smallest variance (so the widest window the motion allows, and the simplest model that
-explains it). An anchor no window explains (manoeuvres on both sides within one keyframe
-interval) gets no fit; the caller falls back to an interpolant there.
+the smallest variance, scaled by the window's reduced chi-square where that exceeds 1 (so the
+widest window the motion allows, the simplest model that explains it, and of windows that pass
+the test the one whose residuals leave least room for a manoeuvre the model lacks). An anchor
+no window explains (manoeuvres on both sides within one keyframe interval) gets no fit; the
+caller falls back to an interpolant there.
 """
 
 from __future__ import annotations

@@ -12,25 +12,33 @@ Model (``method``; all in the world frame, metres, seconds, radians):
 - Annotations are matched by ``track_id`` (the instance token). A track's annotations further apart
   than ``max_gap_s`` are split into pieces that are not interpolated across.
 - ``ctra`` (default): a motion model fitted over windows of neighbouring annotations
-  (:mod:`phigenesis.data.stages.ctra`): the centre moves along the annotated heading with
-  constant turn rate and acceleration (``ctra``) or the simpler ``ctrv`` (constant speed),
-  ``ca`` (straight, accelerating) or ``cv`` (straight, constant speed). Every window of 3 to
-  ``2 * half_window + 1`` annotations of a piece is fitted by weighted least squares to the
-  centres and yaws with every model; a window keeps its lowest-BIC model if the residuals are
-  consistent with the annotation noise (chi-square test at 99 % for the centres and for the
-  yaws), and each annotation takes the accepted fit whose centre there has the least variance:
-  the widest window the motion allows with the simplest model that explains it, so a least-
-  squares fit smooths the annotation noise that an interpolant through the keyframes copies.
-  The noise (centre per coordinate, yaw) is estimated per class from the scene's keyframes
-  (residuals of constant-turn fits to every three consecutive ones) unless ``noise_m`` /
+  (:mod:`phigenesis.data.stages.ctra`): the centre moves along the annotated heading with constant
+  turn rate and acceleration (``ctra``) or the simpler ``ctrv`` (constant speed), ``ca``
+  (straight, accelerating) or ``cv`` (straight, constant speed). Every window of 3 to ``2 *
+  half_window + 1`` annotations of a piece is fitted by weighted least squares to the centres and
+  yaws with every model; a window keeps its lowest-BIC model if the residuals are consistent with
+  the annotation noise (chi-square test at 99 % for the centres and for the yaws), and each
+  annotation takes the accepted fit whose centre there has the least variance: the widest window
+  the motion allows with the simplest model that explains it, so a least- squares fit smooths the
+  annotation noise that an interpolant through the keyframes copies. The turning models let the
+  box's yaw differ from the centre's course by a fitted slip angle (a car's centre is ahead of its
+  rear axle). Of windows that pass, the one whose centre at the annotation has the least variance
+  (scaled by the reduced chi-square where the residuals exceed the noise) wins. The noise (centre
+  per coordinate, yaw) is estimated per class from the keyframes of the scene's moving objects
+  (residuals of low-order polynomials through short runs of them; parked objects, which
+  offboard-smoothed labels hold still, would drive it to its floor) unless ``noise_m`` /
   ``yaw_noise_deg`` give it. Between two annotations whose fits both span the interval the two
-  fits are blended (smoothstep weights: exact where the motion is one model's); where a
-  manoeuvre changes inside the interval (neither fit spans it) a cubic Hermite joins the two
-  annotations' fitted states (centre, velocity, yaw, yaw rate). An annotation no window explains
-  (manoeuvres on both sides within one interval), and every annotation of a piece of fewer than
-  three, uses the ``hermite`` state (the annotation and three-point derivatives). Yaw is the
-  fitted heading, unwrapped along the shortest arc between neighbouring annotations and kept
-  within the arc between its values at the interval's two annotations; tilt is slerped.
+  fits are blended (smoothstep weights: exact where the motion is one model's); where a manoeuvre
+  changes inside the interval (neither fit spans it) a cubic Hermite joins the two annotations'
+  fitted states (centre, velocity, yaw, yaw rate). An annotation no window explains (manoeuvres on
+  both sides within one interval), and every annotation of a piece of fewer than three, uses the
+  ``hermite`` state (the annotation and three-point derivatives). Yaw is the fitted heading only
+  where the fit is a straight model (``cv``, ``ca``: the centres fix the direction of travel far
+  better than noisy annotated yaws); a turning model's yaw, a line in time, misfits real turns by
+  more than the annotations' noise (benchmarks/interpolation.py), so there the annotated yaws are
+  interpolated as ``hermite`` does (monotone cubic, limited tangents). Yaw is unwrapped along the
+  shortest arc between neighbouring annotations and kept within the arc between its values at the
+  interval's two annotations; tilt is slerped.
 - ``hermite``: cubic Hermite on the centre with tangents from the neighbouring
   annotations (the three-point derivative, exact for constant acceleration: non-uniform central
   differences inside a piece, one-sided at its ends), so velocity and acceleration are continuous
@@ -351,6 +359,8 @@ class BoxTracks:
             yaw=np.where(self.fit_yaw, state.yaw, self.yaw),
             yaw_rate=np.where(self.fit_yaw, state.yaw_rate, self.yaw_rate),
         )
+        #: The turn rate of each annotation's course (rad/s): its fit's, else the yaw rate.
+        self.course_rate = np.where(fitted, state.yaw_rate, self.yaw_rate)
 
     def _fit_state(self, anchors: NDArray[np.int64], t_s: ArrayLike) -> _State:
         """The fits of annotations ``anchors`` (M,) evaluated at ``t_s`` (seconds from the
@@ -577,15 +587,20 @@ class BoxTracks:
         if method == "ctra":
             center, velocity = self.state.center[i], self.state.velocity[i]
             yaw0, yaw_rate = self.state.yaw[i], self.state.yaw_rate[i]
+            course_rate = self.course_rate[i]
         elif method == "hermite":
             velocity, yaw_rate = self.center_rate[i], self.yaw_rate[i]
+            course_rate = yaw_rate
         else:
             velocity, yaw_rate = self.center_secant[i], np.zeros(len(i))
-        turn = yaw_rate * dt_s
-        # Constant turn rate: the velocity turns with the heading (straight where it does not).
+            course_rate = yaw_rate
+        turn = course_rate * dt_s
+        # Constant turn rate: the velocity turns with the course (straight where it does not).
         with np.errstate(invalid="ignore", divide="ignore"):
-            along = np.where(np.abs(turn) > 1e-9, np.sin(turn) / yaw_rate, dt_s)
-            across = np.where(np.abs(turn) > 1e-9, (1.0 - np.cos(turn)) / yaw_rate, 0.5 * yaw_rate * dt_s**2)
+            along = np.where(np.abs(turn) > 1e-9, np.sin(turn) / course_rate, dt_s)
+            across = np.where(
+                np.abs(turn) > 1e-9, (1.0 - np.cos(turn)) / course_rate, 0.5 * course_rate * dt_s**2
+            )
         left = np.stack([-velocity[:, 1], velocity[:, 0], np.zeros(len(i))], axis=1)
         out.center_world[mask] = center + along[:, None] * velocity + across[:, None] * left
         out.velocity_world[mask] = np.cos(turn)[:, None] * velocity + np.sin(turn)[:, None] * left
