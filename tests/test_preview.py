@@ -1,6 +1,7 @@
 """``phigenesis-prep preview``'s picture: the semantics row shows the best labels a frame has and says
-which, depth has a colour bar and classes a legend, and a depth has the same colour here as in the
-Stage 1 evaluation picture."""
+which, depth has a colour bar and classes a legend, a depth has the same colour here as in the
+Stage 1 evaluation picture, a frame without LiDAR says so (no black map, no colour bar), and a
+caption's outline stays within its text."""
 
 from __future__ import annotations
 
@@ -14,7 +15,15 @@ import torch
 
 from phigenesis.data import taxonomy as tx
 from phigenesis.data.colormap import DEPTH_FAR_M, DEPTH_NEAR_M, depth_color
-from phigenesis.data.preview import draw_frame, preview_range_view
+from phigenesis.data.preview import (
+    EMPTY_RGB,
+    NO_DEPTH_CAPTION,
+    depth_caption,
+    draw_frame,
+    has_depth,
+    preview_range_view,
+    put_caption,
+)
 from phigenesis.data.rangeview import RangeView, pack_range_view
 from phigenesis.data.records import CameraLabels, Frame
 from phigenesis.data.shards import CacheReader
@@ -144,3 +153,72 @@ def test_a_depth_has_the_same_colour_in_preview_and_in_the_stage1_evaluation_pic
     for d, colour in preview_colour.items():
         pixels = (evaluation == colour).all(axis=-1).sum()
         assert pixels >= 24 * 36, f"{d} m: {colour} covers {pixels} pixels of the evaluation picture"
+
+
+def _without_lidar(frame: Frame) -> Frame:
+    """``frame`` as a converted frame without LiDAR: no points, every depth map 0, no truth."""
+    cameras = [
+        dataclasses.replace(
+            c,
+            truth=None,
+            depth=dataclasses.replace(
+                c.depth,
+                sparse_m=np.zeros_like(c.depth.sparse_m),
+                sparse_confidence=np.zeros_like(c.depth.sparse_confidence),
+                dense_m=np.zeros_like(c.depth.dense_m),
+                dense_confidence=np.zeros_like(c.depth.dense_confidence),
+                dense_origin=None,
+            ),
+        )
+        for c in frame.cameras
+    ]
+    return dataclasses.replace(frame, cameras=cameras, lidar=None)
+
+
+def test_a_frame_without_lidar_says_so_instead_of_a_black_dense_depth_with_a_colour_bar(frame: Frame) -> None:
+    bare = _without_lidar(frame)
+    rv = preview_range_view(bare)
+    assert rv.depth_source == "dense" and not has_depth(rv.depth_m)
+    assert depth_caption(bare, rv) == NO_DEPTH_CAPTION == "no depth (no LiDAR in this frame)"
+    with_depth = draw_frame(frame, scale=1)
+    picture = draw_frame(bare, scale=1)
+    layout = rv.layout
+    depth_row = picture[layout.height : 2 * layout.height, : layout.width]
+    above_caption = np.arange(layout.height) < layout.height - 16
+    assert (depth_row[above_caption] == EMPTY_RGB).all()  # grey, not a black "unknown" map
+    keys = picture[3 * layout.height :]
+    colours = {tuple(int(v) for v in c) for c in keys.reshape(-1, 3)}
+    assert (
+        tuple(depth_color(10.0)) not in colours and tuple(depth_color(DEPTH_FAR_M)) not in colours
+    )  # no bar
+    assert picture.shape[0] < with_depth.shape[0]
+
+
+def test_a_frame_without_lidar_but_with_exact_depth_shows_the_exact_depth(frame: Frame) -> None:
+    bare = _without_lidar(frame)
+    truthful = dataclasses.replace(
+        bare,
+        cameras=[
+            dataclasses.replace(c, truth=t.truth) for c, t in zip(bare.cameras, frame.cameras, strict=True)
+        ],
+    )
+    rv = preview_range_view(truthful)
+    assert rv.depth_source == "truth" and has_depth(rv.depth_m)
+    assert depth_caption(truthful, rv) == "depth: exact truth"
+
+
+@pytest.mark.parametrize(
+    "text", ["semantics: dataset labels", "depth: dense (LiDAR, densified)", "FRONT_LEFT"]
+)
+@pytest.mark.parametrize("font_scale", [0.4, 0.5, 0.7])
+def test_a_caption_outline_stays_within_one_pixel_of_its_text(text: str, font_scale: float) -> None:
+    img = np.full((40, 400, 3), 128, np.uint8)
+    put_caption(img, text, (5, 30), font_scale)
+    (width, height), baseline = cv2.getTextSize(text, 0, font_scale, 1)
+    changed = (img != 128).any(axis=-1)
+    rows, cols = np.nonzero(changed)
+    white = (img > 200).all(axis=-1)
+    _, white_cols = np.nonzero(white)
+    assert cols.max() <= white_cols.max() + 2  # the outline ends where the text ends
+    assert cols.min() >= 5 - 2 and cols.max() <= 5 + width + 2
+    assert rows.min() >= 30 - height - 2 and rows.max() <= 30 + baseline + 2

@@ -13,12 +13,19 @@ Entry point: :func:`draw_frame`. The range view is the frame's views side by sid
    dataset's human labels, else pseudo labels) in the taxonomy's palette.
 
 Each of rows 2 and 3 names its source in its bottom-left corner. Rows without data are left out;
-cells no view covers are dark grey. A top view of the LiDAR and the boxes, as tall as the rows, is
-on the right. Below, the depth colour bar (in metres) and the legend of the classes shown, each
-titled with its source.
+cells no view covers are dark grey. A depth source with no known depth anywhere (a frame without
+LiDAR: its depth maps are all 0) is not passed off as a black map: the next source with depth is
+shown (exact truth, synthetic data), else the row is dark grey and captioned :data:`NO_DEPTH_CAPTION`
+(or :data:`EMPTY_DEPTH_CAPTION` where the frame has LiDAR that reached no image), without a colour
+bar. A top view of the LiDAR and the boxes, as tall as the rows, is on the right. Below, the depth
+colour bar (in metres) and the legend of the classes shown, each titled with its source. Captions
+are white text outlined in black by the same glyphs shifted one pixel, so the outline stays
+within the text's own box (a thicker stroke advances further and trails past the text).
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import cv2
 import numpy as np
@@ -57,6 +64,12 @@ DEPTH_SOURCE_NAMES: dict[str, str] = {
     "sparse": "depth: sparse (projected LiDAR)",
     "truth": "depth: exact truth",
 }
+#: The depth row's caption where no depth source has any depth and the frame has no LiDAR.
+NO_DEPTH_CAPTION = "no depth (no LiDAR in this frame)"
+#: ... and where the frame has LiDAR but no point reached an image.
+EMPTY_DEPTH_CAPTION = "no depth (no LiDAR point in the images)"
+#: Offsets (pixels) of the black copies of a caption that outline its white glyphs.
+_OUTLINE = tuple((dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy)
 SEMANTIC_SOURCE_NAMES: dict[str, str] = {
     "truth": "semantics: exact truth",
     "labels": "semantics: dataset labels",
@@ -66,9 +79,33 @@ SEMANTIC_SOURCE_NAMES: dict[str, str] = {
 
 def preview_range_view(frame: Frame) -> RangeView:
     """The frame's range view as :func:`draw_frame` draws it: depth from the first of
-    :data:`DEPTH_SOURCES` and semantics from the first of :data:`SEMANTIC_SOURCES` that the frame
-    has (``depth_source`` and ``semantic_source`` say which)."""
-    return pack_range_view(frame, depth_sources=DEPTH_SOURCES, semantic_sources=SEMANTIC_SOURCES)
+    :data:`DEPTH_SOURCES` that the frame has with some known depth (else the first it has at
+    all, all unknown) and semantics from the first of :data:`SEMANTIC_SOURCES` that it has
+    (``depth_source`` and ``semantic_source`` say which)."""
+    rv = pack_range_view(frame, depth_sources=DEPTH_SOURCES, semantic_sources=SEMANTIC_SOURCES)
+    if rv.depth_source is None or has_depth(rv.depth_m):
+        return rv
+    rest = DEPTH_SOURCES[DEPTH_SOURCES.index(rv.depth_source) + 1 :]
+    for source in rest:
+        other = pack_range_view(frame, rv.layout, depth_sources=(source,), semantic_sources=(), rgb=False)
+        if other.depth_source is not None and has_depth(other.depth_m):
+            return dataclasses.replace(rv, depth_m=other.depth_m, depth_source=other.depth_source)
+    return rv
+
+
+def has_depth(depth_m: NDArray[np.float32] | None) -> bool:
+    """Whether a depth map (metres, 0 = unknown) has any known (positive, finite) depth."""
+    return depth_m is not None and bool(np.any(np.isfinite(depth_m) & (depth_m > 0)))
+
+
+def depth_caption(frame: Frame, rv: RangeView) -> str | None:
+    """The depth row's caption: its source's name (:data:`DEPTH_SOURCE_NAMES`), or why there is
+    no depth (:data:`NO_DEPTH_CAPTION`, :data:`EMPTY_DEPTH_CAPTION`); None without a depth row."""
+    if rv.depth_source is None:
+        return None
+    if has_depth(rv.depth_m):
+        return DEPTH_SOURCE_NAMES[rv.depth_source]
+    return EMPTY_DEPTH_CAPTION if frame.lidar is not None and len(frame.lidar) else NO_DEPTH_CAPTION
 
 
 def draw_frame(frame: Frame, scale: int = 2) -> NDArray[np.uint8]:
@@ -85,16 +122,20 @@ def draw_frame(frame: Frame, scale: int = 2) -> NDArray[np.uint8]:
     empty = _resize(~layout.valid(), size, cv2.INTER_NEAREST)
     text_scale = max(1.0, (0.3 + 0.1 * zoom) / 0.35)
     rows = [_rgb_row(rv, frame, size, zoom)]
-    if rv.depth_m is not None:
-        depth_name = DEPTH_SOURCE_NAMES[rv.depth_source]
-        rows.append(_map_row(depth_color(rv.depth_m), size, empty, depth_name, zoom))
+    depth_name = depth_caption(frame, rv)
+    depth_known = has_depth(rv.depth_m)
+    if rv.depth_m is not None and depth_name is not None:
+        depth_rgb = (
+            depth_color(rv.depth_m) if depth_known else np.full((*rv.depth_m.shape, 3), EMPTY_RGB, np.uint8)
+        )
+        rows.append(_map_row(depth_rgb, size, empty, depth_name, zoom))
     if rv.semantic is not None:
         semantic_name = SEMANTIC_SOURCE_NAMES[rv.semantic_source]
         rows.append(_map_row(tx.PALETTE_RGB[rv.semantic], size, empty, semantic_name, zoom))
     mosaic = np.concatenate(rows, axis=0)
     picture = [np.concatenate([mosaic, _bev(frame, mosaic.shape[0])], axis=1)]
     width = picture[0].shape[1]
-    if rv.depth_m is not None:
+    if depth_known and depth_name is not None:
         picture.append(depth_color_bar(width, depth_name, text_scale))
     if rv.semantic is not None:
         shown = classes_present(rv.semantic[layout.valid()])
@@ -109,10 +150,19 @@ def _map_row(
     ``caption`` (the map's source) in its bottom-left corner."""
     row = _resize(rgb, size, cv2.INTER_NEAREST)
     row[empty] = EMPTY_RGB
-    font = 0.3 + 0.1 * zoom
-    for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):
-        cv2.putText(row, caption, (3, row.shape[0] - 4), 0, font, colour, thickness, cv2.LINE_AA)
+    put_caption(row, caption, (3, row.shape[0] - 4), 0.3 + 0.1 * zoom)
     return row
+
+
+def put_caption(img: NDArray[np.uint8], text: str, origin: tuple[int, int], font_scale: float) -> None:
+    """Draws ``text`` (OpenCV font 0, ``font_scale``) in white outlined in black into ``img``
+    (H, W, 3 uint8, in place), its baseline starting at ``origin`` (x, y pixels). The outline is
+    the 1-pixel glyphs drawn black at the 8 neighbouring offsets, so it never reaches more than
+    one pixel past the white text (a thick stroke advances further per glyph and trails past it)."""
+    x, y = origin
+    for dx, dy in _OUTLINE:
+        cv2.putText(img, text, (x + dx, y + dy), 0, font_scale, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, text, (x, y), 0, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
 
 
 def _resize(plane: NDArray, size: tuple[int, int], interpolation: int) -> NDArray:
@@ -140,8 +190,7 @@ def _rgb_row(rv: RangeView, frame: Frame, size: tuple[int, int], zoom: float) ->
         if x0 > 0:
             img[:, x0] = (255, 255, 255)
         font = 0.3 + 0.1 * zoom
-        for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):
-            cv2.putText(img, p.camera_name, (x0 + 3, y0 + round(12 * font / 0.5)), 0, font, colour, thickness)
+        put_caption(img, p.camera_name, (x0 + 3, y0 + round(12 * font / 0.5)), font)
     return img
 
 

@@ -8,7 +8,9 @@ that moves along its heading: heading ``theta(tau) = theta0 + omega * tau``, spe
     c(tau) = c0 + e^{i theta0} (v0 F1(tau, omega) + accel F2(tau, omega)),
     F_k(tau, omega) = int_0^tau s^(k - 1) e^{i omega s} ds                     (complex x + iy)
 
-and the annotated yaw is the heading (a vehicle's box points where it goes). A straight
+and the annotated yaw is the heading, plus (turning models only) a constant slip angle: a car's
+box centre sits ahead of its rear axle, so in a turn it moves at an angle to the box's yaw (in a
+steady turn of radius R, ``atan(d / R)`` for a centre d ahead of the axle). A straight
 accelerating object never turns its speed round within a fit: where ``v0 + accel * tau`` reaches
 zero it stands (it braked to a stop and waits, or it waited and then set off), so there ``tau``
 above becomes the time it has moved for (:func:`moving_time`). Nested models:
@@ -18,24 +20,29 @@ model      free parameters             motion
 =========  ==========================  ===================================================
 ``cv``     c0, v0, theta0              straight at constant speed
 ``ca``     c0, v0, theta0, accel       straight, constant acceleration (or to/from a stop)
-``ctrv``   c0, v0, theta0, omega       constant turn rate, constant speed
+``ctrv``   c0, v0, theta0, omega,      constant turn rate, constant speed
+           slip
 ``ctra``   c0, v0, theta0, accel,      constant turn rate and acceleration
-           omega
+           omega, slip
 =========  ==========================  ===================================================
 
 A window's fit is weighted least squares over its keyframes' centres (noise ``sigma_m`` per
 coordinate) and yaws (``sigma_rad``): Levenberg-Marquardt from a start that is exact for exact
 data (turn rate and heading from a straight-line fit of the yaws, the rest linear given them), so
 exact motion of a model is recovered to rounding. The height is a separate straight-line fit.
-The noise levels are the caller's or :func:`estimate_noise`'s (from the scene's keyframes).
+The noise levels are the caller's or :func:`estimate_noise`'s (from the keyframes of the scene's
+moving objects: offboard-smoothed labels hold parked objects still, and their residuals would
+drive the estimate to its floor).
 
 :func:`fit_tracks` fits every window of 3 to ``2 * half_window + 1`` consecutive keyframes of each
 track piece with every model, keeps per window the model with the lowest BIC, accepts it where
 its residuals are consistent with the noise (position and yaw chi-square each below their 99 %
 point), and gives each keyframe (anchor) the accepted window fit whose centre at the anchor has
-the smallest variance (so the widest window the motion allows, and the simplest model that
-explains it). An anchor no window explains (manoeuvres on both sides within one keyframe
-interval) gets no fit; the caller falls back to an interpolant there.
+the smallest variance, scaled by the window's reduced chi-square where that exceeds 1 (so the
+widest window the motion allows, the simplest model that explains it, and of windows that pass
+the test the one whose residuals leave least room for a manoeuvre the model lacks). An anchor
+no window explains (manoeuvres on both sides within one keyframe interval) gets no fit; the
+caller falls back to an interpolant there.
 """
 
 from __future__ import annotations
@@ -48,15 +55,16 @@ from numpy.typing import NDArray
 
 MotionModel = Literal["cv", "ca", "ctrv", "ctra"]
 MOTION_MODELS: tuple[MotionModel, ...] = ("cv", "ca", "ctrv", "ctra")
-#: Columns of a parameter row (every model uses this layout; its unused parameters are 0). The
-#: last, SENSE, is not fitted: +1 for forward motion, -1 for reversing (see :func:`moving_time`).
-X0, Y0, V0, THETA0, ACCEL, OMEGA, SENSE = range(7)
-PARAMETERS = 7
+#: Columns of a parameter row (every model uses this layout; its unused parameters are 0). SLIP
+#: is the box's yaw minus the heading of its centre's motion (radians; the turning models only).
+#: The last, SENSE, is not fitted: +1 for forward motion, -1 for reversing (see :func:`moving_time`).
+X0, Y0, V0, THETA0, ACCEL, OMEGA, SLIP, SENSE = range(8)
+PARAMETERS = 8
 MODEL_PARAMETERS: dict[MotionModel, tuple[int, ...]] = {
     "cv": (X0, Y0, V0, THETA0),
     "ca": (X0, Y0, V0, THETA0, ACCEL),
-    "ctrv": (X0, Y0, V0, THETA0, OMEGA),
-    "ctra": (X0, Y0, V0, THETA0, ACCEL, OMEGA),
+    "ctrv": (X0, Y0, V0, THETA0, OMEGA, SLIP),
+    "ctra": (X0, Y0, V0, THETA0, ACCEL, OMEGA, SLIP),
 }
 #: Standard normal quantile of the residual test (99 %).
 _GATE_Z = 2.326
@@ -76,6 +84,9 @@ MIN_NOISE_WINDOWS = 8
 #: that quantile of a chi-square variable with 1 and 2 degrees of freedom.
 _NOISE_QUANTILE = 0.25
 _CHI2_QUANTILE = {1: 0.1015, 2: 0.5754}
+#: Average speed (m/s) over about two seconds above which an object counts as moving for the
+#: noise estimate (:func:`moving_annotations`).
+MOVING_SPEED_MPS = 0.5
 
 Complex = NDArray[np.complex128]
 Float = NDArray[np.float64]
@@ -147,7 +158,7 @@ class MovingTime:
 
 
 def moving_time(params: Float, tau: Float) -> MovingTime:
-    """The time the models ``params`` (B, 7) have moved for at ``tau`` (B, ...) seconds from
+    """The time the models ``params`` (B, 8) have moved for at ``tau`` (B, ...) seconds from
     their reference time.
 
     A straight accelerating model (omega 0, accel not 0) keeps the sign ``SENSE`` of its speed
@@ -182,7 +193,7 @@ def _displacement_integrals(params: Float, moved: MovingTime) -> tuple[Complex, 
 
 
 def motion_state(params: Float, tau: Float) -> MotionState:
-    """The state of B models ``params`` (B, 7) at ``tau`` (B,) seconds after their reference time."""
+    """The state of B models ``params`` (B, 8) at ``tau`` (B,) seconds after their reference time."""
     assert params.ndim == 2 and params.shape[1] == PARAMETERS, params.shape
     moved = moving_time(params, np.asarray(tau, np.float64))
     f1, f2, _ = _displacement_integrals(params, moved)
@@ -195,13 +206,13 @@ def motion_state(params: Float, tau: Float) -> MotionState:
         center=center,
         velocity=speed * direction,
         acceleration=np.where(moved.standing, 0.0, (accel + 1j * omega * speed) * direction),
-        yaw=heading,
+        yaw=heading + params[:, SLIP],
         yaw_rate=omega,
     )
 
 
 def _center_jacobian(params: Float, integrals: tuple[Complex, Complex, Complex]) -> Complex:
-    """d center / d params, (..., 7) complex, for params (B, 7) and the displacement integrals
+    """d center / d params, (..., 8) complex, for params (B, 8) and the displacement integrals
     (B, ...) of :func:`_displacement_integrals`. Where the object stands, or stood at the
     reference, its speed is 0 at the stop (start) time, so that time's own derivatives add
     nothing."""
@@ -224,7 +235,7 @@ class WindowFits:
     """Fits of one model to B windows.
 
     Attributes:
-        params: (B, 7) parameter rows (layout :data:`X0` ... :data:`SENSE`; unused ones 0).
+        params: (B, 8) parameter rows (layout :data:`X0` ... :data:`SENSE`; unused ones 0).
         chi2_center: (B,) weighted squared centre residuals (units of the centre noise).
         chi2_yaw: (B,) weighted squared yaw residuals (units of the yaw noise).
         covariance: (B, K, K) covariance of the model's K free parameters.
@@ -249,7 +260,7 @@ class WindowFits:
 def _residuals(
     params: Float, tau: Float, center: Complex, yaw: Float, w_center: Float, w_yaw: Float
 ) -> tuple[Float, Float, Float]:
-    """Weighted residuals (B, 3W) (x, y, yaw blocks), their Jacobian (B, 3W, 7) and the
+    """Weighted residuals (B, 3W) (x, y, yaw blocks), their Jacobian (B, 3W, 8) and the
     centre part of the squared residuals (B,)."""
     moved = moving_time(params, tau)
     integrals = _displacement_integrals(params, moved)
@@ -260,9 +271,11 @@ def _residuals(
     model_c = model_c + e * (params[:, None, V0] * f1 + params[:, None, ACCEL] * f2)
     r_c = (model_c - center) * w_center
     omega = params[:, None, OMEGA]
-    r_y = (params[:, None, THETA0] + omega * moved.tau - yaw) * w_yaw  # standing: omega is 0
+    heading = params[:, None, THETA0] + params[:, None, SLIP] + omega * moved.tau  # standing: omega 0
+    r_y = (heading - yaw) * w_yaw
     jac_y = np.zeros((*tau.shape, PARAMETERS))
     jac_y[..., THETA0] = 1.0
+    jac_y[..., SLIP] = 1.0
     jac_y[..., OMEGA] = moved.tau
     jac_y *= w_yaw[..., None]
     r = np.concatenate([r_c.real, r_c.imag, r_y], axis=1)
@@ -392,7 +405,7 @@ class TrackFits:
     """The fit each keyframe (anchor) of a scene's track pieces got (N anchors).
 
     Attributes:
-        params: (N, 7) the anchor's window fit (layout as :data:`X0` ...), relative to
+        params: (N, 8) the anchor's window fit (layout as :data:`X0` ...), relative to
             ``reference_s``; rows of anchors without a fit are 0.
         reference_s: (N,) the fit's reference time, seconds on the caller's time axis.
         height: (N, 2) the fit's height line (metres at the reference time, m/s).
@@ -452,37 +465,59 @@ def _polynomial_residuals(tau: Float, values: Float, degree: int) -> Float:
     return np.sum((values - fitted) ** 2, axis=(1, 2))
 
 
-def _pooled_by_class(values: Float, window_class: NDArray, classes: NDArray, default: float) -> Float:
-    """Per-annotation value: the lower quartile of ``values`` (one per window) over the windows
-    of the annotation's class, or over all windows where the class has too few, or ``default``
-    where the scene has too few."""
+def _pooled_by_class(
+    values: Float, window_class: NDArray, moving: NDArray[np.bool_], classes: NDArray, default: float
+) -> Float:
+    """Per-annotation value: the lower quartile of ``values`` (one per window) over the moving
+    windows of the annotation's class, or over the scene's moving windows where the class has
+    too few. Windows of objects that stand are left out: offboard-smoothed labels hold a parked
+    object still, so its residuals say nothing of the noise on moving ones and would drive the
+    estimate to its floor. A scene with too few moving windows pools all its windows the same
+    way (by class, else the scene), and one with too few windows gets ``default``."""
     out = np.full(len(classes), default)
-    if len(values) < MIN_NOISE_WINDOWS:
+    use = moving if moving.sum() >= MIN_NOISE_WINDOWS else np.ones(len(values), bool)
+    if use.sum() < MIN_NOISE_WINDOWS:
         return out
-    pooled = float(np.quantile(values, _NOISE_QUANTILE))
+    pooled = float(np.quantile(values[use], _NOISE_QUANTILE))
     for cls in np.unique(classes):
-        mine = window_class == cls
+        mine = (window_class == cls) & use
         enough = mine.sum() >= MIN_NOISE_WINDOWS
         out[classes == cls] = np.quantile(values[mine], _NOISE_QUANTILE) if enough else pooled
     return out
+
+
+def moving_annotations(times_s: Float, center: Complex, first: Int, last: Int) -> NDArray[np.bool_]:
+    """(N,) whether each annotation's object moves: its centre moves at least
+    :data:`MOVING_SPEED_MPS` on average between the annotations two before and two after it
+    (fewer at a piece's ends), a span long enough that annotation noise of 20 cm does not make
+    a standing object look moving."""
+    n = len(times_s)
+    idx = np.arange(n)
+    lo, hi = np.maximum(idx - 2, first), np.minimum(idx + 2, last)
+    span = times_s[hi] - times_s[lo]
+    chord = np.abs(center[hi] - center[lo])
+    return (span > 0) & (chord >= MOVING_SPEED_MPS * np.maximum(span, 1.5))
 
 
 def estimate_noise(
     times_s: Float, center: Complex, yaw: Float, first: Int, last: Int, class_id: NDArray
 ) -> tuple[Float, Float]:
     """Per-annotation centre noise (metres per coordinate) and yaw noise (radians), from the
-    residuals of low-order polynomials in time through short runs of consecutive keyframes.
+    residuals of low-order polynomials in time through short runs of consecutive keyframes of
+    moving objects (:func:`moving_annotations`).
 
     Yaw: straight lines through every three consecutive yaws of a piece (1 degree of freedom;
     exact for a constant turn rate). Centre: cubics through every five consecutive centres (x
     and y: 2 degrees of freedom; exact for constant jerk, so within millimetres for constant
-    turn rate and acceleration). Each is pooled by class as the lower quartile of the windows'
-    residuals scaled to a variance (a window with a manoeuvre in it has a larger residual, noise
-    raises all alike); a class with fewer than :data:`MIN_NOISE_WINDOWS` windows takes the
-    scene's pooled value, a scene with fewer the defaults (:data:`DEFAULT_SIGMA_M`,
-    :data:`DEFAULT_SIGMA_RAD`). Never below :data:`MIN_SIGMA_M` / :data:`MIN_SIGMA_RAD`.
+    turn rate and acceleration). A run counts if all its annotations move. Each is pooled by
+    class as the lower quartile of the runs' residuals scaled to a variance (a run with a
+    manoeuvre in it has a larger residual, noise raises all alike); a class with fewer than
+    :data:`MIN_NOISE_WINDOWS` runs takes the scene's pooled value, a scene with fewer the
+    defaults (:data:`DEFAULT_SIGMA_M`, :data:`DEFAULT_SIGMA_RAD`). Never below
+    :data:`MIN_SIGMA_M` / :data:`MIN_SIGMA_RAD`.
     """
     classes = np.asarray(class_id)
+    moving = moving_annotations(times_s, center, first, last)
     out = []
     for size, degree, values, dof, default in (
         (3, 1, yaw[:, None], 1, DEFAULT_SIGMA_RAD),
@@ -492,7 +527,10 @@ def estimate_noise(
         index = windows[:, :1] + np.arange(size)[None]
         tau = times_s[index] - times_s[index[:, size // 2 : size // 2 + 1]]
         variance = _polynomial_residuals(tau, values[index], degree) / _CHI2_QUANTILE[dof]
-        out.append(np.sqrt(_pooled_by_class(variance, classes[windows[:, 0]], classes, default**2)))
+        runs_moving = moving[index].all(axis=1)
+        out.append(
+            np.sqrt(_pooled_by_class(variance, classes[windows[:, 0]], runs_moving, classes, default**2))
+        )
     sigma_rad, sigma_m = out
     return np.maximum(sigma_m, MIN_SIGMA_M), np.maximum(sigma_rad, MIN_SIGMA_RAD)
 
@@ -593,7 +631,13 @@ def _best_window_per_anchor(
             sub = WindowFits(
                 f.params[rows], f.chi2_center[rows], f.chi2_yaw[rows], f.covariance[rows], f.model
             )
-            variance[mine] = sub.center_variance(tau[rows, slot[mine]])
+            count = windows[rows, 1] - windows[rows, 0] + 1
+            dof_c, dof_y = degrees_of_freedom(f.model, count)
+            reduced = (f.chi2_center[rows] + f.chi2_yaw[rows]) / np.maximum(dof_c + dof_y, 1)
+            # The covariance scaled by the reduced chi-square where the residuals exceed the
+            # noise: a window that fits worse than the noise explains carries its misfit (a
+            # manoeuvre the model lacks) into its variance, so a narrower window that fits wins.
+            variance[mine] = sub.center_variance(tau[rows, slot[mine]]) * np.maximum(reduced, 1.0)
     a_idx = anchor[w_idx, slot]
     order = np.lexsort((variance, a_idx))  # by anchor, least variance first
     first_of_anchor = order[np.r_[True, a_idx[order][1:] != a_idx[order][:-1]]]

@@ -12,25 +12,33 @@ Model (``method``; all in the world frame, metres, seconds, radians):
 - Annotations are matched by ``track_id`` (the instance token). A track's annotations further apart
   than ``max_gap_s`` are split into pieces that are not interpolated across.
 - ``ctra`` (default): a motion model fitted over windows of neighbouring annotations
-  (:mod:`phigenesis.data.stages.ctra`): the centre moves along the annotated heading with
-  constant turn rate and acceleration (``ctra``) or the simpler ``ctrv`` (constant speed),
-  ``ca`` (straight, accelerating) or ``cv`` (straight, constant speed). Every window of 3 to
-  ``2 * half_window + 1`` annotations of a piece is fitted by weighted least squares to the
-  centres and yaws with every model; a window keeps its lowest-BIC model if the residuals are
-  consistent with the annotation noise (chi-square test at 99 % for the centres and for the
-  yaws), and each annotation takes the accepted fit whose centre there has the least variance:
-  the widest window the motion allows with the simplest model that explains it, so a least-
-  squares fit smooths the annotation noise that an interpolant through the keyframes copies.
-  The noise (centre per coordinate, yaw) is estimated per class from the scene's keyframes
-  (residuals of constant-turn fits to every three consecutive ones) unless ``noise_m`` /
+  (:mod:`phigenesis.data.stages.ctra`): the centre moves along the annotated heading with constant
+  turn rate and acceleration (``ctra``) or the simpler ``ctrv`` (constant speed), ``ca``
+  (straight, accelerating) or ``cv`` (straight, constant speed). Every window of 3 to ``2 *
+  half_window + 1`` annotations of a piece is fitted by weighted least squares to the centres and
+  yaws with every model; a window keeps its lowest-BIC model if the residuals are consistent with
+  the annotation noise (chi-square test at 99 % for the centres and for the yaws), and each
+  annotation takes the accepted fit whose centre there has the least variance: the widest window
+  the motion allows with the simplest model that explains it, so a least- squares fit smooths the
+  annotation noise that an interpolant through the keyframes copies. The turning models let the
+  box's yaw differ from the centre's course by a fitted slip angle (a car's centre is ahead of its
+  rear axle). Of windows that pass, the one whose centre at the annotation has the least variance
+  (scaled by the reduced chi-square where the residuals exceed the noise) wins. The noise (centre
+  per coordinate, yaw) is estimated per class from the keyframes of the scene's moving objects
+  (residuals of low-order polynomials through short runs of them; parked objects, which
+  offboard-smoothed labels hold still, would drive it to its floor) unless ``noise_m`` /
   ``yaw_noise_deg`` give it. Between two annotations whose fits both span the interval the two
-  fits are blended (smoothstep weights: exact where the motion is one model's); where a
-  manoeuvre changes inside the interval (neither fit spans it) a cubic Hermite joins the two
-  annotations' fitted states (centre, velocity, yaw, yaw rate). An annotation no window explains
-  (manoeuvres on both sides within one interval), and every annotation of a piece of fewer than
-  three, uses the ``hermite`` state (the annotation and three-point derivatives). Yaw is the
-  fitted heading, unwrapped along the shortest arc between neighbouring annotations and kept
-  within the arc between its values at the interval's two annotations; tilt is slerped.
+  fits are blended (smoothstep weights: exact where the motion is one model's); where a manoeuvre
+  changes inside the interval (neither fit spans it) a cubic Hermite joins the two annotations'
+  fitted states (centre, velocity, yaw, yaw rate). An annotation no window explains (manoeuvres on
+  both sides within one interval), and every annotation of a piece of fewer than three, uses the
+  ``hermite`` state (the annotation and three-point derivatives). Yaw is the fitted heading only
+  where the fit is a straight model (``cv``, ``ca``: the centres fix the direction of travel far
+  better than noisy annotated yaws); a turning model's yaw, a line in time, misfits real turns by
+  more than the annotations' noise (benchmarks/interpolation.py), so there the annotated yaws are
+  interpolated as ``hermite`` does (monotone cubic, limited tangents). Yaw is unwrapped along the
+  shortest arc between neighbouring annotations and kept within the arc between its values at the
+  interval's two annotations; tilt is slerped.
 - ``hermite``: cubic Hermite on the centre with tangents from the neighbouring
   annotations (the three-point derivative, exact for constant acceleration: non-uniform central
   differences inside a piece, one-sided at its ends), so velocity and acceleration are continuous
@@ -95,6 +103,8 @@ INTERPOLATION_METHODS: tuple[InterpolationMethod, ...] = get_args(InterpolationM
 KeyframePose = Literal["model", "annotation"]
 KEYFRAME_POSES: tuple[KeyframePose, ...] = get_args(KeyframePose)
 ANNOTATED, INTERPOLATED, EXTRAPOLATED = (BOX_STATUSES.index(s) for s in BOX_STATUSES)
+#: Indices in :data:`ctra.MOTION_MODELS` of the models whose fitted yaw ``ctra`` uses.
+_STRAIGHT_MODELS = (ctra.MOTION_MODELS.index("cv"), ctra.MOTION_MODELS.index("ca"))
 #: Bits of a search key given to the time (microseconds); the piece index takes the bits above.
 _TIME_BITS = 40
 _TIME_OFFSET = 1 << (_TIME_BITS - 2)
@@ -337,13 +347,20 @@ class BoxTracks:
         )
         state = self._fit_state(np.arange(n), t_s)
         fitted = self.fits.fitted
+        # Yaw from the fit only where it is a straight model (the heading then is the direction
+        # of travel, which the centres fix far better than noisy annotated yaws); a turning
+        # model's yaw is a line in time whose misfit in real turns exceeds the annotations'
+        # noise (benchmarks/interpolation.py), so there the annotated yaws are interpolated.
+        self.fit_yaw = fitted & np.isin(self.fits.model, _STRAIGHT_MODELS)
         self.state = _State(
             center=np.where(fitted[:, None], state.center, self.ann.center_world),
             velocity=np.where(fitted[:, None], state.velocity, self.center_rate),
             acceleration=np.where(fitted[:, None], state.acceleration, np.nan),
-            yaw=np.where(fitted, state.yaw, self.yaw),
-            yaw_rate=np.where(fitted, state.yaw_rate, self.yaw_rate),
+            yaw=np.where(self.fit_yaw, state.yaw, self.yaw),
+            yaw_rate=np.where(self.fit_yaw, state.yaw_rate, self.yaw_rate),
         )
+        #: The turn rate of each annotation's course (rad/s): its fit's, else the yaw rate.
+        self.course_rate = np.where(fitted, state.yaw_rate, self.yaw_rate)
 
     def _fit_state(self, anchors: NDArray[np.int64], t_s: ArrayLike) -> _State:
         """The fits of annotations ``anchors`` (M,) evaluated at ``t_s`` (seconds from the
@@ -528,13 +545,10 @@ class BoxTracks:
             state.center[i], state.velocity[i] * hh, state.center[j], state.velocity[j] * hh, s
         )
         velocity, acceleration = rate / hh, accel / hh**2
-        yaw = _hermite(
-            state.yaw[i, None],
-            (state.yaw_rate[i] * h)[:, None],
-            state.yaw[j, None],
-            (state.yaw_rate[j] * h)[:, None],
-            s,
-        )[0][:, 0]
+        m0, m1 = _monotone_tangents(state.yaw[i], state.yaw[j], h, state.yaw_rate[i], state.yaw_rate[j])
+        yaw = _hermite(state.yaw[i, None], (m0 * h)[:, None], state.yaw[j, None], (m1 * h)[:, None], s)[0][
+            :, 0
+        ]
         spans = fits.fitted[i] & fits.fitted[j] & (fits.window[i, 1] >= j) & (fits.window[j, 0] <= i)
         c = np.flatnonzero(spans)
         if len(c):
@@ -552,7 +566,8 @@ class BoxTracks:
                 + 2.0 * dw * (b.velocity - a.velocity)
                 + ddw * gap
             )
-            yaw[c] = (1.0 - w[:, 0]) * a.yaw + w[:, 0] * b.yaw
+            both = self.fit_yaw[i[c]] & self.fit_yaw[j[c]]
+            yaw[c[both]] = ((1.0 - w[:, 0]) * a.yaw + w[:, 0] * b.yaw)[both]
         yaw = np.clip(yaw, np.minimum(state.yaw[i], state.yaw[j]), np.maximum(state.yaw[i], state.yaw[j]))
         tilt = geometry.quaternion_slerp(self.tilt[i], self.tilt[j], s[:, 0])
         out.center_world[mask] = center
@@ -572,15 +587,20 @@ class BoxTracks:
         if method == "ctra":
             center, velocity = self.state.center[i], self.state.velocity[i]
             yaw0, yaw_rate = self.state.yaw[i], self.state.yaw_rate[i]
+            course_rate = self.course_rate[i]
         elif method == "hermite":
             velocity, yaw_rate = self.center_rate[i], self.yaw_rate[i]
+            course_rate = yaw_rate
         else:
             velocity, yaw_rate = self.center_secant[i], np.zeros(len(i))
-        turn = yaw_rate * dt_s
-        # Constant turn rate: the velocity turns with the heading (straight where it does not).
+            course_rate = yaw_rate
+        turn = course_rate * dt_s
+        # Constant turn rate: the velocity turns with the course (straight where it does not).
         with np.errstate(invalid="ignore", divide="ignore"):
-            along = np.where(np.abs(turn) > 1e-9, np.sin(turn) / yaw_rate, dt_s)
-            across = np.where(np.abs(turn) > 1e-9, (1.0 - np.cos(turn)) / yaw_rate, 0.5 * yaw_rate * dt_s**2)
+            along = np.where(np.abs(turn) > 1e-9, np.sin(turn) / course_rate, dt_s)
+            across = np.where(
+                np.abs(turn) > 1e-9, (1.0 - np.cos(turn)) / course_rate, 0.5 * course_rate * dt_s**2
+            )
         left = np.stack([-velocity[:, 1], velocity[:, 0], np.zeros(len(i))], axis=1)
         out.center_world[mask] = center + along[:, None] * velocity + across[:, None] * left
         out.velocity_world[mask] = np.cos(turn)[:, None] * velocity + np.sin(turn)[:, None] * left
