@@ -222,3 +222,11 @@ def test_a_caption_outline_stays_within_one_pixel_of_its_text(text: str, font_sc
     assert cols.max() <= white_cols.max() + 2  # the outline ends where the text ends
     assert cols.min() >= 5 - 2 and cols.max() <= 5 + width + 2
     assert rows.min() >= 30 - height - 2 and rows.max() <= 30 + baseline + 2
+
+
+def test_colouring_an_unknown_scalar_depth_leaves_the_colour_map_intact() -> None:
+    from phigenesis.data.colormap import DEPTH_NEAR_M, depth_color
+
+    near = depth_color(DEPTH_NEAR_M).copy()
+    assert depth_color(np.nan).tolist() == [0, 0, 0]
+    assert depth_color(DEPTH_NEAR_M).tolist() == near.tolist() != [0, 0, 0]

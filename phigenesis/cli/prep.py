@@ -12,8 +12,7 @@ from phigenesis import prep
 from phigenesis.cli.common import Command, Parser, positive, run
 from phigenesis.data.executors import EXECUTORS
 from phigenesis.data.shards import CacheReader, Manifest
-from phigenesis.data.sources.synthetic.presets import PRESET_NAMES
-from phigenesis.data.sources.synthetic.rigs import RIG_NAMES
+from phigenesis.data.sources.synthetic_names import PRESET_NAMES, RIG_NAMES
 from phigenesis.malloc_tuning import avoid_huge_page_faults, keep_freed_memory
 
 

@@ -14,7 +14,7 @@ import argparse
 import sys
 
 from phigenesis.cli.common import Parser, positive, run
-from phigenesis.data.sources.synthetic.presets import PRESET_NAMES
+from phigenesis.data.sources.synthetic_names import PRESET_NAMES
 from phigenesis.synth import SYNTH_FORMATS, synth
 
 

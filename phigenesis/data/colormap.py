@@ -51,7 +51,7 @@ def depth_color(depth_m: ArrayLike) -> NDArray[np.uint8]:
     u = depth_position(depth_m)
     known = np.isfinite(u)
     index = np.round(_TURBO_NEAR - np.where(known, u, 0.0) * (_TURBO_NEAR - _TURBO_FAR)).astype(np.intp)
-    rgb = _TURBO_RGB[index]
+    rgb = np.take(_TURBO_RGB, index, axis=0)  # a copy even for a scalar (indexing gives a view)
     rgb[~known] = 0
     return rgb
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from phigenesis.data.sources import synthetic_names
 from phigenesis.data.sources.synthetic.rigs import LidarSpec
 
 #: Waymo TOP (mid-range) LiDAR: 64 beams x 2650 columns, 75 m, -17.6 .. +2.4 deg (sensors.md
@@ -114,6 +115,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     },
 }
 PRESET_NAMES: tuple[str, ...] = tuple(PRESETS)
+if PRESET_NAMES != synthetic_names.PRESET_NAMES:  # the command lines' choices come from there
+    raise ImportError(f"presets {PRESET_NAMES} differ from synthetic_names.PRESET_NAMES")
 
 
 def preset_values(name: str) -> dict[str, Any]:

@@ -8,16 +8,13 @@ rigs closely enough for the geometry to be realistic; image sizes are configurab
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Literal
 
 import numpy as np
 
 from phigenesis import geometry
 from phigenesis.data.records import CameraCalibration
 from phigenesis.options import ConfigError, check_options, option
-
-RigName = Literal["waymo5", "nuscenes6"]
-RIG_NAMES: tuple[RigName, ...] = get_args(RigName)
 
 BODY_FROM_OPENCV = geometry.BODY_FROM_OPENCV
 

@@ -1,0 +1,12 @@
+"""The synthetic source's rig and preset names, for command lines that list them as choices
+without importing the renderer (its meshes' trimesh and scipy cost about 0.7 CPU-s a process)."""
+
+from __future__ import annotations
+
+from typing import Literal, get_args
+
+#: The synthetic camera rigs (:mod:`phigenesis.data.sources.synthetic.rigs`).
+RigName = Literal["waymo5", "nuscenes6"]
+RIG_NAMES: tuple[RigName, ...] = get_args(RigName)
+#: The real-size presets (:data:`phigenesis.data.sources.synthetic.presets.PRESETS` has these keys).
+PRESET_NAMES: tuple[str, ...] = ("waymo", "nuscenes")
