@@ -14,6 +14,7 @@ import numpy as np
 
 from phigenesis import geometry
 from phigenesis.data.records import CameraCalibration
+from phigenesis.data.sources.synthetic_names import RIG_NAMES, RigName  # noqa: F401 (re-exported)
 from phigenesis.options import ConfigError, check_options, option
 
 BODY_FROM_OPENCV = geometry.BODY_FROM_OPENCV
