@@ -197,7 +197,7 @@ def preview(
 
     reader = CacheReader(cache_dir)
     try:
-        image = draw_frame(reader.frame(frame), scale=scale)
+        image = draw_frame(reader.frame(frame), scale=scale, cache_source=reader.manifest.source)
     except InvalidRecord as e:
         path, row = reader.locate(frame)
         raise CacheError(f"{path}: row {row}: {e}") from None

@@ -230,3 +230,34 @@ def test_colouring_an_unknown_scalar_depth_leaves_the_colour_map_intact() -> Non
     near = depth_color(DEPTH_NEAR_M).copy()
     assert depth_color(np.nan).tolist() == [0, 0, 0]
     assert depth_color(DEPTH_NEAR_M).tolist() == near.tolist() != [0, 0, 0]
+
+
+def test_the_dense_depth_caption_says_what_its_pixels_are_made_of(frame: Frame) -> None:
+    """LiDAR-derived: the shares of each origin, which add up to 100 %; rendered: by what."""
+    from phigenesis.data.records import DENSE_ORIGINS
+
+    rv = preview_range_view(frame)
+    assert rv.depth_source == "dense"
+    caption = depth_caption(frame, rv)
+    assert caption is not None and caption.startswith("depth: dense (LiDAR ")
+    shares = [float(part.split()[-2]) for part in caption[len("depth: dense (") : -1].split(", ")]
+    assert abs(sum(shares) - 100) <= len(shares) / 2  # each rounded to a whole per cent
+    origins = np.concatenate([c.depth.dense_origin.ravel() for c in frame.cameras])
+    lidar = np.mean(origins[origins > 0] == DENSE_ORIGINS.index("lidar"))
+    assert f"LiDAR {100 * lidar:.0f} %" in caption
+
+    rendered = DENSE_ORIGINS.index("rendered")
+
+    def all_rendered(c):
+        origin = np.where(c.depth.dense_m > 0, rendered, 0).astype(np.uint8)
+        return dataclasses.replace(c, depth=dataclasses.replace(c.depth, dense_origin=origin))
+
+    drawn = dataclasses.replace(frame, cameras=[all_rendered(c) for c in frame.cameras])
+    rv = preview_range_view(drawn)
+    assert depth_caption(drawn, rv, "rendered") == "depth: rendered by the Gaussians phigenesis-render placed"
+    assert (
+        depth_caption(drawn, rv, "generated")
+        == "depth: rendered by the rollout's Gaussians (phigenesis-generate)"
+    )
+    assert depth_caption(drawn, rv) == "depth: rendered by Gaussians"
+    assert draw_frame(drawn, scale=1, cache_source="generated").shape[0] > 0

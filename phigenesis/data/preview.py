@@ -12,15 +12,18 @@ Entry point: :func:`draw_frame`. The range view is the frame's views side by sid
 3. semantics from the best source the frame has (:data:`SEMANTIC_SOURCES`: exact truth, else the
    dataset's human labels, else pseudo labels) in the taxonomy's palette.
 
-Each of rows 2 and 3 names its source in its bottom-left corner. Rows without data are left out;
-cells no view covers are dark grey. A depth source with no known depth anywhere (a frame without
-LiDAR: its depth maps are all 0) is not passed off as a black map: the next source with depth is
-shown (exact truth, synthetic data), else the row is dark grey and captioned :data:`NO_DEPTH_CAPTION`
-(or :data:`EMPTY_DEPTH_CAPTION` where the frame has LiDAR that reached no image), without a colour
-bar. A top view of the LiDAR and the boxes, as tall as the rows, is on the right. Below, the depth
-colour bar (in metres) and the legend of the classes shown, each titled with its source. Captions
-are white text outlined in black by the same glyphs shifted one pixel, so the outline stays
-within the text's own box (a thicker stroke advances further and trails past the text).
+Each of rows 2 and 3 names its source in its bottom-left corner; the dense depth's caption says what
+its pixels are made of, from their origins (:func:`dense_caption`: the LiDAR's share, the
+densifier's and the completion's, or the Gaussians a render or a rollout drew it from). Rows without
+data are left out; cells no view covers are dark grey. A depth source with no known depth anywhere
+(a frame without LiDAR: its depth maps are all 0) is not passed off as a black map: the next source
+with depth is shown (exact truth, synthetic data), else the row is dark grey and captioned
+:data:`NO_DEPTH_CAPTION` (or :data:`EMPTY_DEPTH_CAPTION` where the frame has LiDAR that reached no
+image), without a colour bar. A top view of the LiDAR and the boxes, as tall as the rows, is on the
+right. Below, the depth colour bar (in metres) and the legend of the classes shown, each titled with
+its source. Captions are white text outlined in black by the same glyphs shifted one pixel, so the
+outline stays within the text's own box (a thicker stroke advances further and trails past the
+text).
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from phigenesis.data.rangeview import (
     ViewPlacement,
     pack_range_view,
 )
-from phigenesis.data.records import Boxes, CameraImage, Frame
+from phigenesis.data.records import DENSE_ORIGINS, Boxes, CameraImage, Frame
 
 BEV_RANGE_M = 60.0
 #: Range views taller than this are drawn shrunk to it (real datasets' 1280-pixel images).
@@ -98,18 +101,56 @@ def has_depth(depth_m: NDArray[np.float32] | None) -> bool:
     return depth_m is not None and bool(np.any(np.isfinite(depth_m) & (depth_m > 0)))
 
 
-def depth_caption(frame: Frame, rv: RangeView) -> str | None:
-    """The depth row's caption: its source's name (:data:`DEPTH_SOURCE_NAMES`), or why there is
-    no depth (:data:`NO_DEPTH_CAPTION`, :data:`EMPTY_DEPTH_CAPTION`); None without a depth row."""
+#: What drew a cache's rendered depth, by the cache's source (its manifest's ``source``).
+RENDERED_BY: dict[str, str] = {
+    "rendered": "the Gaussians phigenesis-render placed",
+    "generated": "the rollout's Gaussians (phigenesis-generate)",
+}
+#: How the dense depth's caption groups its pixels' origins (:data:`DENSE_ORIGINS`).
+_ORIGIN_GROUPS = {"lidar": "LiDAR", "densified": "densified", "plane": "completed", "vertical": "completed"}
+
+
+def dense_caption(frame: Frame, cache_source: str | None = None) -> str:
+    """The caption of a dense depth, from its pixels' origins over the frame's cameras: rendered
+    (by what, from ``cache_source``: :data:`RENDERED_BY`) where every pixel is, else the shares of
+    the LiDAR's measurements, the densifier's fill and the completion (plane and vertical fits)."""
+    counts = np.zeros(len(DENSE_ORIGINS), np.int64)
+    for cam in frame.cameras:
+        if cam.depth is not None and cam.depth.dense_origin is not None:
+            counts += np.bincount(cam.depth.dense_origin.ravel(), minlength=len(DENSE_ORIGINS))[: len(counts)]
+    counts[0] = 0  # "none": no depth
+    total = int(counts.sum())
+    if total == 0:
+        return DEPTH_SOURCE_NAMES["dense"]
+    rendered = counts[DENSE_ORIGINS.index("rendered")]
+    if rendered == total:
+        return f"depth: rendered by {RENDERED_BY.get(cache_source or '', 'Gaussians')}"
+    shares: dict[str, int] = {}
+    for k, name in enumerate(DENSE_ORIGINS):
+        group = _ORIGIN_GROUPS.get(name, name)
+        if counts[k] and name != "none":
+            shares[group] = shares.get(group, 0) + int(counts[k])
+    parts = ", ".join(f"{name} {100 * n / total:.0f} %" for name, n in shares.items())
+    return f"depth: dense ({parts})"
+
+
+def depth_caption(frame: Frame, rv: RangeView, cache_source: str | None = None) -> str | None:
+    """The depth row's caption: its source's name (:data:`DEPTH_SOURCE_NAMES`; the dense depth's
+    origins, :func:`dense_caption`), or why there is no depth (:data:`NO_DEPTH_CAPTION`,
+    :data:`EMPTY_DEPTH_CAPTION`); None without a depth row. ``cache_source``: the cache's source
+    (``"rendered"``, ``"generated"``, a dataset), which names what drew a rendered depth."""
     if rv.depth_source is None:
         return None
     if has_depth(rv.depth_m):
+        if rv.depth_source == "dense":
+            return dense_caption(frame, cache_source)
         return DEPTH_SOURCE_NAMES[rv.depth_source]
     return EMPTY_DEPTH_CAPTION if frame.lidar is not None and len(frame.lidar) else NO_DEPTH_CAPTION
 
 
-def draw_frame(frame: Frame, scale: int = 2) -> NDArray[np.uint8]:
-    """An (H, W, 3) uint8 RGB picture of a frame (see the module docstring).
+def draw_frame(frame: Frame, scale: int = 2, cache_source: str | None = None) -> NDArray[np.uint8]:
+    """An (H, W, 3) uint8 RGB picture of a frame (see the module docstring); ``cache_source``, the
+    source of the cache it comes from, names what drew a rendered depth.
 
     ``scale`` magnifies the range view (after range views taller than
     :data:`MAX_CAMERA_HEIGHT_PX` are shrunk to it); each row is ``round(Hr * zoom)`` pixels high,
@@ -122,7 +163,7 @@ def draw_frame(frame: Frame, scale: int = 2) -> NDArray[np.uint8]:
     empty = _resize(~layout.valid(), size, cv2.INTER_NEAREST)
     text_scale = max(1.0, (0.3 + 0.1 * zoom) / 0.35)
     rows = [_rgb_row(rv, frame, size, zoom)]
-    depth_name = depth_caption(frame, rv)
+    depth_name = depth_caption(frame, rv, cache_source)
     depth_known = has_depth(rv.depth_m)
     if rv.depth_m is not None and depth_name is not None:
         depth_rgb = (
