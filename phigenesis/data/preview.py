@@ -19,11 +19,11 @@ data are left out; cells no view covers are dark grey. A depth source with no kn
 (a frame without LiDAR: its depth maps are all 0) is not passed off as a black map: the next source
 with depth is shown (exact truth, synthetic data), else the row is dark grey and captioned
 :data:`NO_DEPTH_CAPTION` (or :data:`EMPTY_DEPTH_CAPTION` where the frame has LiDAR that reached no
-image), without a colour bar. A top view of the LiDAR and the boxes, as tall as the rows, is on the
-right. Below, the depth colour bar (in metres) and the legend of the classes shown, each titled with
-its source. Captions are white text outlined in black by the same glyphs shifted one pixel, so the
-outline stays within the text's own box (a thicker stroke advances further and trails past the
-text).
+image), without a colour bar. A top view of the LiDAR (greys by height) and the boxes, as tall as
+the rows, is on the right, captioned. Below, the depth colour bar (in metres) and the legend of the
+classes shown, each titled with its source. Captions are white text outlined in black by the same
+glyphs shifted one pixel, so the outline stays within the text's own box (a thicker stroke advances
+further and trails past the text).
 """
 
 from __future__ import annotations
@@ -161,20 +161,21 @@ def draw_frame(frame: Frame, scale: int = 2, cache_source: str | None = None) ->
     zoom = min(1.0, MAX_CAMERA_HEIGHT_PX / layout.height) * scale
     size = (round(layout.width * zoom), round(layout.height * zoom))
     empty = _resize(~layout.valid(), size, cv2.INTER_NEAREST)
-    text_scale = max(1.0, (0.3 + 0.1 * zoom) / 0.35)
-    rows = [_rgb_row(rv, frame, size, zoom)]
+    font = caption_font(size[1], zoom)
+    text_scale = max(1.0, font / 0.35)
+    rows = [_rgb_row(rv, frame, size, zoom, font)]
     depth_name = depth_caption(frame, rv, cache_source)
     depth_known = has_depth(rv.depth_m)
     if rv.depth_m is not None and depth_name is not None:
         depth_rgb = (
             depth_color(rv.depth_m) if depth_known else np.full((*rv.depth_m.shape, 3), EMPTY_RGB, np.uint8)
         )
-        rows.append(_map_row(depth_rgb, size, empty, depth_name, zoom))
+        rows.append(_map_row(depth_rgb, size, empty, depth_name, font))
     if rv.semantic is not None:
         semantic_name = SEMANTIC_SOURCE_NAMES[rv.semantic_source]
-        rows.append(_map_row(tx.PALETTE_RGB[rv.semantic], size, empty, semantic_name, zoom))
+        rows.append(_map_row(tx.PALETTE_RGB[rv.semantic], size, empty, semantic_name, font))
     mosaic = np.concatenate(rows, axis=0)
-    picture = [np.concatenate([mosaic, _bev(frame, mosaic.shape[0])], axis=1)]
+    picture = [np.concatenate([mosaic, _bev(frame, mosaic.shape[0], font)], axis=1)]
     width = picture[0].shape[1]
     if depth_known and depth_name is not None:
         picture.append(depth_color_bar(width, depth_name, text_scale))
@@ -185,13 +186,13 @@ def draw_frame(frame: Frame, scale: int = 2, cache_source: str | None = None) ->
 
 
 def _map_row(
-    rgb: NDArray[np.uint8], size: tuple[int, int], empty: NDArray[np.bool_], caption: str, zoom: float
+    rgb: NDArray[np.uint8], size: tuple[int, int], empty: NDArray[np.bool_], caption: str, font: float
 ) -> NDArray[np.uint8]:
     """A map row: ``rgb`` (layout-sized) at the picture's size, uncovered cells dark grey, and
-    ``caption`` (the map's source) in its bottom-left corner."""
+    ``caption`` (the map's source) in its bottom-left corner at font scale ``font``."""
     row = _resize(rgb, size, cv2.INTER_NEAREST)
     row[empty] = EMPTY_RGB
-    put_caption(row, caption, (3, row.shape[0] - 4), 0.3 + 0.1 * zoom)
+    put_caption(row, caption, (3, row.shape[0] - round(8 * font)), font)
     return row
 
 
@@ -214,7 +215,9 @@ def _resize(plane: NDArray, size: tuple[int, int], interpolation: int) -> NDArra
     return out.astype(bool) if as_u8 else out
 
 
-def _rgb_row(rv: RangeView, frame: Frame, size: tuple[int, int], zoom: float) -> NDArray[np.uint8]:
+def _rgb_row(
+    rv: RangeView, frame: Frame, size: tuple[int, int], zoom: float, font: float
+) -> NDArray[np.uint8]:
     """The RGB row: images (dimmed where another view owns the direction), boxes, names, borders."""
     layout = rv.layout
     rgb = np.zeros((layout.height, layout.width, 3), np.uint8) if rv.rgb is None else rv.rgb.copy()
@@ -230,8 +233,7 @@ def _rgb_row(rv: RangeView, frame: Frame, size: tuple[int, int], zoom: float) ->
         _draw_boxes(view, cams[p.camera_name], frame, p, zoom)
         if x0 > 0:
             img[:, x0] = (255, 255, 255)
-        font = 0.3 + 0.1 * zoom
-        put_caption(img, p.camera_name, (x0 + 3, y0 + round(12 * font / 0.5)), font)
+        put_caption(img, p.camera_name, (x0 + 3, y0 + round(24 * font)), font)
     return img
 
 
@@ -300,8 +302,22 @@ def _box_color(class_id: int) -> tuple[int, int, int]:
     return (255, 255, 0) if class_id == tx.CAR else tuple(int(x) for x in np.clip(c.astype(int) + 60, 0, 255))
 
 
-def _bev(frame: Frame, size: int) -> NDArray[np.uint8]:
-    """Top view around the ego (x up, y left), LiDAR coloured by height, boxes as outlines."""
+#: Heights (metres above the ego frame's origin) the top view's LiDAR greys run between.
+BEV_HEIGHT_M = (0.0, 5.0)
+#: Caption font scale per pixel of a picture row: text about 3.5 % of a row's height, so a 6,500-pixel
+#: real-rig preview is readable (at least the scale small previews have always used).
+FONT_PER_ROW_PX = 0.0014
+
+
+def caption_font(row_height_px: int, zoom: float) -> float:
+    """OpenCV font scale of the picture's captions for rows ``row_height_px`` high."""
+    return max(0.3 + 0.1 * zoom, FONT_PER_ROW_PX * row_height_px)
+
+
+def _bev(frame: Frame, size: int, font: float) -> NDArray[np.uint8]:
+    """Top view around the ego (x up, y left): LiDAR in greys by height (:data:`BEV_HEIGHT_M`, dark
+    low, bright high: not the depth colours), boxes as outlines in their class colours, and a
+    caption saying so."""
     img = np.full((size, size, 3), 20, np.uint8)
     px_per_m = size / (2 * BEV_RANGE_M)
 
@@ -314,8 +330,9 @@ def _bev(frame: Frame, size: int) -> NDArray[np.uint8]:
         p = frame.lidar.points_ego.astype(np.float64)
         px = to_px(p[:, :2])
         ok = (px >= 0).all(1) & (px < size).all(1)
-        z = np.clip(64 + p[ok, 2] / 5.0 * 191, 64, 255).astype(np.uint8)  # ground dim, tall bright
-        img[px[ok, 1], px[ok, 0]] = cv2.applyColorMap(z[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
+        lo, hi = BEV_HEIGHT_M
+        grey = np.clip(64 + (p[ok, 2] - lo) / (hi - lo) * 191, 64, 255).astype(np.uint8)
+        img[px[ok, 1], px[ok, 0]] = grey[:, None]
     ego_from_world = geometry.invert_transform(frame.world_from_ego)
     b = frame.boxes
     if len(b):
@@ -327,4 +344,11 @@ def _bev(frame: Frame, size: int) -> NDArray[np.uint8]:
             cv2.polylines(img, [poly.astype(np.int32)], True, _box_color(int(b.class_id[i])), 1, cv2.LINE_AA)
     ego = to_px(np.array([[4.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [4.0, -1.0]]))
     cv2.polylines(img, [ego.astype(np.int32)], True, (255, 255, 255), 1, cv2.LINE_AA)
+    span = f"{2 * BEV_RANGE_M:.0f} m"
+    caption = (
+        f"top view {span}: LiDAR grey by height {BEV_HEIGHT_M[0]:g}-{BEV_HEIGHT_M[1]:g} m, boxes by class"
+    )
+    while caption and cv2.getTextSize(caption, 0, font, 1)[0][0] > size - 6:
+        font *= 0.9  # the view is narrower than the rows: the caption shrinks to fit
+    put_caption(img, caption, (3, size - 4), font)
     return img
