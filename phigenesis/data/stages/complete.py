@@ -1966,6 +1966,19 @@ class _CameraTables:
     ego: Mask
 
 
+def _has_evidence(dense_m: F32, sparse_m: F32 | None, sparse_confidence: F32 | None) -> bool:
+    """Whether a camera's (H, W) depth maps hold anything a completion could extend: a dense pixel
+    of positive depth, or a sparse one of positive confidence (the evidence of sparse planes and
+    thin structures). Without either :func:`complete_depth_map` returns an all-0 map."""
+    if np.any(dense_m > 0):
+        return True
+    return (
+        sparse_m is not None
+        and sparse_confidence is not None
+        and bool(np.any((sparse_m > 0) & (sparse_confidence > 0)))
+    )
+
+
 @register_stage("complete_depth", params=CompletionParams)
 def complete_depth(scene: Scene, p: CompletionParams) -> Scene:
     """Stage: extends every camera's dense depth where planes and thin vertical structures of its
@@ -1993,6 +2006,14 @@ def complete_depth(scene: Scene, p: CompletionParams) -> Scene:
         depth = cam.depth
         if depth is None or depth.dense_m is None or cam.image_bytes is None:
             return cam
+        if not _has_evidence(depth.dense_m, depth.sparse_m, depth.sparse_confidence):
+            # Nothing to extend (a frame without LiDAR): the map stays empty, as the completion
+            # would leave it, without segmenting the image.
+            if depth.dense_confidence is None or not depth.dense_confidence.any():
+                return cam
+            zeros = np.zeros(depth.dense_m.shape, np.float32)
+            empty = dataclasses.replace(depth, dense_confidence=zeros, dense_origin=zeros.astype(np.uint8))
+            return dataclasses.replace(cam, depth=empty)
         sky = classes = None
         if cam.pseudo is not None:
             sky = cam.pseudo.semantic == tx.SKY
