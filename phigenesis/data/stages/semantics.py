@@ -240,15 +240,26 @@ def box_labels(
     labels = np.full(len(points_world), tx.IGNORE_ID, np.uint8)
     best = np.full(len(points_world), np.inf)
     all_valid = np.flatnonzero(valid)
+    # The valid points by world x: a box's candidates (without regions) are the run within its
+    # radius in x, found by bisection, not a pass over every point per box.
+    by_x = all_valid[np.argsort(points_world[all_valid, 0], kind="stable")]
+    xs = points_world[by_x, 0]
     rotations = geometry.quaternion_to_matrix(boxes.orientation_world).reshape(-1, 3, 3)
     for k in range(len(boxes)):
         cls = int(boxes.class_id[k])
-        region = None if regions is None else regions[k]
-        candidates = all_valid if region is None else region[valid[region]]
-        if cls not in BOX_CLASSES or candidates.size == 0:
+        if cls not in BOX_CLASSES:
             continue
         half = 0.5 * boxes.size_lwh[k]
         radius = np.linalg.norm(half + abs(margin_m)) + abs(clearance_m)  # holds the grown box
+        region = None if regions is None else regions[k]
+        if region is None:
+            cx = boxes.center_world[k, 0]
+            lo, hi = np.searchsorted(xs, cx - radius, "left"), np.searchsorted(xs, cx + radius, "right")
+            candidates = by_x[lo:hi]
+        else:
+            candidates = region[valid[region]]
+        if candidates.size == 0:
+            continue
         offset = points_world[candidates] - boxes.center_world[k]  # [P', 3] world
         dist2 = np.einsum("ij,ij->i", offset, offset)
         near = dist2 <= radius**2
