@@ -511,3 +511,18 @@ def test_a_crop_to_the_measurements_gives_the_whole_image_answer(method):
     np.testing.assert_allclose(got.confidence, want.confidence, rtol=0, atol=1e-5)
     if method == "ipbasic":
         assert np.array_equal(got.depth_m, want.depth_m)
+
+
+def test_the_stages_origin_codes_equal_their_reference():
+    """densified_origin (uint8 throughout) gives dense_origin_of's codes: lidar where a trusted
+    measurement is kept exactly, densified elsewhere with a depth, none without."""
+    from phigenesis.data.records import dense_origin_of
+
+    rng = np.random.default_rng(3)
+    sparse = np.where(rng.random((50, 70)) < 0.3, rng.uniform(1, 50, (50, 70)), 0).astype(np.float32)
+    conf = np.where(rng.random((50, 70)) < 0.8, rng.uniform(0.1, 1, (50, 70)), 0).astype(np.float32)
+    dense = np.where(rng.random((50, 70)) < 0.5, sparse, rng.uniform(0, 50, (50, 70))).astype(np.float32)
+    dense[rng.random((50, 70)) < 0.2] = 0
+    got = densify_module.densified_origin(sparse, conf, dense)
+    assert got.dtype == np.uint8 and set(np.unique(got)) == {0, 1, 2}
+    assert np.array_equal(got, dense_origin_of(sparse, conf, dense))

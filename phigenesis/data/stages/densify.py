@@ -89,12 +89,12 @@ from numpy.typing import NDArray
 from phigenesis import geometry
 from phigenesis.data.native import load_densify_finish
 from phigenesis.data.records import (
+    DENSE_ORIGINS,
     TRUSTED_DEPTH_CONFIDENCE,
     CameraImage,
     Frame,
     LazyFrames,
     Scene,
-    dense_origin_of,
 )
 from phigenesis.data.stages import register_stage
 from phigenesis.options import ConfigError, check_options, from_mapping, option
@@ -1171,6 +1171,19 @@ class DepthCoverage:
                 )
 
 
+_LIDAR_CODE, _DENSIFIED_CODE = DENSE_ORIGINS.index("lidar"), DENSE_ORIGINS.index("densified")
+
+
+def densified_origin(sparse_m: F32, sparse_confidence: F32, dense_m: F32) -> NDArray[np.uint8]:
+    """:func:`~phigenesis.data.records.dense_origin_of` (its reference, tested equal) in uint8
+    throughout: (H, W) code 1 ("lidar") where ``dense_m`` is exactly a sparse depth of positive
+    confidence, 2 ("densified") at every other pixel with a depth, 0 where ``dense_m`` is 0."""
+    code = (dense_m > 0).view(np.uint8) * np.uint8(_DENSIFIED_CODE)
+    kept = (sparse_m > 0) & (sparse_confidence > 0) & (dense_m == sparse_m)
+    code -= kept.view(np.uint8) * np.uint8(_DENSIFIED_CODE - _LIDAR_CODE)
+    return code
+
+
 @register_stage("densify_depth", params=DensifyParams)
 def densify_depth(scene: Scene, params: DensifyParams) -> Scene:
     """Fills ``dense_m`` / ``dense_confidence`` / ``dense_origin`` (lidar or densified,
@@ -1222,7 +1235,7 @@ def densify_depth(scene: Scene, params: DensifyParams) -> Scene:
             depth,
             dense_m=result.depth_m,
             dense_confidence=result.confidence,
-            dense_origin=dense_origin_of(depth.sparse_m, seeds, result.depth_m),
+            dense_origin=densified_origin(depth.sparse_m, seeds, result.depth_m),
         )
         return dataclasses.replace(cam, depth=dense)
 
