@@ -242,8 +242,10 @@ def box_labels(
     all_valid = np.flatnonzero(valid)
     # The valid points by world x: a box's candidates (without regions) are the run within its
     # radius in x, found by bisection, not a pass over every point per box.
-    by_x = all_valid[np.argsort(points_world[all_valid, 0], kind="stable")]
-    xs = points_world[by_x, 0]
+    by_x = xs = all_valid
+    if regions is None or any(r is None for r in regions):
+        by_x = all_valid[np.argsort(points_world[all_valid, 0], kind="stable")]
+        xs = points_world[by_x, 0]
     rotations = geometry.quaternion_to_matrix(boxes.orientation_world).reshape(-1, 3, 3)
     for k in range(len(boxes)):
         cls = int(boxes.class_id[k])
