@@ -4,6 +4,7 @@ reference, and the stage on a small synthetic scene."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import cv2
@@ -942,3 +943,42 @@ def test_the_fine_pass_kernel_equals_its_numpy_reference(monkeypatch):
     done = kernel.origin == PLANE
     assert done.sum() > 2000
     np.testing.assert_allclose(kernel.depth_m[done], truth[done], atol=0.5)
+
+
+def test_a_camera_without_depth_is_left_empty_without_segmenting_its_image(completed_scene, monkeypatch):
+    """A frame without LiDAR (every map 0) costs next to nothing: the stage neither segments the
+    image nor fits anything, and the map stays all 0, exactly what the full completion returns."""
+    import phigenesis.data.stages.complete as complete_module
+    from phigenesis.data.stages.project import pixel_rays
+
+    before, _ = completed_scene
+    frame = before.frames[0]
+    cam = frame.cameras[0]
+    h, w = cam.calibration.height, cam.calibration.width
+    zeros = np.zeros((h, w), np.float32)
+    # What densify_depth leaves on a camera no LiDAR point reached: all-0 maps.
+    no_depth = dataclasses.replace(
+        CameraDepth.empty(h, w), dense_m=zeros, dense_confidence=zeros, dense_origin=zeros.astype(np.uint8)
+    )
+    empty_cam = dataclasses.replace(cam, depth=no_depth)
+    full = complete_depth_map(
+        empty_cam.depth.dense_m,
+        empty_cam.depth.dense_confidence,
+        cam.decode_image(),
+        rays_cam=pixel_rays(cam),
+        up_cam=np.array([0.0, -1.0, 0.0]),
+        focal_px=100.0,
+        sparse_m=empty_cam.depth.sparse_m,
+        sparse_confidence=empty_cam.depth.sparse_confidence,
+    )
+    assert not full.depth_m.any() and not full.confidence.any() and not full.origin.any()
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("segment_image called for a camera without depth")
+
+    monkeypatch.setattr(complete_module, "segment_image", refuse)
+    scene = Scene(
+        before.scene_id, before.source, before.calibrations, [dataclasses.replace(frame, cameras=[empty_cam])]
+    )
+    out = get_stage("complete_depth")(scene, {}).frames[0].cameras[0].depth
+    assert not out.dense_m.any() and not out.dense_confidence.any() and not out.dense_origin.any()

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import phigenesis.data.stages.densify as densify_module
 from phigenesis.data.records import (
     TRUSTED_DEPTH_CONFIDENCE,
     Boxes,
@@ -450,3 +451,78 @@ def test_default_beats_ipbasic_on_a_rendered_frames_own_lidar_sweep():
     assert rmse[DEFAULT_DENSIFIER] <= 1.01 * rmse["ipbasic"]
     assert mae[DEFAULT_DENSIFIER] < 0.95 * mae["ipbasic"]
     assert covered[DEFAULT_DENSIFIER] > 0.9 * covered["ipbasic"]
+
+
+# --------------------------------------------------------------------------------------------
+# Fast paths against their references: the native last pass, the crop to the measurements
+
+
+def _rendered_inputs() -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
+    """(sparse, seeds, rgb, focal) of every camera of a rendered frame's own projected sweep."""
+    frame = SyntheticScene(tiny_config(), 0).render_frame(0)
+    out = []
+    for cam in frame.cameras:
+        projected, _ = project_camera(cam, sweep_points(frame), ProjectParams(use_map=False))
+        c = projected.sparse_confidence
+        seeds = (c * (c >= TRUSTED_DEPTH_CONFIDENCE)).astype(np.float32)
+        out.append((projected.sparse_m, seeds, cam.decode_image(), camera_focal_px(cam)))
+    return out
+
+
+@pytest.mark.parametrize("method", ["guided", "ipbasic", "planar"])
+def test_the_native_last_pass_equals_its_numpy_reference(method, monkeypatch):
+    """Depths bit-identical, confidences within 2e-7 (float32 exp's last bit), on every camera of
+    a rendered frame."""
+    pytest.importorskip("ctypes")
+    if densify_module.load_densify_finish() is None:
+        pytest.skip("no C compiler: the numpy reference is what runs")
+    inputs = _rendered_inputs()
+    native = [run(method, s, c, rgb, f) for s, c, rgb, f in inputs]
+    monkeypatch.setattr(densify_module, "load_densify_finish", lambda: None)
+    for (s, c, rgb, f), got in zip(inputs, native, strict=True):
+        want = run(method, s, c, rgb, f)
+        assert np.array_equal(got.depth_m, want.depth_m)
+        np.testing.assert_allclose(got.confidence, want.confidence, rtol=0, atol=2e-7)
+        assert np.array_equal(got.confidence > 0, want.depth_m > 0)
+
+
+@pytest.mark.parametrize("method", ["guided", "ipbasic"])
+def test_a_crop_to_the_measurements_gives_the_whole_image_answer(method):
+    """Measurements in a 60 x 90 window of a 400 x 600 image at f = 1000 px: the crop leaves out
+    most of the image and the answer is the whole-image run's (ipbasic: identical; guided: the
+    recursive filter's tails beyond eight spatial scales, < 1e-5 relative)."""
+    h, w, f = 400, 600, 1000.0
+    truth = plane_depth(h, w, 0.1, 1e-4, 2e-4)
+    sparse, conf = sample(truth, 0.3, seed=4)
+    window = np.zeros((h, w), bool)
+    window[250:310, 200:290] = True
+    sparse, conf = sparse * window, conf * window
+    rgb = np.random.default_rng(1).integers(90, 130, (h, w, 3), dtype=np.uint8)
+    rgb[:, 240:] //= 2  # an image edge through the window
+    box = densify_module.crop_box((sparse > 0) & (conf > 0), method, {}, f)
+    assert box is not None and (box[0].stop - box[0].start) * (box[1].stop - box[1].start) < 0.5 * h * w
+    got = densify(sparse, conf, rgb if needs_rgb(method) else None, focal_px=f, method=method)
+    want = densify_module.densify_reference(
+        sparse, conf, rgb if needs_rgb(method) else None, focal_px=f, method=method
+    )
+    assert np.count_nonzero(want.depth_m) > 3000
+    assert np.array_equal(got.depth_m > 0, want.depth_m > 0)
+    np.testing.assert_allclose(got.depth_m, want.depth_m, rtol=1e-5)
+    np.testing.assert_allclose(got.confidence, want.confidence, rtol=0, atol=1e-5)
+    if method == "ipbasic":
+        assert np.array_equal(got.depth_m, want.depth_m)
+
+
+def test_the_stages_origin_codes_equal_their_reference():
+    """densified_origin (uint8 throughout) gives dense_origin_of's codes: lidar where a trusted
+    measurement is kept exactly, densified elsewhere with a depth, none without."""
+    from phigenesis.data.records import dense_origin_of
+
+    rng = np.random.default_rng(3)
+    sparse = np.where(rng.random((50, 70)) < 0.3, rng.uniform(1, 50, (50, 70)), 0).astype(np.float32)
+    conf = np.where(rng.random((50, 70)) < 0.8, rng.uniform(0.1, 1, (50, 70)), 0).astype(np.float32)
+    dense = np.where(rng.random((50, 70)) < 0.5, sparse, rng.uniform(0, 50, (50, 70))).astype(np.float32)
+    dense[rng.random((50, 70)) < 0.2] = 0
+    got = densify_module.densified_origin(sparse, conf, dense)
+    assert got.dtype == np.uint8 and set(np.unique(got)) == {0, 1, 2}
+    assert np.array_equal(got, dense_origin_of(sparse, conf, dense))

@@ -371,3 +371,40 @@ def test_a_camera_with_almost_no_pseudo_labels_is_warned_about_once_per_scene(de
     # of this scene, 0.0 %); FRONT's labels cover 23 %.
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warned) < len(names) and not any(f"camera {names[0]}:" in m for m in warned)
+
+
+def test_the_sky_rule_counts_only_the_long_range_lidars_of_a_multi_lidar_sweep():
+    """A 75 m LiDAR sweeping -17.6..+2.4 deg with returns everywhere, and a 20 m one sweeping up to
+    +30 deg with returns only below +10 deg (a facade beyond its range above that): the field's
+    top and the grid are the long-range sensor's, so nothing above +2.4 deg counts as swept."""
+    import types
+
+    from phigenesis.data.records import LidarSweep
+    from phigenesis.data.stages.semantics import lidar_returns_grid, long_range_points
+
+    def ring(elev_deg: np.ndarray, rng_m: float) -> np.ndarray:
+        az = np.radians(np.arange(0, 360, 0.5))
+        e = np.radians(elev_deg)[:, None]
+        return np.stack(
+            [rng_m * np.cos(e) * np.cos(az), rng_m * np.cos(e) * np.sin(az), rng_m * np.sin(e) + 0 * az], -1
+        ).reshape(-1, 3)
+
+    far = ring(np.linspace(-17.6, 2.4, 40), 60.0)
+    near = ring(np.linspace(-30.0, 10.0, 40), 15.0)
+    points = np.concatenate([far, near]).astype(np.float32)
+    n = len(points)
+    ids = np.concatenate([np.zeros(len(far), np.uint8), np.ones(len(near), np.uint8)])
+    sweep = LidarSweep(
+        0, np.eye(4), points, np.zeros(n, np.float32), np.zeros(n, np.uint16), np.zeros((n, 3), np.float32),
+        np.zeros(n, np.int32), ids,
+    )  # fmt: skip
+    keep = long_range_points(sweep)
+    assert keep is not None and np.array_equal(keep, ids == 0)
+    grid, top = lidar_returns_grid(types.SimpleNamespace(lidar=sweep), 0.5)
+    assert abs(top - 2.4) < 0.05
+    row = int((5.0 + 90) // 0.5)  # +5 deg: only the short-range sensor returned there
+    assert not grid[row].any()
+    # One sensor: every point counts, as before.
+    single = dataclasses.replace(sweep, lidar_id=np.zeros(n, np.uint8))
+    assert long_range_points(single) is None
+    assert lidar_returns_grid(types.SimpleNamespace(lidar=single), 0.5)[1] > 9.0

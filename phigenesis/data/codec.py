@@ -107,14 +107,23 @@ def _undelta_rows(x: np.ndarray) -> None:
         np.add(x[i], x[i - 1], out=x[i])
 
 
+#: Filter choice on a sample: maps of at least this many rows choose delta coding or not from bands
+#: of :data:`SAMPLE_BAND` rows, one every :data:`SAMPLE_STRIDE` rows (an eighth of the map), each
+#: compressed both ways; smaller maps are compressed both ways whole.
+SAMPLE_MIN_ROWS = 256
+SAMPLE_BAND = 16
+SAMPLE_STRIDE = 128
+
+
 def encode_array(image: NDArray[np.integer], what: str = "map", level: int = ZSTD_LEVEL) -> bytes:
     """An (H, W) or (H, W, C) uint8 / uint16 array to a map blob (header + zstd frame at ``level``),
     losslessly.
 
-    16-bit values are split into a plane of low bytes and a plane of high bytes, and the map is
-    compressed twice, as it is and with its rows delta-coded (each minus the row above): the smaller
-    is kept (delta wins on dense depth, confidences and labels, loses on sparse maps, where it
-    doubles the non-zero values). The header records the filters."""
+    16-bit values are split into a plane of low bytes and a plane of high bytes, and the rows are
+    delta-coded (each minus the row above) where that compresses smaller (delta wins on dense
+    depth and on labels, loses on sparse maps, where it doubles the non-zero values, and on
+    confidences). Which is smaller is measured on a sample of the rows (:func:`_delta_wins`), so
+    the map is compressed once; the header records the filters."""
     a = np.asarray(image)
     if a.dtype not in (np.uint8, np.uint16) or a.ndim not in (2, 3) or 0 in a.shape:
         raise ValueError(
@@ -129,20 +138,57 @@ def encode_array(image: NDArray[np.integer], what: str = "map", level: int = ZST
     if level not in _ZSTD_ENCODERS:
         _ZSTD_ENCODERS[level] = pa.Codec("zstd", compression_level=level)
     zstd = _ZSTD_ENCODERS[level]
-
-    def compressed(x: np.ndarray, filt: int) -> tuple[bytes, int]:
-        if x.dtype.itemsize == 2:
-            planes = np.empty((2, h, w * channels), np.uint8)
-            cv2.split(x.view(np.uint8).reshape(h, w * channels, 2), [planes[0], planes[1]])
-            x, filt = planes, filt | FILTER_SHUFFLE
-        return zstd.compress(x, asbytes=True), filt
-
-    payload, filt = compressed(rows, FILTER_NONE)
-    if h > 1:
-        delta = compressed(_delta_rows(rows), FILTER_DELTA)
-        if len(delta[0]) < len(payload):
-            payload, filt = delta
+    if h >= SAMPLE_MIN_ROWS:
+        delta = _delta_wins(rows, zstd)
+        payload, filt = _compressed(_delta_rows(rows) if delta else rows, zstd, FILTER_DELTA if delta else 0)
+    else:
+        payload, filt = _compressed(rows, zstd, FILTER_NONE)
+        if h > 1:
+            coded = _compressed(_delta_rows(rows), zstd, FILTER_DELTA)
+            if len(coded[0]) < len(payload):
+                payload, filt = coded
     return _HEADER.pack(MAGIC, FORMAT_VERSION, a.dtype.itemsize, channels, filt, h, w, len(payload)) + payload
+
+
+def encode_array_reference(image: NDArray[np.integer], what: str = "map", level: int = ZSTD_LEVEL) -> bytes:
+    """:func:`encode_array` choosing the filter by compressing the whole map both ways (twice the
+    work): the reference its sampled choice is measured against (tests/test_codec.py)."""
+    a = np.asarray(image)
+    h, w = a.shape[:2]
+    channels = 1 if a.ndim == 2 else a.shape[2]
+    rows = np.ascontiguousarray(a.reshape(h, w * channels), dtype=a.dtype.newbyteorder("<"))
+    zstd = pa.Codec("zstd", compression_level=level)
+    payload, filt = _compressed(rows, zstd, FILTER_NONE)
+    if h > 1:
+        coded = _compressed(_delta_rows(rows), zstd, FILTER_DELTA)
+        if len(coded[0]) < len(payload):
+            payload, filt = coded
+    return _HEADER.pack(MAGIC, FORMAT_VERSION, a.dtype.itemsize, channels, filt, h, w, len(payload)) + payload
+
+
+def _compressed(x: np.ndarray, zstd: pa.Codec, filt: int) -> tuple[bytes, int]:
+    """The zstd frame of the (H, M) rows ``x`` (16-bit values split into byte planes first) and the
+    filter bits with the shuffle bit added where it applies."""
+    if x.dtype.itemsize == 2:
+        h, m = x.shape
+        planes = np.empty((2, h, m), np.uint8)
+        cv2.split(x.view(np.uint8).reshape(h, m, 2), [planes[0], planes[1]])
+        x, filt = planes, filt | FILTER_SHUFFLE
+    return zstd.compress(x, asbytes=True), filt
+
+
+def _delta_wins(rows: np.ndarray, zstd: pa.Codec) -> bool:
+    """Whether delta coding compresses the (H, M) ``rows`` smaller, judged on bands of
+    :data:`SAMPLE_BAND` rows every :data:`SAMPLE_STRIDE` rows (each band delta-coded within
+    itself, so its first row is kept as in the plain sample and the two differ only in the rest)."""
+    h = rows.shape[0]
+    starts = np.arange(0, h - SAMPLE_BAND + 1, SAMPLE_STRIDE)
+    sample = rows[(starts[:, None] + np.arange(SAMPLE_BAND)).reshape(-1)]
+    bands = sample.reshape(len(starts), SAMPLE_BAND, -1)
+    coded = bands.copy()
+    np.subtract(bands[:, 1:], bands[:, :-1], out=coded[:, 1:])
+    plain = len(_compressed(sample, zstd, FILTER_NONE)[0])
+    return len(_compressed(coded.reshape(sample.shape), zstd, FILTER_NONE)[0]) < plain
 
 
 def _decode_zstd(
@@ -270,11 +316,17 @@ def _shape_of(out: np.ndarray | None, shape: Sequence[int] | None) -> Sequence[i
 
 
 def quantise_depth(depth_m: NDArray[np.floating]) -> NDArray[np.uint16]:
-    """(H, W) metres to the stored 16-bit values; depths beyond 255.996 m, <= 0 or non-finite become 0."""
-    d = np.asarray(depth_m, dtype=np.float64)
-    q = np.round(d * DEPTH_SCALE)
-    q[~np.isfinite(d) | (d <= 0) | (q > 65535)] = 0
-    return q.astype(np.uint16)
+    """(H, W) metres to the stored 16-bit values; depths beyond 255.996 m, <= 0 or non-finite become 0.
+
+    float32 depths are scaled and rounded in float32, exactly (times 256 is exact, so is rounding),
+    without a float64 copy; other inputs in float64."""
+    d = np.asarray(depth_m)
+    if d.dtype != np.float32:
+        d = d.astype(np.float64)
+    q = d * d.dtype.type(DEPTH_SCALE)
+    np.round(q, out=q)
+    # NaN compares false, so NaN, infinities, depths <= 0 and beyond the range all become 0.
+    return np.where((q <= 65535) & (d > 0), q, 0).astype(np.uint16)
 
 
 def encode_depth(depth_m: NDArray[np.floating]) -> bytes:
@@ -294,9 +346,16 @@ def decode_depth(
 
 def quantise_confidence(confidence: NDArray[np.floating]) -> NDArray[np.uint8]:
     """(H, W) confidences in [0, 1] to the stored 8-bit values (``value / 255``); NaN becomes 0, the
-    rest clips to [0, 1]."""
-    c = np.nan_to_num(np.asarray(confidence, dtype=np.float64), nan=0.0)
-    return np.round(np.clip(c, 0.0, 1.0) * CONFIDENCE_SCALE).astype(np.uint8)
+    rest clips to [0, 1]. Scaled in float64 (exact for float32 inputs) so that ties round as they
+    always have (half to even)."""
+    c = np.asarray(confidence)
+    if c.dtype not in (np.float32, np.float64):
+        c = c.astype(np.float64)
+    clipped = np.fmax(c, c.dtype.type(0.0))  # NaN -> 0
+    np.minimum(clipped, c.dtype.type(1.0), out=clipped)
+    scaled = np.multiply(clipped, CONFIDENCE_SCALE, dtype=np.float64)
+    np.rint(scaled, out=scaled)
+    return scaled.astype(np.uint8)
 
 
 def encode_confidence(confidence: NDArray[np.floating]) -> bytes:

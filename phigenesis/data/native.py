@@ -1,13 +1,15 @@
 """The data pipeline's C kernels (``csrc/*.c``), compiled on first use into one library: the Waymo
 reader's range-image kernel (``range_points.c``), the shard writer's CRC-32C combination
 (``crc32c_combine.c``), the pseudo labels' box rule (``box_labels.c``), depth completion's
-fine pass (``complete_fine.c``), the depth projection's ray-box test (``ray_box.c``: the far
+fine pass (``complete_fine.c``), the densifier's last pass (``densify_finish.c``: support,
+confidence and clean-up in one pass), the depth projection's ray-box test (``ray_box.c``: the far
 side of a moving vehicle along each ray of its footprint, one pass instead of numpy's fifteen) and
 a camera's per-calibration tables (``camera_rays.c``: undistorted pixel rays, their ego-frame
 directions and the range view's overlap map).
 
 Entry points: :func:`load_range_points`, :func:`load_crc32c_combine`, :func:`load_box_labels`,
-:func:`load_complete_fine`, :func:`load_ray_box`, :func:`load_camera_rays`.
+:func:`load_complete_fine`, :func:`load_ray_box`, :func:`load_camera_rays`,
+:func:`load_densify_finish`.
 
 Turning a Waymo frame's range images into points was a quarter of the v1 reader's time in numpy
 (16 ms of 65 ms a frame: a mask, a gather per channel, the ray arithmetic and the concatenation, each
@@ -48,6 +50,7 @@ SOURCES = (
     Path(__file__).parent / "csrc" / "complete_fine.c",
     Path(__file__).parent / "csrc" / "ray_box.c",
     Path(__file__).parent / "csrc" / "camera_rays.c",
+    Path(__file__).parent / "csrc" / "densify_finish.c",
 )
 LIBRARY_NAME = "libphigenesis_data"
 CFLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fPIC", "-shared", "-std=c99")
@@ -427,6 +430,7 @@ class _Kernels(NamedTuple):
     complete_fine: CompleteFine
     ray_box: RayBox
     camera_rays: CameraRays
+    densify_finish: DensifyFinish
 
 
 def _load_library() -> _Kernels | None:
@@ -448,6 +452,7 @@ def _load_library() -> _Kernels | None:
                 CompleteFine(library),
                 RayBox(library),
                 CameraRays(library),
+                DensifyFinish(library),
             )
         except (OSError, subprocess.SubprocessError, AttributeError) as error:
             _failure = str(error).splitlines()[0][:300] if str(error) else type(error).__name__
@@ -642,6 +647,72 @@ def load_complete_fine() -> CompleteFine | None:
     (:func:`_load_library`)."""
     kernels = _load_library()
     return None if kernels is None else kernels.complete_fine
+
+
+class DensifyFinish:
+    """The loaded ``phigenesis_densify_finish`` (see ``csrc/densify_finish.c``): the densifier's
+    support mask, confidence and clean-up in one pass over the image."""
+
+    def __init__(self, library: ctypes.CDLL):
+        i64, ptr, f32 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_float
+        self._finish = library.phigenesis_densify_finish
+        self._finish.argtypes = [i64] + [ptr] * 7 + [f32, f32] + [ptr] * 2
+        self._finish.restype = None
+
+    def __call__(
+        self,
+        dense: NDArray[np.float32],
+        support: NDArray[np.bool_],
+        sparse: NDArray[np.float32],
+        conf: NDArray[np.float32],
+        labels: NDArray[np.int32],
+        lut: NDArray[np.int32],
+        dist: NDArray[np.float32],
+        distance_scale_px: float,
+        relative_depth_scale: float,
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """(depth, confidence), both (H, W) float32: ``dense`` (H, W) metres where ``support`` and
+        positive, else 0, and its confidence (``densify.depth_confidence``, clipped to [0, 1]) from
+        ``sparse`` / ``conf`` (H, W), the nearest trusted pixel ``lut[labels]`` (``labels`` (H, W)
+        int32 of OpenCV's distance transform, ``lut`` int32 flat pixel index per label) at
+        ``dist`` (H, W) pixels, ``d0`` = ``distance_scale_px``, ``rel0`` = ``relative_depth_scale``."""
+        shape = dense.shape
+        checks = [
+            (dense, np.float32, shape),
+            (support, np.bool_, shape),
+            (sparse, np.float32, shape),
+            (conf, np.float32, shape),
+            (labels, np.int32, shape),
+            (lut, np.int32, lut.shape),
+            (dist, np.float32, shape),
+        ]
+        for a, dtype, want in checks:
+            if a.dtype != dtype or a.shape != want or not a.flags.c_contiguous:
+                raise ValueError(
+                    f"densify finish: expected a C-order {np.dtype(dtype)} array of shape {want}"
+                )
+        size = dense.size
+        if size and (
+            int(labels.min()) < 0 or int(labels.max()) >= len(lut) or not 0 <= lut.min() <= lut.max() < size
+        ):
+            raise ValueError("densify finish: labels or lut out of range")
+        depth, confidence = np.empty(shape, np.float32), np.empty(shape, np.float32)
+        self._finish(
+            size,
+            *(_address(a) for a, _, _ in checks),
+            np.float32(-1.0 / distance_scale_px),
+            np.float32(relative_depth_scale),
+            _address(depth),
+            _address(confidence),
+        )
+        return depth, confidence
+
+
+def load_densify_finish() -> DensifyFinish | None:
+    """The densifier's last-pass kernel, or ``None`` where the library cannot be built
+    (:func:`_load_library`)."""
+    kernels = _load_library()
+    return None if kernels is None else kernels.densify_finish
 
 
 def load_ray_box() -> RayBox | None:

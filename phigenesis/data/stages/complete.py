@@ -479,8 +479,8 @@ def complete_depth_map(
     classes = _check_labels("classes", classes, shape, None)
 
     known = (depth > 0) & (conf > 0)
-    out_depth = np.where(known, depth, 0).astype(np.float32)
-    out_conf = np.where(known, conf, 0).astype(np.float32)
+    out_depth = depth * known  # float32 copies, 0 where unknown
+    out_conf = conf * known
     densified = np.uint8(ORIGIN["densified"])
     if origin_in is None:
         out_origin = known.astype(np.uint8) * densified
@@ -501,11 +501,14 @@ def complete_depth_map(
         if (known.any() or (p.sparse_planes and sparse is not None)) and fillable.any():
             _Completer(inputs, segments, up, focal_px, p).run()
     # Completed depths are finite and positive by construction; checked once more so that no NaN
-    # or infinity can ever reach a cache.
-    out_depth[~np.isfinite(out_depth) | (out_depth < 0)] = 0
-    filled = out_depth > 0
-    out_conf = np.clip(np.nan_to_num(out_conf), 0, 1) * filled
-    return CompletionResult(out_depth, out_conf.astype(np.float32), out_origin * filled, segments)
+    # or infinity can ever reach a cache (in place: NaN fails both comparisons).
+    filled = (out_depth > 0) & (out_depth < np.inf)
+    unfilled = ~filled
+    np.copyto(out_depth, 0, where=unfilled)
+    np.copyto(out_conf, 0, where=unfilled | ~(out_conf > 0))  # NaN and negatives too
+    np.minimum(out_conf, np.float32(1), out=out_conf)
+    np.copyto(out_origin, 0, where=unfilled)
+    return CompletionResult(out_depth, out_conf, out_origin, segments)
 
 
 @dataclass
@@ -1073,6 +1076,8 @@ class _Completer:
         self.known, self.fillable = inputs.known.reshape(-1), inputs.fillable.reshape(-1)
         self.image, self.rays, self.up, self.p = inputs.rgb, inputs.rays, up, p
         self.segments = segments
+        self._segment_colours: F64 | None = None
+        self._boundary_pairs: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None
         self.scale = focal_px / REFERENCE_FOCAL_PX
         self.rng = np.random.default_rng(p.seed)
         self.ray_norm = np.linalg.norm(self.rays, axis=1) if ray_norm is None else ray_norm
@@ -1505,17 +1510,13 @@ class _Completer:
         colours are within ``propagate_color_tol`` (step 5)."""
         if len(segs) == 0 or not source.any():
             return
-        i, j = _adjacent_pixels(self.shape)
+        i, j = self.boundary_pairs()
         a, b = self.flat[i].astype(np.int64), self.flat[j].astype(np.int64)
-        cut = a != b
-        a, b = a[cut], b[cut]
         keys, length = np.unique(np.concatenate([a * self.count + b, b * self.count + a]), return_counts=True)
         seg, nb = np.divmod(keys, self.count)
         want = np.zeros(self.count, bool)
         want[segs] = True
-        colour = self.image.reshape(-1, 3).astype(np.float64)
-        sums = np.stack([np.bincount(self.flat, colour[:, c], self.count) for c in range(3)], axis=1)
-        mean = sums / np.maximum(self.sizes, 1)[:, None]
+        mean = self.segment_colours()
         ok = want[seg] & source[nb] & (length >= self.p.min_boundary_ref_px * self.scale)
         ok &= np.linalg.norm(mean[seg] - mean[nb], axis=1) < self.p.propagate_color_tol
         seg, nb, length = seg[ok], nb[ok], length[ok]
@@ -1529,11 +1530,24 @@ class _Completer:
             dist = np.abs(empty // w - (self.r0[src] + self.r1[src]) / 2).astype(np.float32)
             self._fill(empty, fits, src, dist, self.p.propagate_confidence, ORIGIN["plane"])
 
+    def boundary_pairs(self) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        """Flat indices of every pair of horizontally or vertically adjacent pixels of different
+        segments (first, second; computed once per completion)."""
+        if self._boundary_pairs is None:
+            i, j = _adjacent_pixels(self.shape)
+            cut = self.flat[i] != self.flat[j]
+            self._boundary_pairs = (i[cut], j[cut])
+        return self._boundary_pairs
+
     def segment_colours(self) -> F64:
-        """(S, 3) mean colour of each segment."""
-        colour = self.image.reshape(-1, 3).astype(np.float64)
-        sums = np.stack([np.bincount(self.flat, colour[:, c], self.count) for c in range(3)], axis=1)
-        return sums / np.maximum(self.sizes, 1)[:, None]
+        """(S, 3) mean colour of each segment (computed once: the image and its segments do not
+        change during a completion; a read-only array)."""
+        if self._segment_colours is None:
+            colour = self.image.reshape(-1, 3).astype(np.float64)
+            sums = np.stack([np.bincount(self.flat, colour[:, c], self.count) for c in range(3)], axis=1)
+            self._segment_colours = sums / np.maximum(self.sizes, 1)[:, None]
+            self._segment_colours.setflags(write=False)
+        return self._segment_colours
 
     def unseen_facade_parts(self, todo: Mask) -> Mask:
         """The segments of ``todo`` a facade may climb into (step 7): fewer than ``min_inliers``
@@ -1570,9 +1584,7 @@ class _Completer:
         if h < 2 or not self.facades:
             return
         todo = self.unseen_facade_parts(todo)
-        i, j = _adjacent_pixels(self.shape)
-        cut = self.flat[i] != self.flat[j]
-        i, j = i[cut], j[cut]
+        i, j = self.boundary_pairs()
         # Every boundary pair both ways: (pixel of the candidate, its neighbour, neighbour below).
         a, b = np.concatenate([i, j]), np.concatenate([j, i])
         below = b - a == w
@@ -1966,6 +1978,19 @@ class _CameraTables:
     ego: Mask
 
 
+def _has_evidence(dense_m: F32, sparse_m: F32 | None, sparse_confidence: F32 | None) -> bool:
+    """Whether a camera's (H, W) depth maps hold anything a completion could extend: a dense pixel
+    of positive depth, or a sparse one of positive confidence (the evidence of sparse planes and
+    thin structures). Without either :func:`complete_depth_map` returns an all-0 map."""
+    if np.any(dense_m > 0):
+        return True
+    return (
+        sparse_m is not None
+        and sparse_confidence is not None
+        and bool(np.any((sparse_m > 0) & (sparse_confidence > 0)))
+    )
+
+
 @register_stage("complete_depth", params=CompletionParams)
 def complete_depth(scene: Scene, p: CompletionParams) -> Scene:
     """Stage: extends every camera's dense depth where planes and thin vertical structures of its
@@ -1993,6 +2018,14 @@ def complete_depth(scene: Scene, p: CompletionParams) -> Scene:
         depth = cam.depth
         if depth is None or depth.dense_m is None or cam.image_bytes is None:
             return cam
+        if not _has_evidence(depth.dense_m, depth.sparse_m, depth.sparse_confidence):
+            # Nothing to extend (a frame without LiDAR): the map stays empty, as the completion
+            # would leave it, without segmenting the image.
+            if depth.dense_confidence is None or not depth.dense_confidence.any():
+                return cam
+            zeros = np.zeros(depth.dense_m.shape, np.float32)
+            empty = dataclasses.replace(depth, dense_confidence=zeros, dense_origin=zeros.astype(np.uint8))
+            return dataclasses.replace(cam, depth=empty)
         sky = classes = None
         if cam.pseudo is not None:
             sky = cam.pseudo.semantic == tx.SKY

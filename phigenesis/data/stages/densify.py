@@ -87,13 +87,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
+from phigenesis.data.native import load_densify_finish
 from phigenesis.data.records import (
+    DENSE_ORIGINS,
     TRUSTED_DEPTH_CONFIDENCE,
     CameraImage,
     Frame,
     LazyFrames,
     Scene,
-    dense_origin_of,
 )
 from phigenesis.data.stages import register_stage
 from phigenesis.options import ConfigError, check_options, from_mapping, option
@@ -320,9 +321,15 @@ def _densify_checked(
     focal_px: float,
     method: str,
     params: dict[str, Any],
+    crop: bool = True,
 ) -> DenseResult:
     """:func:`densify` with ``method`` and ``params`` already checked (the stage checks them once
-    per scene, :class:`DensifyParams`, not once per image)."""
+    per scene, :class:`DensifyParams`, not once per image).
+
+    ``crop``: a method with a crop margin (:data:`CROP_MARGINS`) runs only on the measurements'
+    bounding box grown by that margin (:func:`crop_box`), the rest of the image staying 0: at
+    real size the LiDAR reaches little above the horizon, so a third or more of the pixels can be
+    left out. :func:`densify_reference` is the whole-image run it is tested against."""
     fn = get_densifier(method)
     sparse, conf = check_depth_maps(sparse_m, sparse_confidence)
     if rgb is not None:
@@ -332,10 +339,100 @@ def _densify_checked(
     focal_px = float(focal_px)
     if not np.isfinite(focal_px) or focal_px <= 0:
         raise ValueError(f"focal_px must be a positive finite number of pixels, got {focal_px}")
-    if not np.any((sparse > 0) & (conf > 0)):
+    measured = (sparse > 0) & (conf > 0)
+    if not measured.any():
         zeros = np.zeros(sparse.shape, np.float32)
         return DenseResult(zeros, zeros.copy())
-    return _check_result(fn(sparse, conf, rgb, focal_px, **params), sparse.shape, method)
+    box = crop_box(measured, method, params, focal_px) if crop else None
+    if box is None:
+        return _check_result(fn(sparse, conf, rgb, focal_px, **params), sparse.shape, method)
+    rows, cols = box
+    sub_rgb = None if rgb is None else np.ascontiguousarray(rgb[rows, cols])
+    part = fn(
+        _readonly(np.ascontiguousarray(sparse[rows, cols])),
+        _readonly(np.ascontiguousarray(conf[rows, cols])),
+        sub_rgb,
+        focal_px,
+        **params,
+    )
+    part = _check_result(part, (rows.stop - rows.start, cols.stop - cols.start), method)
+    depth, confidence = np.zeros(sparse.shape, np.float32), np.zeros(sparse.shape, np.float32)
+    depth[rows, cols], confidence[rows, cols] = part.depth_m, part.confidence
+    return DenseResult(depth, confidence)
+
+
+def densify_reference(
+    sparse_m: F32,
+    sparse_confidence: F32,
+    rgb: NDArray[np.uint8] | None = None,
+    *,
+    focal_px: float,
+    method: str = DEFAULT_DENSIFIER,
+    **params: Any,
+) -> DenseResult:
+    """:func:`densify` on the whole image, without the crop to the measurements (the reference the
+    cropped run is tested against: identical for ``ipbasic``, within float rounding of the
+    recursive edge-aware filter for ``guided``, tests/test_densify.py)."""
+    get_densifier(method)
+    check_params(method, params)
+    return _densify_checked(sparse_m, sparse_confidence, rgb, focal_px, method, params, crop=False)
+
+
+def _guided_margin(params: dict[str, Any], focal_px: float) -> float:
+    """Crop margin of ``guided`` (pixels): the fill reach and its enclosure test, the occlusion
+    test's radius, and eight spatial scales of the edge-aware filter (its recursive passes carry a
+    sample's weight ``exp(-sqrt(2) d / scale)`` at most ``d`` pixels on: ~1e-5 at eight)."""
+    full = {**method_params("guided"), **params}
+    smooth_ref = full["smooth_ref_px"]
+    if smooth_ref is None:
+        smooth_ref = EDGE_FILTERS[full["edge_filter"]][0]
+    reach = scaled_px(full["max_fill_ref_px"], focal_px) * (1 + ENCLOSURE_FACTOR)
+    return reach + scaled_px(full["occlusion_ref_px"], focal_px) + 8 * scaled_px(smooth_ref, focal_px)
+
+
+def _ipbasic_margin(params: dict[str, Any], focal_px: float) -> float:
+    """Crop margin of ``ipbasic`` (pixels): the fill reach and its enclosure test, and every
+    morphology and blur radius in turn (each can carry a value that far)."""
+    full = {**method_params("ipbasic"), **params}
+    reach = scaled_px(full["max_fill_ref_px"], focal_px) * (1 + ENCLOSURE_FACTOR)
+    radii = sum(
+        _radius(full[k], focal_px) for k in ("dilate_ref_px", "close_ref_px", "fill_ref_px", "blur_ref_px")
+    )
+    return reach + 2 * radii + 3  # closing = dilate + erode; median 5x5
+
+
+#: Methods that may run on a crop around their measurements, with the margin (pixels) a crop needs
+#: so that every pixel they can fill, and everything that decides it, lies inside. ``planar`` and
+#: ``planar_guided`` are not here: their plane fits pool samples over tiles aligned to the image.
+CROP_MARGINS: dict[str, Callable[[dict[str, Any], float], float]] = {
+    "guided": _guided_margin,
+    "ipbasic": _ipbasic_margin,
+}
+#: A crop is used only where it leaves out at least this share of the image's pixels.
+MIN_CROP_SAVING = 0.1
+
+
+def crop_box(
+    measured: Mask, method: str, params: dict[str, Any], focal_px: float
+) -> tuple[slice, slice] | None:
+    """The (rows, cols) slices of the bounding box of the (H, W) ``measured`` pixels grown by the
+    method's crop margin (:data:`CROP_MARGINS`) and clipped to the image; None where the method
+    has none, where the image has no measurement, or where the crop would save less than
+    :data:`MIN_CROP_SAVING` of the pixels."""
+    margin_of = CROP_MARGINS.get(method)
+    if margin_of is None:
+        return None
+    rows_any, cols_any = measured.any(axis=1), measured.any(axis=0)
+    if not rows_any.any():
+        return None
+    h, w = measured.shape
+    m = int(np.ceil(margin_of(params, focal_px))) + 1
+    r0, r1 = int(rows_any.argmax()), h - int(rows_any[::-1].argmax())
+    c0, c1 = int(cols_any.argmax()), w - int(cols_any[::-1].argmax())
+    r0, r1, c0, c1 = max(0, r0 - m), min(h, r1 + m), max(0, c0 - m), min(w, c1 + m)
+    if (r1 - r0) * (c1 - c0) > (1 - MIN_CROP_SAVING) * h * w:
+        return None
+    return slice(r0, r1), slice(c0, c1)
 
 
 def _readonly(arr: np.ndarray) -> np.ndarray:
@@ -388,6 +485,8 @@ def _check_result(result: DenseResult, shape: tuple[int, ...], method: str) -> D
     conf = np.asarray(result.confidence, np.float32)
     if depth.shape != shape or conf.shape != shape:
         raise ValueError(f"densifier {method!r} returned shapes {depth.shape}, {conf.shape}; want {shape}")
+    if isinstance(result, _CleanResult):
+        return DenseResult(depth, conf)
     depth = np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0)
     depth = depth * (depth > 0)
     conf = np.clip(np.nan_to_num(conf), 0, 1) * (depth > 0)
@@ -485,11 +584,23 @@ def depth_confidence(
 def nearest_trusted(trusted: Mask) -> tuple[NDArray[np.int32], F32]:
     """Flat index (``v * W + u``) of and distance in pixels to the nearest ``True`` pixel of
     ``trusted`` (at least one), both (H, W); 3x3-mask approximate Euclidean distance."""
+    labels, lut, dist = _nearest_labels(trusted)
+    return lut[labels], dist
+
+
+def _nearest_labels(trusted: Mask) -> tuple[NDArray[np.int32], NDArray[np.int32], F32]:
+    """:func:`nearest_trusted` before the lookup: OpenCV's (H, W) int32 labels, the int32 flat
+    index of each label's pixel, and the (H, W) float32 distances."""
     src = (~trusted).view(np.uint8) * np.uint8(255)
     dist, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL)
     lut = np.zeros(int(labels.max()) + 1, np.int32)
     lut[labels[trusted]] = np.flatnonzero(trusted)
-    return lut[labels], dist
+    return labels, lut, dist
+
+
+class _CleanResult(DenseResult):
+    """A :class:`DenseResult` already finite, >= 0 and with 0 confidence wherever its depth is 0
+    (the native last pass's): :func:`_check_result` passes it through."""
 
 
 @dataclass(frozen=True)
@@ -503,12 +614,40 @@ class FillParams:
 
 
 def _finish(
-    dense: F32, sparse: F32, conf: F32, trusted: Mask, focal_px: float, fill: FillParams
+    dense: F32, sparse: F32, conf: F32, trusted: Mask, focal_px: float, fill: FillParams, native: bool = True
 ) -> DenseResult:
-    """Restricts ``dense`` to the support of the ``trusted`` measurements and adds its confidence."""
+    """Restricts ``dense`` to the support of the ``trusted`` measurements and adds its confidence.
+
+    ``native``: the support applied and the confidence computed in one pass by the C kernel
+    (``csrc/densify_finish.c``) where it can be built; :func:`_finish_reference` (numpy) is the
+    reference it is tested against (equal up to the last bit of ``exp``)."""
     if not trusted.any():
         zeros = np.zeros(sparse.shape, np.float32)
         return DenseResult(zeros, zeros.copy())
+    kernel = load_densify_finish() if native else None
+    if kernel is None:
+        return _finish_reference(dense, sparse, conf, trusted, focal_px, fill)
+    labels, lut, dist = _nearest_labels(trusted)
+    support = support_mask(trusted, dist, scaled_px(fill.max_fill_ref_px, focal_px), fill.extrapolate_top)
+    d0 = scaled_px(fill.conf_distance_ref_px, focal_px)
+    depth, confidence = kernel(
+        np.ascontiguousarray(dense, np.float32),
+        np.ascontiguousarray(support),
+        np.ascontiguousarray(sparse, np.float32),
+        np.ascontiguousarray(conf, np.float32),
+        labels,
+        lut,
+        dist,
+        d0,
+        fill.conf_relative_depth,
+    )
+    return _CleanResult(depth, confidence)
+
+
+def _finish_reference(
+    dense: F32, sparse: F32, conf: F32, trusted: Mask, focal_px: float, fill: FillParams
+) -> DenseResult:
+    """:func:`_finish` in numpy: the support mask, then :func:`depth_confidence`."""
     index, dist = nearest_trusted(trusted)
     support = support_mask(trusted, dist, scaled_px(fill.max_fill_ref_px, focal_px), fill.extrapolate_top)
     dense = dense * (support & (dense > 0))
@@ -1032,6 +1171,19 @@ class DepthCoverage:
                 )
 
 
+_LIDAR_CODE, _DENSIFIED_CODE = DENSE_ORIGINS.index("lidar"), DENSE_ORIGINS.index("densified")
+
+
+def densified_origin(sparse_m: F32, sparse_confidence: F32, dense_m: F32) -> NDArray[np.uint8]:
+    """:func:`~phigenesis.data.records.dense_origin_of` (its reference, tested equal) in uint8
+    throughout: (H, W) code 1 ("lidar") where ``dense_m`` is exactly a sparse depth of positive
+    confidence, 2 ("densified") at every other pixel with a depth, 0 where ``dense_m`` is 0."""
+    code = (dense_m > 0).view(np.uint8) * np.uint8(_DENSIFIED_CODE)
+    kept = (sparse_m > 0) & (sparse_confidence > 0) & (dense_m == sparse_m)
+    code -= kept.view(np.uint8) * np.uint8(_DENSIFIED_CODE - _LIDAR_CODE)
+    return code
+
+
 @register_stage("densify_depth", params=DensifyParams)
 def densify_depth(scene: Scene, params: DensifyParams) -> Scene:
     """Fills ``dense_m`` / ``dense_confidence`` / ``dense_origin`` (lidar or densified,
@@ -1076,13 +1228,14 @@ def densify_depth(scene: Scene, params: DensifyParams) -> Scene:
             else:
                 rgb = cam.decode_image()
         depth = cam.depth
-        seeds = np.where(depth.sparse_confidence >= min_confidence, depth.sparse_confidence, 0.0)
+        sparse_conf = np.asarray(depth.sparse_confidence, np.float32)
+        seeds = sparse_conf * (sparse_conf >= min_confidence)  # float32, 0 below min_confidence
         result = _densify_checked(depth.sparse_m, seeds, rgb, camera_focal_px(cam), name, kwargs)
         dense = dataclasses.replace(
             depth,
             dense_m=result.depth_m,
             dense_confidence=result.confidence,
-            dense_origin=dense_origin_of(depth.sparse_m, seeds.astype(np.float32), result.depth_m),
+            dense_origin=densified_origin(depth.sparse_m, seeds, result.depth_m),
         )
         return dataclasses.replace(cam, depth=dense)
 

@@ -23,7 +23,8 @@ over every image. Its labels are then refined where the scene's geometry knows b
   anything standing cuts a region off. Replaces segmenter classes other than the flat ones (road,
   sidewalk, terrain) that are less confident than ``keep_segmenter_above``.
 - **sky** (source 4): above the horizon, a pixel with no depth whose direction the LiDAR swept
-  without a return (inside its vertical field) is sky; so is every depth-less pixel above such a
+  without a return (inside its vertical field; of several LiDARs only the long-range ones count,
+  :func:`long_range_points`) is sky; so is every depth-less pixel above such a
   pixel at the top of the LiDAR's field in its column (the LiDAR cannot see higher; a column whose
   top-of-field pixel hit something, such as a facade, stays unlabelled there). Buildings beyond
   the LiDAR's range look the same, so the rule only replaces segmenter labels less confident than
@@ -56,6 +57,7 @@ from phigenesis.data.records import (
     CameraSemantics,
     Frame,
     LazyFrames,
+    LidarSweep,
     Scene,
 )
 from phigenesis.data.stages import register_stage
@@ -238,15 +240,28 @@ def box_labels(
     labels = np.full(len(points_world), tx.IGNORE_ID, np.uint8)
     best = np.full(len(points_world), np.inf)
     all_valid = np.flatnonzero(valid)
+    # The valid points by world x: a box's candidates (without regions) are the run within its
+    # radius in x, found by bisection, not a pass over every point per box.
+    by_x = xs = all_valid
+    if regions is None or any(r is None for r in regions):
+        by_x = all_valid[np.argsort(points_world[all_valid, 0], kind="stable")]
+        xs = points_world[by_x, 0]
     rotations = geometry.quaternion_to_matrix(boxes.orientation_world).reshape(-1, 3, 3)
     for k in range(len(boxes)):
         cls = int(boxes.class_id[k])
-        region = None if regions is None else regions[k]
-        candidates = all_valid if region is None else region[valid[region]]
-        if cls not in BOX_CLASSES or candidates.size == 0:
+        if cls not in BOX_CLASSES:
             continue
         half = 0.5 * boxes.size_lwh[k]
         radius = np.linalg.norm(half + abs(margin_m)) + abs(clearance_m)  # holds the grown box
+        region = None if regions is None else regions[k]
+        if region is None:
+            cx = boxes.center_world[k, 0]
+            lo, hi = np.searchsorted(xs, cx - radius, "left"), np.searchsorted(xs, cx + radius, "right")
+            candidates = by_x[lo:hi]
+        else:
+            candidates = region[valid[region]]
+        if candidates.size == 0:
+            continue
         offset = points_world[candidates] - boxes.center_world[k]  # [P', 3] world
         dist2 = np.einsum("ij,ij->i", offset, offset)
         near = dist2 <= radius**2
@@ -406,18 +421,46 @@ def fit_ground_plane(
     return GroundPlane(n, d, len(inliers))
 
 
+#: A sensor of a multi-LiDAR sweep counts for the sky rule if its returns reach this share of the
+#: farthest-reaching sensor's range (both the 99th percentile of their ranges).
+SKY_MIN_REACH_SHARE = 0.5
+
+
+def long_range_points(sweep: LidarSweep) -> NDArray[np.bool_] | None:
+    """(N,) which points of a multi-LiDAR sweep come from its long-range sensors: those whose
+    returns reach :data:`SKY_MIN_REACH_SHARE` of the farthest-reaching one's range (99th
+    percentiles of the ranges from each point's own origin). None for a single sensor (all count).
+
+    Waymo's four short-range LiDARs see up to 30 deg above the horizon but only ~20 m: a facade
+    beyond that gives them no return, so directions they swept without a return are not open sky
+    (with them, the sky rule labelled 1.8 M building pixels of 3 real-size frames sky)."""
+    ids = sweep.lidar_id
+    counts = np.bincount(ids) if len(ids) else np.zeros(0, np.int64)
+    present = np.flatnonzero(counts)
+    if len(present) <= 1:
+        return None
+    ranges = np.linalg.norm(sweep.points_ego - sweep.origins_ego, axis=1)
+    reach = np.zeros(len(counts))
+    for k in present.tolist():
+        reach[k] = np.percentile(ranges[ids == k], 99)
+    keep = reach >= SKY_MIN_REACH_SHARE * reach.max()
+    return keep[ids]
+
+
 def lidar_returns_grid(frame: Frame, bin_deg: float) -> tuple[NDArray[np.bool_], float] | None:
     """Where the sweep got returns, as an (elevation, azimuth) occupancy grid of ``bin_deg`` bins
     around the sensor's mean position (world axes; row 0 at -90 deg, column 0 at -180 deg),
     dilated by one bin, and the field's top elevation (degrees, the 99.9th percentile of return
-    elevations). None without a sweep."""
+    elevations). Of a multi-LiDAR sweep only the long-range sensors count
+    (:func:`long_range_points`). None without a sweep."""
     sweep = frame.lidar
     if sweep is None or len(sweep) == 0:
         return None
-    origin = geometry.transform_points(sweep.world_from_ego, sweep.origins_ego.astype(np.float64)).mean(
-        axis=0
-    )
-    rays = sweep.points_world() - origin
+    keep = long_range_points(sweep)
+    origins = sweep.origins_ego if keep is None else sweep.origins_ego[keep]
+    origin = geometry.transform_points(sweep.world_from_ego, origins.astype(np.float64)).mean(axis=0)
+    points = sweep.points_world() if keep is None else sweep.points_world()[keep]
+    rays = points - origin
     azimuth = np.degrees(np.arctan2(rays[:, 1], rays[:, 0]))
     elevation = np.degrees(np.arctan2(rays[:, 2], np.hypot(rays[:, 0], rays[:, 1])))
     top = float(np.percentile(elevation, 99.9))
