@@ -1,11 +1,15 @@
 """The data pipeline's C kernels (``csrc/*.c``), compiled on first use into one library: the Waymo
 reader's range-image kernel (``range_points.c``), the shard writer's CRC-32C combination
 (``crc32c_combine.c``), the pseudo labels' box rule (``box_labels.c``), depth completion's
-fine pass (``complete_fine.c``) and the depth projection's ray-box test (``ray_box.c``: the far
-side of a moving vehicle along each ray of its footprint, one pass instead of numpy's fifteen).
+fine pass (``complete_fine.c``), the depth projection's ray-box test (``ray_box.c``: the far
+side of a moving vehicle along each ray of its footprint, one pass instead of numpy's fifteen),
+its first pass over the map points (``camera_points.c``: transform, cull, distort, project and
+test against the ego body and vehicles in one pass) and its plane fits' window sums
+(``window_moments.c``).
 
 Entry points: :func:`load_range_points`, :func:`load_crc32c_combine`, :func:`load_box_labels`,
-:func:`load_complete_fine`, :func:`load_ray_box`.
+:func:`load_complete_fine`, :func:`load_ray_box`, :func:`load_camera_points`,
+:func:`load_window_moments`.
 
 Turning a Waymo frame's range images into points was a quarter of the v1 reader's time in numpy
 (16 ms of 65 ms a frame: a mask, a gather per channel, the ray arithmetic and the concatenation, each
@@ -45,6 +49,8 @@ SOURCES = (
     Path(__file__).parent / "csrc" / "box_labels.c",
     Path(__file__).parent / "csrc" / "complete_fine.c",
     Path(__file__).parent / "csrc" / "ray_box.c",
+    Path(__file__).parent / "csrc" / "camera_points.c",
+    Path(__file__).parent / "csrc" / "window_moments.c",
 )
 LIBRARY_NAME = "libphigenesis_data"
 CFLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fPIC", "-shared", "-std=c99")
@@ -242,12 +248,121 @@ class RayBox:
         )
 
 
+class CameraPointsKernel:
+    """The loaded ``phigenesis_camera_points`` (see ``csrc/camera_points.c``)."""
+
+    def __init__(self, library: ctypes.CDLL):
+        i64, ptr, f32, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_float, ctypes.c_double
+        self._run = library.phigenesis_camera_points
+        self._run.argtypes = [i64, ptr, ptr, ptr, f32, f32, ptr, f64, f64, ptr, i64, ptr, i64, i64]
+        self._run.argtypes += [ptr, ptr, f32, ptr, ptr, ptr, ptr, ptr]
+        self._run.restype = i64
+
+    def __call__(
+        self,
+        points_world: NDArray[np.float32],
+        world_from_camera: NDArray[np.float64],
+        intrinsics: NDArray[np.float64],
+        distortion: NDArray[np.float64],
+        max_radius2: float,
+        size_wh: tuple[int, int],
+        depth_range_m: tuple[float, float],
+        bounds: tuple[tuple[float, float], tuple[float, float]],
+        ego_depth: NDArray[np.float32] | None,
+        occluder_far: NDArray[np.float32] | None,
+        slack_m: float,
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float32], NDArray[np.int64], list[int]]:
+        """The points of ``points_world`` ((N, 3) float32 C order, world frame) that land in the
+        image and lie in front of the ego body and the vehicles: their indices (K,) int64, pixel
+        positions (K, 2) float64 (u along the width), camera z (K,) float32 metres and flat pixel
+        indices (K,) int64, and the counts [projected, behind the ego body, behind vehicles].
+
+        ``world_from_camera`` (4, 4); ``intrinsics`` (3, 3); ``distortion`` (5,) OpenCV k1, k2, p1,
+        p2, k3 and ``max_radius2`` its monotonic radius squared (normalised units);
+        ``size_wh`` the image's (W, H); ``depth_range_m`` (min z, max range); ``bounds`` the
+        normalised view bounds ((x0, x1), (y0, y1)); ``ego_depth`` and ``occluder_far`` (H, W)
+        float32 maps or None; ``slack_m`` added to ``occluder_far``. See ``csrc/camera_points.c``."""
+        w, h = size_wh
+        n = len(points_world)
+        if points_world.shape != (n, 3) or points_world.dtype != np.float32:
+            raise ValueError(f"camera points: points must be (N, 3) float32, got {points_world.shape}")
+        if not points_world.flags.c_contiguous:
+            raise ValueError("camera points: points must be a C-order array")
+        for name, m in (("ego_depth", ego_depth), ("occluder_far", occluder_far)):
+            if m is not None and (m.shape != (h, w) or m.dtype != np.float32 or not m.flags.c_contiguous):
+                raise ValueError(f"camera points: {name} must be a C-order ({h}, {w}) float32 array")
+        centre = np.ascontiguousarray(world_from_camera[:3, 3], np.float32)
+        rotation = np.ascontiguousarray(world_from_camera[:3, :3], np.float32)
+        bounds_f = np.array([*bounds[0], *bounds[1]], np.float32)
+        dist = np.ascontiguousarray(distortion, np.float64).reshape(5)
+        k = np.asarray(intrinsics, np.float64)[[0, 0, 0, 1, 1], [0, 1, 2, 1, 2]].copy()
+        index = np.empty(n, np.int64)
+        uv = np.empty((n, 2), np.float64)
+        z = np.empty(n, np.float32)
+        pixel = np.empty(n, np.int64)
+        counts = np.zeros(3, np.int64)
+        min_depth, max_range = depth_range_m
+        kept = self._run(
+            n,
+            _address(points_world),
+            _address(centre),
+            _address(rotation),
+            min_depth,
+            max_range**2,
+            _address(bounds_f),
+            min_depth,
+            max_radius2,
+            _address(dist),
+            int(bool(np.any(dist != 0.0))),
+            _address(k),
+            w,
+            h,
+            None if ego_depth is None else _address(ego_depth),
+            None if occluder_far is None else _address(occluder_far),
+            slack_m,
+            _address(index),
+            _address(uv),
+            _address(z),
+            _address(pixel),
+            _address(counts),
+        )
+        return index[:kept], uv[:kept], z[:kept], pixel[:kept], [int(c) for c in counts]
+
+
+class WindowMoments:
+    """The loaded ``phigenesis_window_moments`` (see ``csrc/window_moments.c``)."""
+
+    def __init__(self, library: ctypes.CDLL):
+        i64, ptr = ctypes.c_int64, ctypes.c_void_p
+        self._run = library.phigenesis_window_moments
+        self._run.argtypes = [i64, i64, i64, ptr, ptr, i64, ptr]
+        self._run.restype = i64
+
+    def __call__(
+        self, occupied: NDArray[np.int64], own: NDArray[np.float64], shape: tuple[int, int], radius: int
+    ) -> NDArray[np.float64]:
+        """(K, 10) window moments of the ``occupied`` pixels ((K,) sorted int64 flat indices of an
+        (H, W) ``shape`` image; ``own`` their (K, 10) float64 moments):
+        :func:`~phigenesis.data.stages.project.occupied_window_moments`'s values."""
+        k = len(occupied)
+        occupied = np.ascontiguousarray(occupied, np.int64)
+        own = np.ascontiguousarray(own, np.float64)
+        if own.shape != (k, 10):
+            raise ValueError(f"window moments: own must be ({k}, 10), got {own.shape}")
+        out = np.empty((k, 10), np.float64)
+        if self._run(shape[0], shape[1], k, _address(occupied), _address(own), radius, _address(out)) < 0:
+            raise MemoryError("window moments: no memory for the pixel map")
+        return out
+
+
 class _Kernels(NamedTuple):
     range_points: RangePoints
     crc32c_combine: Crc32cCombine
     box_labels: BoxLabels
     complete_fine: CompleteFine
     ray_box: RayBox
+    camera_points: CameraPointsKernel
+    window_moments: WindowMoments
 
 
 def _load_library() -> _Kernels | None:
@@ -268,6 +383,8 @@ def _load_library() -> _Kernels | None:
                 BoxLabels(library),
                 CompleteFine(library),
                 RayBox(library),
+                CameraPointsKernel(library),
+                WindowMoments(library),
             )
         except (OSError, subprocess.SubprocessError, AttributeError) as error:
             _failure = str(error).splitlines()[0][:300] if str(error) else type(error).__name__
@@ -470,6 +587,20 @@ def load_ray_box() -> RayBox | None:
     return None if kernels is None else kernels.ray_box
 
 
+def load_camera_points() -> CameraPointsKernel | None:
+    """The projection's first-pass kernel, or ``None`` where the library cannot be built
+    (:func:`_load_library`)."""
+    kernels = _load_library()
+    return None if kernels is None else kernels.camera_points
+
+
+def load_window_moments() -> WindowMoments | None:
+    """The plane fits' window-moment kernel, or ``None`` where the library cannot be built
+    (:func:`_load_library`)."""
+    kernels = _load_library()
+    return None if kernels is None else kernels.window_moments
+
+
 def failure_reason() -> str | None:
     """Why the kernels are not available (after a loader returned ``None``)."""
     return _failure
@@ -477,15 +608,19 @@ def failure_reason() -> str | None:
 
 __all__ = [
     "BoxLabels",
+    "CameraPointsKernel",
     "CompleteFine",
     "Crc32cCombine",
     "RangePoints",
     "RayBox",
+    "WindowMoments",
     "build_directory",
     "failure_reason",
     "load_box_labels",
+    "load_camera_points",
     "load_complete_fine",
     "load_crc32c_combine",
     "load_range_points",
     "load_ray_box",
+    "load_window_moments",
 ]
