@@ -4,12 +4,12 @@ reader's range-image kernel (``range_points.c``), the shard writer's CRC-32C com
 fine pass (``complete_fine.c``), the depth projection's ray-box test (``ray_box.c``: the far
 side of a moving vehicle along each ray of its footprint, one pass instead of numpy's fifteen),
 its first pass over the map points (``camera_points.c``: transform, cull, distort, project and
-test against the ego body and vehicles in one pass) and its plane fits' window sums
-(``window_moments.c``).
+test against the ego body and vehicles in one pass) and its per-pixel plane fits
+(``plane_fits.c``).
 
 Entry points: :func:`load_range_points`, :func:`load_crc32c_combine`, :func:`load_box_labels`,
 :func:`load_complete_fine`, :func:`load_ray_box`, :func:`load_camera_points`,
-:func:`load_window_moments`.
+:func:`load_plane_fits`.
 
 Turning a Waymo frame's range images into points was a quarter of the v1 reader's time in numpy
 (16 ms of 65 ms a frame: a mask, a gather per channel, the ray arithmetic and the concatenation, each
@@ -50,7 +50,7 @@ SOURCES = (
     Path(__file__).parent / "csrc" / "complete_fine.c",
     Path(__file__).parent / "csrc" / "ray_box.c",
     Path(__file__).parent / "csrc" / "camera_points.c",
-    Path(__file__).parent / "csrc" / "window_moments.c",
+    Path(__file__).parent / "csrc" / "plane_fits.c",
 )
 LIBRARY_NAME = "libphigenesis_data"
 CFLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fPIC", "-shared", "-std=c99")
@@ -329,30 +329,83 @@ class CameraPointsKernel:
         return index[:kept], uv[:kept], z[:kept], pixel[:kept], [int(c) for c in counts]
 
 
-class WindowMoments:
-    """The loaded ``phigenesis_window_moments`` (see ``csrc/window_moments.c``)."""
+class PlaneFits:
+    """The loaded ``phigenesis_plane_fits`` (see ``csrc/plane_fits.c``)."""
 
     def __init__(self, library: ctypes.CDLL):
-        i64, ptr = ctypes.c_int64, ctypes.c_void_p
-        self._run = library.phigenesis_window_moments
-        self._run.argtypes = [i64, i64, i64, ptr, ptr, i64, ptr]
+        i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+        self._run = library.phigenesis_plane_fits
+        self._run.argtypes = [
+            i64,
+            ptr,
+            ptr,
+            ptr,
+            i64,
+            i64,
+            ptr,
+            i64,
+            f64,
+            f64,
+            i64,
+            f64,
+            f64,
+            ptr,
+            ptr,
+            ptr,
+            ptr,
+        ]
         self._run.restype = i64
 
     def __call__(
-        self, occupied: NDArray[np.int64], own: NDArray[np.float64], shape: tuple[int, int], radius: int
-    ) -> NDArray[np.float64]:
-        """(K, 10) window moments of the ``occupied`` pixels ((K,) sorted int64 flat indices of an
-        (H, W) ``shape`` image; ``own`` their (K, 10) float64 moments):
-        :func:`~phigenesis.data.stages.project.occupied_window_moments`'s values."""
-        k = len(occupied)
-        occupied = np.ascontiguousarray(occupied, np.int64)
-        own = np.ascontiguousarray(own, np.float64)
-        if own.shape != (k, 10):
-            raise ValueError(f"window moments: own must be ({k}, 10), got {own.shape}")
-        out = np.empty((k, 10), np.float64)
-        if self._run(shape[0], shape[1], k, _address(occupied), _address(own), radius, _address(out)) < 0:
-            raise MemoryError("window moments: no memory for the pixel map")
-        return out
+        self,
+        pixel: NDArray[np.int64],
+        uv: NDArray[np.float64],
+        z: NDArray[np.float32],
+        shape: tuple[int, int],
+        reference_m: NDArray[np.float32],
+        min_points: int,
+        fit_tolerance: tuple[float, float],
+        window_px: int,
+        window_tolerance: tuple[float, float],
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_]]:
+        """Plane fits of the occupied pixels of an (H, W) ``shape`` image: their sorted flat
+        indices (K,) int64, depth at the centre (K,) float64 (NaN: none), point count (K,) int64
+        and mixed flag (K,) bool. ``pixel`` (N,) int64 flat pixel of each point, ``uv`` (N, 2)
+        float64 its position, ``z`` (N,) float32 its depth (m); ``reference_m`` (H * W,) float32
+        the depth of the point nearest each centre; ``fit_tolerance`` and ``window_tolerance``
+        (metres, relative). See ``csrc/plane_fits.c``."""
+        h, w = shape
+        n = len(pixel)
+        pixel = np.ascontiguousarray(pixel, np.int64)
+        uv = np.ascontiguousarray(uv, np.float64)
+        z = np.ascontiguousarray(z, np.float32)
+        reference = np.ascontiguousarray(reference_m, np.float32).reshape(-1)
+        if uv.shape != (n, 2) or z.shape != (n,) or reference.shape != (h * w,):
+            raise ValueError(f"plane fits: shapes {pixel.shape}, {uv.shape}, {z.shape}, {reference.shape}")
+        if n and (pixel.min() < 0 or pixel.max() >= h * w):
+            raise ValueError(f"plane fits: a pixel index lies outside the {h} x {w} image")
+        capacity = min(n, h * w)
+        occupied = np.empty(capacity, np.int64)
+        depth = np.empty(capacity, np.float64)
+        count = np.empty(capacity, np.int64)
+        mixed = np.empty(capacity, np.uint8)
+        k = self._run(
+            n,
+            _address(pixel),
+            _address(uv),
+            _address(z),
+            h,
+            w,
+            _address(reference),
+            min_points,
+            *fit_tolerance,
+            window_px,
+            *window_tolerance,
+            *(_address(a) for a in (occupied, depth, count, mixed)),
+        )
+        if k < 0:
+            raise MemoryError("plane fits: no memory for the pixel map")
+        return occupied[:k], depth[:k], count[:k], mixed[:k].astype(bool)
 
 
 class _Kernels(NamedTuple):
@@ -362,7 +415,7 @@ class _Kernels(NamedTuple):
     complete_fine: CompleteFine
     ray_box: RayBox
     camera_points: CameraPointsKernel
-    window_moments: WindowMoments
+    plane_fits: PlaneFits
 
 
 def _load_library() -> _Kernels | None:
@@ -384,7 +437,7 @@ def _load_library() -> _Kernels | None:
                 CompleteFine(library),
                 RayBox(library),
                 CameraPointsKernel(library),
-                WindowMoments(library),
+                PlaneFits(library),
             )
         except (OSError, subprocess.SubprocessError, AttributeError) as error:
             _failure = str(error).splitlines()[0][:300] if str(error) else type(error).__name__
@@ -594,11 +647,11 @@ def load_camera_points() -> CameraPointsKernel | None:
     return None if kernels is None else kernels.camera_points
 
 
-def load_window_moments() -> WindowMoments | None:
-    """The plane fits' window-moment kernel, or ``None`` where the library cannot be built
+def load_plane_fits() -> PlaneFits | None:
+    """The projection's plane-fit kernel, or ``None`` where the library cannot be built
     (:func:`_load_library`)."""
     kernels = _load_library()
-    return None if kernels is None else kernels.window_moments
+    return None if kernels is None else kernels.plane_fits
 
 
 def failure_reason() -> str | None:
@@ -611,16 +664,16 @@ __all__ = [
     "CameraPointsKernel",
     "CompleteFine",
     "Crc32cCombine",
+    "PlaneFits",
     "RangePoints",
     "RayBox",
-    "WindowMoments",
     "build_directory",
     "failure_reason",
     "load_box_labels",
     "load_camera_points",
     "load_complete_fine",
     "load_crc32c_combine",
+    "load_plane_fits",
     "load_range_points",
     "load_ray_box",
-    "load_window_moments",
 ]

@@ -54,7 +54,7 @@ from phigenesis.data.camera_tables import (
 )
 from phigenesis.data.camera_tables import ray_box_depths as ray_box_depths  # re-exported
 from phigenesis.data.ego_body import camera_centres, check_sensors_outside
-from phigenesis.data.native import load_camera_points, load_ray_box, load_window_moments
+from phigenesis.data.native import load_camera_points, load_plane_fits, load_ray_box
 from phigenesis.data.records import (
     DEPTH_ORIGINS,
     CameraCalibration,
@@ -814,23 +814,6 @@ def occupied_window_moments(
     occupied: NDArray[np.int64], own: NDArray[np.float64], shape: tuple[int, int], radius: int
 ) -> NDArray[np.float64]:
     """(K, 10) moments (:data:`MOMENT_NAMES` order) of the ``(2r+1)^2`` window of each occupied
-    pixel (``occupied``: (K,) sorted int64 flat indices of an (H, W) ``shape`` image; ``own``:
-    their (K, 10) float64 per-pixel moments), offsets taken from that pixel's centre.
-
-    The native kernel (:func:`~phigenesis.data.native.load_window_moments`: a dense pixel map
-    finds each window's neighbours) where it is built, else
-    :func:`occupied_window_moments_reference`; the same sums in the same order, so the same
-    doubles. 0.03 CPU-s instead of 7 for a 1920 x 1280 camera with 3 million map points."""
-    kernel = load_window_moments()
-    if kernel is None or len(occupied) == 0:
-        return occupied_window_moments_reference(occupied, own, shape, radius)
-    return kernel(occupied, own, shape, radius)
-
-
-def occupied_window_moments_reference(
-    occupied: NDArray[np.int64], own: NDArray[np.float64], shape: tuple[int, int], radius: int
-) -> NDArray[np.float64]:
-    """(K, 10) moments (:data:`MOMENT_NAMES` order) of the ``(2r+1)^2`` window of each occupied
     pixel, offsets taken from that pixel's centre: :func:`window_moments` evaluated only at the
     ``occupied`` pixels (sorted flat indices; ``own`` their (K, 10) per-pixel moments).
 
@@ -887,11 +870,49 @@ def fit_pixels(
     pixel is mixed if one of its own points lies farther than the tolerance from its own
     fit or, with too few points for one, from ``reference_m`` (the point nearest its centre).
 
-    The moments and fits are computed for the occupied pixels only
-    (:func:`occupied_window_moments`); :func:`fit_pixels_reference` is the same on whole-image
-    maps (equal to rounding: the sums are taken in another order)."""
+    The moments and fits are computed for the occupied pixels only, by the native kernel
+    (:func:`~phigenesis.data.native.load_plane_fits`: the same arithmetic in the same order, so
+    the same doubles, in a few passes) where it is built, else with numpy
+    (:func:`fit_occupied_numpy`); :func:`fit_pixels_reference` is the same on whole-image maps
+    (equal to rounding: the sums are taken in another order)."""
     h, w = shape
     size = h * w
+    kernel = load_plane_fits()
+    if kernel is not None and len(pixel):
+        occupied, depth, count_k, mixed = kernel(
+            pixel,
+            uv,
+            np.asarray(z, np.float32),
+            shape,
+            np.asarray(reference_m, np.float32),
+            params.plane_min_points,
+            (params.fit_tolerance_m, params.fit_tolerance_rel),
+            params.fit_window_px,
+            (params.window_tolerance_m, params.window_tolerance_rel),
+        )
+    else:
+        occupied, depth, count_k, mixed = fit_occupied_numpy(pixel, uv, z, shape, reference_m, params)
+    depth_full = np.full(size, np.nan)
+    depth_full[occupied] = depth
+    count_full = np.zeros(size, np.int64)
+    count_full[occupied] = count_k
+    mixed_full = np.zeros(size, bool)
+    mixed_full[occupied] = mixed
+    return PixelFit(depth_full, count_full, mixed_full)
+
+
+def fit_occupied_numpy(
+    pixel: NDArray[np.int64],
+    uv: NDArray[np.float64],
+    z: NDArray[np.floating],
+    shape: tuple[int, int],
+    reference_m: NDArray[np.floating],
+    params: ProjectParams,
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_]]:
+    """:func:`fit_pixels` on the occupied pixels with numpy (the native kernel's fallback and
+    reference): their sorted flat indices (K,), depth at the centre (K,) float64 (NaN: no fit),
+    point count (K,) int64 and mixed flag (K,) bool."""
+    w = shape[1]
     z = np.asarray(z, np.float64)
     du = uv[:, 0] - pixel % w
     dv = uv[:, 1] - pixel // w
@@ -933,13 +954,7 @@ def fit_pixels(
             good = np.isfinite(window_z) & (window_z > 0) & (rms * window_z**2 <= window_tolerance)
             good &= np.abs(window_z - base) <= tolerance
         depth = np.where(good, window_z, depth)
-    depth_full = np.full(size, np.nan)
-    depth_full[occupied] = depth
-    count_full = np.zeros(size, np.int64)
-    count_full[occupied] = count_k
-    mixed_full = np.zeros(size, bool)
-    mixed_full[occupied] = mixed
-    return PixelFit(depth_full, count_full, mixed_full)
+    return occupied, depth, count_k, mixed
 
 
 def fit_pixels_reference(
