@@ -1,0 +1,157 @@
+"""The depth projection's native kernels against their numpy paths.
+
+- ``camera_points.c`` (:func:`project.camera_pixels`) against :func:`project.camera_pixels_reference`:
+  a distorted 1920 x 1280 camera rotated off every axis, points in front, behind, beyond the
+  range, outside the view and on its border, an ego-body map and a vehicles' far-side map.
+- ``plane_fits.c`` (:func:`project.fit_pixels`) against :func:`project.fit_occupied_numpy`:
+  planes with range noise, pixels straddling a depth edge, lone points, the image's border.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from phigenesis import geometry
+from phigenesis.data import native
+from phigenesis.data.records import CameraCalibration, CameraImage
+from phigenesis.data.stages import project
+
+PARAMS = project.ProjectParams()
+
+
+def _needs_kernels() -> None:
+    if native.load_camera_points() is None or native.load_plane_fits() is None:
+        pytest.skip(f"native kernels not built here: {native.failure_reason()}")
+
+
+def _unit(q: list[float]) -> np.ndarray:
+    return np.asarray(q) / np.linalg.norm(q)
+
+
+def _distorted_camera() -> CameraImage:
+    """A 1920 x 1280 camera with Waymo-like distortion, 1.7 m above a world origin far from
+    zero (float32 world coordinates lose precision there), looking along a tilted direction."""
+    cal = CameraCalibration(
+        "FRONT",
+        1920,
+        1280,
+        geometry.intrinsic_matrix(2055.0, 2052.0, 951.3, 641.7),
+        np.array([-0.035, -0.012, 0.0004, -0.0008, 0.006]),
+        geometry.make_transform(geometry.BODY_FROM_OPENCV, [1.5, 0.1, 1.7]),
+    )
+    world_from_ego = geometry.make_transform(
+        geometry.quaternion_to_matrix(_unit([0.96, 0.02, -0.03, 0.27])),
+        [1834.2, -912.6, 12.3],
+    )
+    return CameraImage(cal, 0, world_from_ego @ cal.ego_from_camera, None)
+
+
+def _points_around(camera: CameraImage, n: int, seed: int) -> project.CameraPoints:
+    """``n`` world points around the camera: most in its view at 0.2 to 150 m, some behind it,
+    some just past the image's border."""
+    rng = np.random.default_rng(seed)
+    direction = rng.normal(size=(n, 3)) * [0.6, 0.4, 1.0]
+    direction[: n // 10, 2] *= -1.0  # behind the camera
+    p_cam = direction / np.linalg.norm(direction, axis=1, keepdims=True) * rng.uniform(0.2, 150.0, (n, 1))
+    world = geometry.transform_points(camera.world_from_camera, p_cam).astype(np.float32)
+    return project.CameraPoints(world, np.ones(n, np.uint8), np.full(n, 0.02, np.float32))
+
+
+@pytest.mark.parametrize("maps", ["none", "ego", "ego_and_vehicles"])
+def test_native_camera_pixels_equal_the_numpy_reference(maps: str) -> None:
+    _needs_kernels()
+    camera = _distorted_camera()
+    points = _points_around(camera, 400_000, seed=1)
+    h, w = 1280, 1920
+    rng = np.random.default_rng(2)
+    ego = far = None
+    if maps != "none":
+        ego = np.full((h, w), np.inf, np.float32)
+        ego[1000:, :] = rng.uniform(0.5, 3.0, (h - 1000, w)).astype(np.float32)
+    if maps == "ego_and_vehicles":
+        far = np.full((h, w), np.inf, np.float32)
+        far[400:800, 300:1200] = rng.uniform(5.0, 40.0, (400, 900)).astype(np.float32)
+    index, uv, z, pixel, counts = project.camera_pixels(camera, points, PARAMS, ego, far)
+    r_index, r_uv, r_z, r_pixel, r_counts = project.camera_pixels_reference(camera, points, PARAMS, ego, far)
+    assert r_counts["projected"] > 30_000
+    if maps == "ego_and_vehicles":
+        assert r_counts["behind_ego_body"] > 1_000 and r_counts["behind_vehicles"] > 1_000
+    # The float32 rotation may round its last bit otherwise than BLAS: a point on a limit may
+    # fall the other way, nothing more.
+    assert len(set(index) ^ set(r_index)) <= 5
+    for name in counts:
+        assert abs(counts[name] - r_counts[name]) <= 5, (name, counts, r_counts)
+    common, at, r_at = np.intersect1d(index, r_index, return_indices=True)
+    assert len(common) >= len(r_index) - 5
+    np.testing.assert_allclose(uv[at], r_uv[r_at], rtol=0, atol=1e-3)
+    np.testing.assert_allclose(z[at], r_z[r_at], rtol=2e-7, atol=0)
+    assert np.count_nonzero(pixel[at] != r_pixel[r_at]) <= 5  # a position on a pixel's border
+    assert index.dtype == np.int64 and uv.dtype == np.float64 and z.dtype == np.float32
+    assert np.all(np.diff(index) > 0)  # in the points' order
+
+
+def test_native_camera_pixels_drop_points_behind_and_beyond_the_distortion_fold() -> None:
+    _needs_kernels()
+    camera = _distorted_camera()
+    # In front on the axis (kept), behind the camera, on the camera plane, nearer than
+    # min_depth_m and beyond max_range_m (all dropped).
+    p_cam = np.array(
+        [[0.0, 0.0, 10.0], [0.0, 0.0, -10.0], [1.0, 1.0, 0.0], [0.0, 0.0, 0.3], [0.0, 0.0, 130.0]]
+    )
+    world = geometry.transform_points(camera.world_from_camera, p_cam).astype(np.float32)
+    points = project.CameraPoints(world, np.ones(5, np.uint8), np.full(5, 0.02, np.float32))
+    index, uv, z, pixel, counts = project.camera_pixels(camera, points, PARAMS)
+    assert list(index) == [0] and counts["projected"] == 1
+    cal = camera.calibration
+    # The principal point, to the float32 rounding of world coordinates 2 km from the origin.
+    assert uv[0] == pytest.approx(cal.intrinsics[:2, 2], abs=0.02)
+    assert z[0] == pytest.approx(10.0, abs=1e-4)
+    assert pixel[0] == round(cal.intrinsics[1, 2]) * 1920 + round(cal.intrinsics[0, 2])
+    empty = project.CameraPoints(world[:0], np.zeros(0, np.uint8), np.zeros(0, np.float32))
+    assert len(project.camera_pixels(camera, empty, PARAMS)[0]) == 0
+
+
+def _fit_inputs(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Visible points of a 120 x 160 image: a slanted plane with 1 cm range noise over most of
+    it, a nearer surface over a block (its edge pixels hold both), lone far points, and points
+    in the border rows and columns; with the depth of the point nearest each pixel's centre."""
+    h, w = 120, 160
+    rng = np.random.default_rng(seed)
+    n = 120_000
+    uv = rng.uniform([-0.5, -0.5], [w - 0.5, h - 0.5], (n, 2))
+    z = 20.0 + 0.05 * uv[:, 0] + 0.1 * uv[:, 1] + rng.normal(0.0, 0.01, n)
+    block = (uv[:, 0] > 60.3) & (uv[:, 0] < 90.7) & (uv[:, 1] > 30.2) & (uv[:, 1] < 70.6)
+    z[block] = 8.0 + rng.normal(0.0, 0.01, block.sum())
+    lone = rng.uniform(size=n) < 0.002
+    z[lone] = 90.0
+    z = z.astype(np.float32)
+    pixel = project._pixel_index(uv, 1, w, h)
+    reference = np.full(h * w, np.inf, np.float32)
+    np.minimum.at(reference, pixel, z)
+    return pixel, uv, z, reference
+
+
+@pytest.mark.parametrize("window", [0, 1, 2])
+def test_native_plane_fits_equal_the_numpy_fits_exactly(window: int) -> None:
+    _needs_kernels()
+    pixel, uv, z, reference = _fit_inputs(seed=window)
+    shape = (120, 160)
+    params = project.ProjectParams(fit_window_px=window)
+    fast = project.fit_pixels(pixel, uv, z, shape, reference, params)
+    occupied, depth, count, mixed = project.fit_occupied_numpy(pixel, uv, z, shape, reference, params)
+    assert 100 < np.count_nonzero(mixed) < len(occupied) // 10  # the block's edges and lone points
+    assert np.isfinite(depth).mean() > 0.5
+    np.testing.assert_array_equal(np.flatnonzero(fast.count), occupied)
+    # The same arithmetic in the same order: the same doubles.
+    np.testing.assert_array_equal(fast.depth_m[occupied], depth)
+    np.testing.assert_array_equal(fast.count[occupied], count)
+    np.testing.assert_array_equal(fast.mixed[occupied], mixed)
+    assert np.all(np.isnan(np.delete(fast.depth_m, occupied)))
+    # And the plane's depth at the centres of unmixed pixels is the surface's, within the noise.
+    rows, cols = np.divmod(occupied, 160)
+    truth = np.where(
+        (cols > 60) & (cols < 91) & (rows > 30) & (rows < 71), 8.0, 20.0 + 0.05 * cols + 0.1 * rows
+    )
+    good = ~mixed & np.isfinite(depth) & (count >= 4)
+    assert np.median(np.abs(depth[good] - truth[good])) < 0.01
