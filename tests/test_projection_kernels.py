@@ -15,7 +15,7 @@ import pytest
 from phigenesis import geometry
 from phigenesis.data import native
 from phigenesis.data.records import CameraCalibration, CameraImage
-from phigenesis.data.stages import project
+from phigenesis.data.stages import aggregate, project
 
 PARAMS = project.ProjectParams()
 
@@ -155,3 +155,37 @@ def test_native_plane_fits_equal_the_numpy_fits_exactly(window: int) -> None:
     )
     good = ~mixed & np.isfinite(depth) & (count >= 4)
     assert np.median(np.abs(depth[good] - truth[good])) < 0.01
+
+
+def test_voxel_merge_in_stages_equals_merging_at_once() -> None:
+    rng = np.random.default_rng(3)
+    # Ten chunks of one surface, each already down-sampled at 2 cm like the aggregation's.
+    chunks = [
+        aggregate.voxel_downsample(
+            (rng.uniform([0, 0, 0], [4, 3, 0.1], (20_000, 3)) + np.array([812.0, -45.0, 2.0])).astype(
+                np.float32
+            ),
+            0.02,
+        )
+        for _ in range(10)
+    ]
+    at_once = aggregate.voxel_downsample(np.concatenate(chunks), 0.02)
+    # Weights of 1: the same keys, order and sums as voxel_downsample.
+    plain, weights = aggregate.voxel_merge([(c, None) for c in chunks], 0.02)
+    np.testing.assert_array_equal(plain, at_once)
+    assert weights.sum() == sum(len(c) for c in chunks)
+    staged = aggregate.voxel_merge([(c, None) for c in chunks[:4]], 0.02)
+    staged = aggregate.voxel_merge([staged] + [(c, None) for c in chunks[4:8]], 0.02)
+    staged_points, staged_weights = aggregate.voxel_merge([staged] + [(c, None) for c in chunks[8:]], 0.02)
+    np.testing.assert_array_equal(staged_weights, weights)
+    # Each merged centroid was stored as float32 once more: within a few float32 steps at 800 m.
+    np.testing.assert_allclose(staged_points, at_once, rtol=0, atol=2e-4)
+
+
+def test_column_wise_voxel_keys_equal_the_reference() -> None:
+    rng = np.random.default_rng(4)
+    points = (rng.normal(size=(50_000, 3)) * [500.0, 500.0, 20.0]).astype(np.float32)
+    for voxel_m in (0.02, 0.05, 0.3):
+        np.testing.assert_array_equal(
+            aggregate._voxel_keys(points, voxel_m), aggregate._voxel_keys_reference(points, voxel_m)
+        )
