@@ -189,3 +189,38 @@ def test_column_wise_voxel_keys_equal_the_reference() -> None:
         np.testing.assert_array_equal(
             aggregate._voxel_keys(points, voxel_m), aggregate._voxel_keys_reference(points, voxel_m)
         )
+
+
+def test_dense_pixels_keep_their_front_band_thinned_to_the_cap() -> None:
+    """A pixel of a far, dense surface with a sparse nearer one in front (a pole before a
+    wall): points behind a pixel's front band go, the band keeps about ``max_per_pixel``, and
+    pixels under the cap keep every point; native and numpy keep the same points."""
+    _needs_kernels()
+    camera = _distorted_camera()
+    rng = np.random.default_rng(5)
+    # Wall at 60 m: ~40 points a pixel over 20 x 20 pixels around the principal point; a nearer
+    # surface at 20 m over its left half, 1 point in 4 pixels; a sparse patch elsewhere.
+    cal = camera.calibration
+    centre = np.asarray(cal.intrinsics[:2, 2])
+    left, right, far = np.array([-10.0, 10.0]), np.array([0.0, 10.0]), np.array([200.0, 240.0])
+    wall_uv = rng.uniform(centre - 10, centre + 10, (16_000, 2))
+    front_uv = rng.uniform(centre + left[0], centre + right, (50, 2))
+    sparse_uv = rng.uniform(centre + far[0], centre + far[1], (400, 2))
+    uv = np.concatenate([wall_uv, front_uv, sparse_uv])
+    depth = np.concatenate([np.full(16_000, 60.0), np.full(50, 20.0), np.full(400, 30.0)])
+    rays = geometry.unproject_pixels(uv, cal.intrinsics, cal.distortion)
+    world = geometry.transform_points(camera.world_from_camera, rays * depth[:, None]).astype(np.float32)
+    points = project.CameraPoints(world, np.ones(len(world), np.uint8), np.full(len(world), 0.02, np.float32))
+    params = project.ProjectParams(max_points_per_pixel=8)
+    index, _, z, pixel, counts = project.camera_pixels(camera, points, params)
+    r_index, *_, r_counts = project.camera_pixels_reference(camera, points, params)
+    assert len(set(index) ^ set(r_index)) <= 5 and counts["thinned_in_pixels"] > 10_000
+    assert abs(counts["thinned_in_pixels"] - r_counts["thinned_in_pixels"]) <= 5
+    # Every point of the sparse patch stays; no wall point stays in a pixel the front covers.
+    assert np.all(np.isin(np.arange(16_050, 16_450), index))
+    front_pixels = set(pixel[z < 30.0])
+    assert all(p not in front_pixels for p in pixel[z > 50.0])
+    # The wall's own pixels keep about 8 of their ~40 points.
+    per_pixel = np.bincount(pixel[z > 50.0])
+    per_pixel = per_pixel[per_pixel > 0]
+    assert 6.0 < per_pixel.mean() < 10.0, per_pixel.mean()

@@ -255,7 +255,7 @@ class CameraPointsKernel:
         i64, ptr, f32, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_float, ctypes.c_double
         self._run = library.phigenesis_camera_points
         self._run.argtypes = [i64, ptr, ptr, ptr, f32, f32, ptr, f64, f64, ptr, i64, ptr, i64, i64]
-        self._run.argtypes += [ptr, ptr, f32, ptr, ptr, ptr, ptr, ptr]
+        self._run.argtypes += [ptr, ptr, f32, i64, f32, f32, ptr, ptr, ptr, ptr, ptr]
         self._run.restype = i64
 
     def __call__(
@@ -271,17 +271,22 @@ class CameraPointsKernel:
         ego_depth: NDArray[np.float32] | None,
         occluder_far: NDArray[np.float32] | None,
         slack_m: float,
+        max_per_pixel: int = 0,
+        band: tuple[float, float] = (1.0, 0.0),
     ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float32], NDArray[np.int64], list[int]]:
         """The points of ``points_world`` ((N, 3) float32 C order, world frame) that land in the
         image and lie in front of the ego body and the vehicles: their indices (K,) int64, pixel
         positions (K, 2) float64 (u along the width), camera z (K,) float32 metres and flat pixel
-        indices (K,) int64, and the counts [projected, behind the ego body, behind vehicles].
+        indices (K,) int64, and the counts [projected, behind the ego body, behind vehicles,
+        thinned].
 
         ``world_from_camera`` (4, 4); ``intrinsics`` (3, 3); ``distortion`` (5,) OpenCV k1, k2, p1,
         p2, k3 and ``max_radius2`` its monotonic radius squared (normalised units);
         ``size_wh`` the image's (W, H); ``depth_range_m`` (min z, max range); ``bounds`` the
         normalised view bounds ((x0, x1), (y0, y1)); ``ego_depth`` and ``occluder_far`` (H, W)
-        float32 maps or None; ``slack_m`` added to ``occluder_far``. See ``csrc/camera_points.c``."""
+        float32 maps or None; ``slack_m`` added to ``occluder_far``; ``max_per_pixel`` (0: off)
+        and ``band`` (scale, slack in metres) the per-pixel thinning, whose drops are the fourth
+        count. See ``csrc/camera_points.c``."""
         w, h = size_wh
         n = len(points_world)
         if points_world.shape != (n, 3) or points_world.dtype != np.float32:
@@ -300,7 +305,7 @@ class CameraPointsKernel:
         uv = np.empty((n, 2), np.float64)
         z = np.empty(n, np.float32)
         pixel = np.empty(n, np.int64)
-        counts = np.zeros(3, np.int64)
+        counts = np.zeros(4, np.int64)
         min_depth, max_range = depth_range_m
         kept = self._run(
             n,
@@ -320,12 +325,17 @@ class CameraPointsKernel:
             None if ego_depth is None else _address(ego_depth),
             None if occluder_far is None else _address(occluder_far),
             slack_m,
+            max_per_pixel,
+            band[0],
+            band[1],
             _address(index),
             _address(uv),
             _address(z),
             _address(pixel),
             _address(counts),
         )
+        if kept < 0:
+            raise MemoryError("camera points: no memory for the per-pixel thinning")
         return index[:kept], uv[:kept], z[:kept], pixel[:kept], [int(c) for c in counts]
 
 

@@ -151,6 +151,11 @@ class ProjectParams:
         thin, thin_points_per_cell: far map tiles contribute a uniform subset of their points,
             about this many per cell of the visibility grid (:func:`thinning_strides`; the plane
             fits need several per pixel).
+        max_points_per_pixel: on the image's own grid (``supersample`` 1), a pixel holding more
+            points keeps those in its front band (the splat test's bound over its nearest point,
+            which no other could pass) and, of these, a uniform subset of about this many
+            (:func:`thin_in_pixels`): a long segment's map saturates its 2 cm voxels, and at a
+            grazing angle a far pixel of road holds hundreds. 0: no cap.
         threads: cameras projected in parallel threads (1: one after the other).
         use_map: project the aggregated map when the scene has one (False: own sweep only).
     """
@@ -192,6 +197,7 @@ class ProjectParams:
     thin: bool = option(True)
     threads: int = option(2, ge=1, le=256)
     thin_points_per_cell: float = option(9.0, gt=0, le=10_000)
+    max_points_per_pixel: int = option(8, ge=0, le=1_000_000)
     use_map: bool = option(True)
 
     def __post_init__(self) -> None:
@@ -1143,15 +1149,57 @@ CameraPixels = tuple[
 ]
 
 
-def _projection_counts(projected: int, behind_ego: int, behind_vehicles: int) -> dict[str, int]:
+def _projection_counts(projected: int, behind_ego: int, behind_vehicles: int, thinned: int) -> dict[str, int]:
     return {
         "projected": projected,
         "removed_by_visibility": 0,
         "behind_ego_body": behind_ego,
         "behind_vehicles": behind_vehicles,
+        "thinned_in_pixels": thinned,
         "mixed_pixels": 0,
         "edge_pixels": 0,
     }
+
+
+def _cap_of(params: ProjectParams, width: int) -> int:
+    """The per-pixel cap in force (0: none): only on the image's own grid."""
+    return params.max_points_per_pixel if supersample_of(params, width) == 1 else 0
+
+
+def _mix64(x: NDArray[np.int64]) -> NDArray[np.uint64]:
+    """splitmix64's finaliser of ``x`` + its increment (uint64, wrapping): ``camera_points.c``'s
+    hash of a point's index."""
+    z = x.astype(np.uint64) + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def thin_in_pixels(
+    index: NDArray[np.int64],
+    z: NDArray[np.float32],
+    pixel: NDArray[np.int64],
+    size: int,
+    max_per_pixel: int,
+    params: ProjectParams,
+) -> NDArray[np.bool_]:
+    """(K,) True for the points (``index`` into the scene's points, camera ``z`` float32 metres,
+    flat ``pixel`` of a ``size``-pixel image) that a pixel holding more than ``max_per_pixel``
+    keeps: those no deeper than ``zmin * (1 + tau) + slack_m`` (its nearest point's splat bound:
+    the visibility test removes the others, whatever else covers the pixel) and, where more than
+    ``max_per_pixel`` lie in that band, a uniform subset of about ``max_per_pixel``: point i stays
+    if ``(hash(i) >> 40) * in_band < max_per_pixel * 2^24`` (a hash of its index, so the same
+    points stay whichever order they come in). Pixels with fewer points keep all.
+
+    The numpy twin of the thinning in ``camera_points.c`` (same float32 bound, same hash)."""
+    total = np.bincount(pixel, minlength=size)
+    dense = total[pixel] > max_per_pixel
+    zmin = np.full(size, np.inf, np.float32)
+    np.minimum.at(zmin, pixel[dense], z[dense])
+    band = z <= zmin[pixel] * (1 + params.tau) + params.slack_m
+    in_band = np.bincount(pixel[dense & band], minlength=size)[pixel]
+    draw = (_mix64(index) >> np.uint64(40)).astype(np.int64)
+    return ~dense | (band & ((in_band <= max_per_pixel) | (draw * in_band < max_per_pixel << 24)))
 
 
 def camera_pixels(
@@ -1185,7 +1233,8 @@ def camera_pixels(
         None if m is None else np.ascontiguousarray(m, np.float32).reshape(cal.height, cal.width)
         for m in (ego_depth, occluder_far)
     ]
-    index, uv, z, pixel, (projected, ego, vehicles) = kernel(
+    cap = _cap_of(params, cal.width)
+    index, uv, z, pixel, (projected, ego, vehicles, thinned) = kernel(
         np.ascontiguousarray(world, np.float32),
         camera.world_from_camera,
         np.asarray(cal.intrinsics, np.float64),
@@ -1197,8 +1246,10 @@ def camera_pixels(
         maps[0],
         maps[1],
         params.slack_m,
+        cap,
+        (1 + params.tau, params.slack_m),
     )
-    return index, uv, z, pixel, _projection_counts(projected, ego, vehicles)
+    return index, uv, z, pixel, _projection_counts(projected, ego, vehicles, thinned)
 
 
 def camera_pixels_reference(
@@ -1231,7 +1282,7 @@ def camera_pixels_reference(
     z = p_cam[valid, 2].astype(np.float32)
     uv = uv[valid]
     pixel = _pixel_index(uv, 1, w, h)
-    counts = _projection_counts(len(z), 0, 0)
+    counts = _projection_counts(len(z), 0, 0, 0)
     for name, limit, slack in (
         ("behind_ego_body", ego_depth, 0.0),
         ("behind_vehicles", occluder_far, params.slack_m),
@@ -1240,6 +1291,11 @@ def camera_pixels_reference(
             front = z < limit.reshape(-1)[pixel] + slack
             counts[name] = int(np.sum(~front))
             pixel, z, idx, uv = pixel[front], z[front], idx[front], uv[front]
+    cap = _cap_of(params, w)
+    if cap > 0 and len(z):
+        keep = thin_in_pixels(idx, z, pixel, h * w, cap, params)
+        counts["thinned_in_pixels"] = int(np.sum(~keep))
+        pixel, z, idx, uv = pixel[keep], z[keep], idx[keep], uv[keep]
     return idx, uv, z, pixel, counts
 
 
