@@ -215,6 +215,22 @@ class LidarMap:
             return self.points_world[:0], np.zeros(0, np.int64)
         return np.concatenate(parts), np.repeat(np.arange(len(tiles)), counts)
 
+    def points_and_counts_of_tiles(
+        self, tiles: NDArray[np.int64], stride: NDArray[np.int64] | None = None
+    ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+        """:meth:`points_of_tiles`' points with, instead of a label per point, the (K,) number
+        taken from each tile (each tile's points are contiguous, in ``tiles``' order)."""
+        if stride is None:
+            stride = np.ones(len(tiles), np.int64)
+        parts = [
+            self.points_world[self.tile_start[i] : self.tile_start[i + 1] : int(k)]
+            for i, k in zip(tiles, stride, strict=True)
+        ]
+        counts = np.array([len(p) for p in parts], np.int64)
+        if counts.sum() == 0:
+            return self.points_world[:0], counts
+        return np.concatenate(parts), counts
+
     def points_near(self, xy_world: NDArray[np.float64], radius_m: float) -> NDArray[np.float32]:
         """(K, 3) static points in the tiles within ``radius_m`` (x-y) of a world position."""
         return self.points_of_tiles(self.tiles_near(xy_world, radius_m))[0]

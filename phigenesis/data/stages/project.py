@@ -414,7 +414,7 @@ def static_points_per_camera(
         )
         full_density_m = lidar_map.voxel_m * grid_focal * np.sqrt(params.thin_points_per_cell)
         stride = thinning_strides(centres[used], position, full_density_m)
-    points, label = lidar_map.points_of_tiles(tiles[used], stride)
+    points, counts = lidar_map.points_and_counts_of_tiles(tiles[used], stride)
     if frame.lidar is not None and len(frame.lidar):
         sensor = geometry.transform_points(
             frame.world_from_ego, np.median(frame.lidar.origins_ego, axis=0)[None]
@@ -424,7 +424,16 @@ def static_points_per_camera(
     limit = lidar_map.max_elevation_rad + np.radians(params.elevation_margin_deg)
     band, bin_width = np.radians(params.top_band_deg), np.radians(params.top_bin_deg)
     seen = seen_past_lidar_top(points, sensor, frame.world_from_ego, limit, band, bin_width)
-    return [points[seen & view[used][label]] for view in in_view]
+    # The test applied once; each tile's kept points stay contiguous, so every image takes its
+    # tiles' slices (the same points in the same order as a mask per image over all of them,
+    # without five masks and gathers over tens of millions of points on a long segment).
+    bounds = np.r_[0, np.cumsum(seen)][np.r_[0, np.cumsum(counts)]]
+    points = points[seen]
+    out = []
+    for view in in_view:
+        parts = [points[bounds[i] : bounds[i + 1]] for i in np.flatnonzero(view[used])]
+        out.append(np.concatenate(parts) if parts else points[:0])
+    return out
 
 
 def supersample_of(params: ProjectParams, width: int) -> int:
