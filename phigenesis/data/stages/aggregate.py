@@ -24,7 +24,10 @@ in ``scene.products["lidar_map"]``).
   the frame's own sweep.
 
 Frames are read with :func:`frame_geometry` (no images), one sweep at a time; static points are
-down-sampled in chunks of ``chunk_sweeps`` sweeps so memory stays bounded by the map, not the scene.
+down-sampled in chunks of ``chunk_sweeps`` sweeps, and every :data:`MERGE_CHUNKS` chunks are
+merged into one with the count of chunk centroids behind each voxel (:func:`voxel_merge`: the
+same centroids as merging them all at the end), so memory stays bounded by the map, not the
+scene: a 200-frame Waymo segment's 20 chunks (about 50 million points) were sorted at once.
 """
 
 from __future__ import annotations
@@ -140,8 +143,9 @@ class LidarMap:
     Size: 12 bytes per static point (float32 x, y, z) plus 16 per occupied 8 m tile, and 12 per
     object model point; it is all a scene keeps between frames (the frames stream). While it is
     built, ``chunk_sweeps`` sweeps' points wait for their down-sampling (about 60 bytes per raw
-    point: float64 world points, sort keys and order) and the down-sampled chunks add up to
-    about the map. Measured at 2 cm voxels: a 200-frame synthetic 64 x 1024 scene, 8.7 million
+    point at its peak: one float64 column, sort keys and order) and at most
+    :data:`MERGE_CHUNKS` down-sampled chunks wait beside the merged map. Measured at 2 cm
+    voxels: a 200-frame synthetic 64 x 1024 scene, 8.7 million
     points, 100 MiB (BENCHMARKS.md, depth-stage); 4 frames of a 128 x 2650 LiDAR (294k points a
     frame, about a real Waymo frame's count), 624k points, 7.5 MB.
 

@@ -27,6 +27,14 @@ pixels whose ray meets it get no depth (confidence 0), and nothing behind it is 
 holding a camera centre or a LiDAR origin is an error naming the scene, the sensor and the box
 (:func:`phigenesis.data.ego_body.check_sensors_outside`): it would blank the camera's depth.
 
+Cost: the first pass over the points (transform, cull, distort, project, the ego-body and
+vehicle tests) and the per-pixel plane fits run in C (``csrc/camera_points.c``,
+``csrc/plane_fits.c``, :mod:`phigenesis.data.native`), with their numpy twins as the fallback
+where no compiler is present (:func:`camera_pixels_reference`, :func:`fit_occupied_numpy`). A
+long segment's map saturates its 2 cm voxels: a pixel holding more than
+``max_points_per_pixel`` points keeps its front band thinned to about that many
+(:func:`thin_in_pixels`), so the work after the first pass is bounded by the image.
+
 Confidence of a sparse pixel: the origin's weight (static map or own sweep 1.0, non-rigid own
 points 0.9, rigid object models 0.8: their pose is extrapolated to the image time) times 0.75 if
 a single point supports the pixel, 1.0 if two or more agree within ``tau``.
