@@ -895,7 +895,8 @@ def fit_pixels(
 
     The moments and fits are computed for the occupied pixels only, by the native kernel
     (:func:`~phigenesis.data.native.load_plane_fits`: the same arithmetic in the same order, so
-    the same doubles, in a few passes) where it is built, else with numpy
+    the same doubles, in a few passes: 0.36 CPU-s against 5.6 for the 1.9 million points of the
+    camera above) where it is built, else with numpy
     (:func:`fit_occupied_numpy`); :func:`fit_pixels_reference` is the same on whole-image maps
     (equal to rounding: the sums are taken in another order)."""
     h, w = shape
@@ -1231,12 +1232,13 @@ def camera_pixels(
     Returns ``(index, uv, z, pixel, counts)``: (K,) int64 indices into ``points``, (K, 2) float64
     pixel positions (u along the width), (K,) float32 camera z in metres, (K,) int64 flat pixel
     indices (row * W + column) and the counts ``projected`` (points in the image),
-    ``behind_ego_body`` and ``behind_vehicles`` (and the later steps' counts at 0), in the
-    points' order.
+    ``behind_ego_body``, ``behind_vehicles`` and ``thinned_in_pixels`` (the per-pixel cap,
+    :func:`thin_in_pixels`; the later steps' counts at 0), in the points' order.
 
     One pass of the native kernel (:func:`~phigenesis.data.native.load_camera_points`) over the
     points, where the numpy path (:func:`camera_pixels_reference`) makes a dozen over millions
-    of map points: 0.45 CPU-s per 1920 x 1280 camera with 1 million points against 0.02. The
+    of map points: 0.09 CPU-s against 0.94 for the FRONT camera (1920 x 1280) of the 50-frame
+    Waymo segment's first frame, 3.1 million candidate points (1.9 million kept). The
     same arithmetic in the same precision, except the float32 rotation's last bit (BLAS may sum
     in another order): a point on a pixel's border or on a limit may fall the other way."""
     kernel = load_camera_points()
