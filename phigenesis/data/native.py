@@ -3,13 +3,15 @@ reader's range-image kernel (``range_points.c``), the shard writer's CRC-32C com
 (``crc32c_combine.c``), the pseudo labels' box rule (``box_labels.c``), depth completion's
 fine pass (``complete_fine.c``), the densifier's last pass (``densify_finish.c``: support,
 confidence and clean-up in one pass), the depth projection's ray-box test (``ray_box.c``: the far
-side of a moving vehicle along each ray of its footprint, one pass instead of numpy's fifteen) and
+side of a moving vehicle along each ray of its footprint, one pass instead of numpy's fifteen), its
+first pass over the map points (``camera_points.c``: transform, cull, distort, project and test
+against the ego body and vehicles in one pass) and its per-pixel plane fits (``plane_fits.c``), and
 a camera's per-calibration tables (``camera_rays.c``: undistorted pixel rays, their ego-frame
 directions and the range view's overlap map).
 
 Entry points: :func:`load_range_points`, :func:`load_crc32c_combine`, :func:`load_box_labels`,
 :func:`load_complete_fine`, :func:`load_ray_box`, :func:`load_camera_rays`,
-:func:`load_densify_finish`.
+:func:`load_densify_finish`, :func:`load_camera_points`, :func:`load_plane_fits`.
 
 Turning a Waymo frame's range images into points was a quarter of the v1 reader's time in numpy
 (16 ms of 65 ms a frame: a mask, a gather per channel, the ray arithmetic and the concatenation, each
@@ -51,6 +53,8 @@ SOURCES = (
     Path(__file__).parent / "csrc" / "ray_box.c",
     Path(__file__).parent / "csrc" / "camera_rays.c",
     Path(__file__).parent / "csrc" / "densify_finish.c",
+    Path(__file__).parent / "csrc" / "camera_points.c",
+    Path(__file__).parent / "csrc" / "plane_fits.c",
 )
 LIBRARY_NAME = "libphigenesis_data"
 CFLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fPIC", "-shared", "-std=c99")
@@ -423,6 +427,176 @@ class CameraRays:
         return owner, count
 
 
+class CameraPointsKernel:
+    """The loaded ``phigenesis_camera_points`` (see ``csrc/camera_points.c``)."""
+
+    def __init__(self, library: ctypes.CDLL):
+        i64, ptr, f32, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_float, ctypes.c_double
+        self._run = library.phigenesis_camera_points
+        self._run.argtypes = [i64, ptr, ptr, ptr, f32, f32, ptr, f64, f64, ptr, i64, ptr, i64, i64]
+        self._run.argtypes += [ptr, ptr, f32, i64, f32, f32, ptr, ptr, ptr, ptr, ptr]
+        self._run.restype = i64
+
+    def __call__(
+        self,
+        points_world: NDArray[np.float32],
+        world_from_camera: NDArray[np.float64],
+        intrinsics: NDArray[np.float64],
+        distortion: NDArray[np.float64],
+        max_radius2: float,
+        size_wh: tuple[int, int],
+        depth_range_m: tuple[float, float],
+        bounds: tuple[tuple[float, float], tuple[float, float]],
+        ego_depth: NDArray[np.float32] | None,
+        occluder_far: NDArray[np.float32] | None,
+        slack_m: float,
+        max_per_pixel: int = 0,
+        band: tuple[float, float] = (1.0, 0.0),
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float32], NDArray[np.int64], list[int]]:
+        """The points of ``points_world`` ((N, 3) float32 C order, world frame) that land in the
+        image and lie in front of the ego body and the vehicles: their indices (K,) int64, pixel
+        positions (K, 2) float64 (u along the width), camera z (K,) float32 metres and flat pixel
+        indices (K,) int64, and the counts [projected, behind the ego body, behind vehicles,
+        thinned].
+
+        ``world_from_camera`` (4, 4); ``intrinsics`` (3, 3); ``distortion`` (5,) OpenCV k1, k2, p1,
+        p2, k3 and ``max_radius2`` its monotonic radius squared (normalised units);
+        ``size_wh`` the image's (W, H); ``depth_range_m`` (min z, max range); ``bounds`` the
+        normalised view bounds ((x0, x1), (y0, y1)); ``ego_depth`` and ``occluder_far`` (H, W)
+        float32 maps or None; ``slack_m`` added to ``occluder_far``; ``max_per_pixel`` (0: off)
+        and ``band`` (scale, slack in metres) the per-pixel thinning, whose drops are the fourth
+        count. See ``csrc/camera_points.c``."""
+        w, h = size_wh
+        n = len(points_world)
+        if points_world.shape != (n, 3) or points_world.dtype != np.float32:
+            raise ValueError(f"camera points: points must be (N, 3) float32, got {points_world.shape}")
+        if not points_world.flags.c_contiguous:
+            raise ValueError("camera points: points must be a C-order array")
+        for name, m in (("ego_depth", ego_depth), ("occluder_far", occluder_far)):
+            if m is not None and (m.shape != (h, w) or m.dtype != np.float32 or not m.flags.c_contiguous):
+                raise ValueError(f"camera points: {name} must be a C-order ({h}, {w}) float32 array")
+        centre = np.ascontiguousarray(world_from_camera[:3, 3], np.float32)
+        rotation = np.ascontiguousarray(world_from_camera[:3, :3], np.float32)
+        bounds_f = np.array([*bounds[0], *bounds[1]], np.float32)
+        dist = np.ascontiguousarray(distortion, np.float64).reshape(5)
+        k = np.asarray(intrinsics, np.float64)[[0, 0, 0, 1, 1], [0, 1, 2, 1, 2]].copy()
+        index = np.empty(n, np.int64)
+        uv = np.empty((n, 2), np.float64)
+        z = np.empty(n, np.float32)
+        pixel = np.empty(n, np.int64)
+        counts = np.zeros(4, np.int64)
+        min_depth, max_range = depth_range_m
+        kept = self._run(
+            n,
+            _address(points_world),
+            _address(centre),
+            _address(rotation),
+            min_depth,
+            max_range**2,
+            _address(bounds_f),
+            min_depth,
+            max_radius2,
+            _address(dist),
+            int(bool(np.any(dist != 0.0))),
+            _address(k),
+            w,
+            h,
+            None if ego_depth is None else _address(ego_depth),
+            None if occluder_far is None else _address(occluder_far),
+            slack_m,
+            max_per_pixel,
+            band[0],
+            band[1],
+            _address(index),
+            _address(uv),
+            _address(z),
+            _address(pixel),
+            _address(counts),
+        )
+        if kept < 0:
+            raise MemoryError("camera points: no memory for the per-pixel thinning")
+        return index[:kept], uv[:kept], z[:kept], pixel[:kept], [int(c) for c in counts]
+
+
+class PlaneFits:
+    """The loaded ``phigenesis_plane_fits`` (see ``csrc/plane_fits.c``)."""
+
+    def __init__(self, library: ctypes.CDLL):
+        i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+        self._run = library.phigenesis_plane_fits
+        self._run.argtypes = [
+            i64,
+            ptr,
+            ptr,
+            ptr,
+            i64,
+            i64,
+            ptr,
+            i64,
+            f64,
+            f64,
+            i64,
+            f64,
+            f64,
+            ptr,
+            ptr,
+            ptr,
+            ptr,
+        ]
+        self._run.restype = i64
+
+    def __call__(
+        self,
+        pixel: NDArray[np.int64],
+        uv: NDArray[np.float64],
+        z: NDArray[np.float32],
+        shape: tuple[int, int],
+        reference_m: NDArray[np.float32],
+        min_points: int,
+        fit_tolerance: tuple[float, float],
+        window_px: int,
+        window_tolerance: tuple[float, float],
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_]]:
+        """Plane fits of the occupied pixels of an (H, W) ``shape`` image: their sorted flat
+        indices (K,) int64, depth at the centre (K,) float64 (NaN: none), point count (K,) int64
+        and mixed flag (K,) bool. ``pixel`` (N,) int64 flat pixel of each point, ``uv`` (N, 2)
+        float64 its position, ``z`` (N,) float32 its depth (m); ``reference_m`` (H * W,) float32
+        the depth of the point nearest each centre; ``fit_tolerance`` and ``window_tolerance``
+        (metres, relative). See ``csrc/plane_fits.c``."""
+        h, w = shape
+        n = len(pixel)
+        pixel = np.ascontiguousarray(pixel, np.int64)
+        uv = np.ascontiguousarray(uv, np.float64)
+        z = np.ascontiguousarray(z, np.float32)
+        reference = np.ascontiguousarray(reference_m, np.float32).reshape(-1)
+        if uv.shape != (n, 2) or z.shape != (n,) or reference.shape != (h * w,):
+            raise ValueError(f"plane fits: shapes {pixel.shape}, {uv.shape}, {z.shape}, {reference.shape}")
+        if n and (pixel.min() < 0 or pixel.max() >= h * w):
+            raise ValueError(f"plane fits: a pixel index lies outside the {h} x {w} image")
+        capacity = min(n, h * w)
+        occupied = np.empty(capacity, np.int64)
+        depth = np.empty(capacity, np.float64)
+        count = np.empty(capacity, np.int64)
+        mixed = np.empty(capacity, np.uint8)
+        k = self._run(
+            n,
+            _address(pixel),
+            _address(uv),
+            _address(z),
+            h,
+            w,
+            _address(reference),
+            min_points,
+            *fit_tolerance,
+            window_px,
+            *window_tolerance,
+            *(_address(a) for a in (occupied, depth, count, mixed)),
+        )
+        if k < 0:
+            raise MemoryError("plane fits: no memory for the pixel map")
+        return occupied[:k], depth[:k], count[:k], mixed[:k].astype(bool)
+
+
 class _Kernels(NamedTuple):
     range_points: RangePoints
     crc32c_combine: Crc32cCombine
@@ -431,6 +605,8 @@ class _Kernels(NamedTuple):
     ray_box: RayBox
     camera_rays: CameraRays
     densify_finish: DensifyFinish
+    camera_points: CameraPointsKernel
+    plane_fits: PlaneFits
 
 
 def _load_library() -> _Kernels | None:
@@ -453,6 +629,8 @@ def _load_library() -> _Kernels | None:
                 RayBox(library),
                 CameraRays(library),
                 DensifyFinish(library),
+                CameraPointsKernel(library),
+                PlaneFits(library),
             )
         except (OSError, subprocess.SubprocessError, AttributeError) as error:
             _failure = str(error).splitlines()[0][:300] if str(error) else type(error).__name__
@@ -727,6 +905,20 @@ def load_camera_rays() -> CameraRays | None:
     return None if kernels is None else kernels.camera_rays
 
 
+def load_camera_points() -> CameraPointsKernel | None:
+    """The projection's first-pass kernel, or ``None`` where the library cannot be built
+    (:func:`_load_library`)."""
+    kernels = _load_library()
+    return None if kernels is None else kernels.camera_points
+
+
+def load_plane_fits() -> PlaneFits | None:
+    """The projection's plane-fit kernel, or ``None`` where the library cannot be built
+    (:func:`_load_library`)."""
+    kernels = _load_library()
+    return None if kernels is None else kernels.plane_fits
+
+
 def failure_reason() -> str | None:
     """Why the kernels are not available (after a loader returned ``None``)."""
     return _failure
@@ -734,17 +926,23 @@ def failure_reason() -> str | None:
 
 __all__ = [
     "BoxLabels",
+    "CameraPointsKernel",
     "CameraRays",
     "CompleteFine",
     "Crc32cCombine",
+    "DensifyFinish",
+    "PlaneFits",
     "RangePoints",
     "RayBox",
     "build_directory",
     "failure_reason",
     "load_box_labels",
+    "load_camera_points",
     "load_camera_rays",
     "load_complete_fine",
     "load_crc32c_combine",
+    "load_densify_finish",
+    "load_plane_fits",
     "load_range_points",
     "load_ray_box",
 ]

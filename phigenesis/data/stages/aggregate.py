@@ -24,7 +24,10 @@ in ``scene.products["lidar_map"]``).
   the frame's own sweep.
 
 Frames are read with :func:`frame_geometry` (no images), one sweep at a time; static points are
-down-sampled in chunks of ``chunk_sweeps`` sweeps so memory stays bounded by the map, not the scene.
+down-sampled in chunks of ``chunk_sweeps`` sweeps, and every :data:`MERGE_CHUNKS` chunks are
+merged into one with the count of chunk centroids behind each voxel (:func:`voxel_merge`: the
+same centroids as merging them all at the end), so memory stays bounded by the map, not the
+scene: a 200-frame Waymo segment's 20 chunks (about 50 million points) were sorted at once.
 """
 
 from __future__ import annotations
@@ -61,6 +64,10 @@ VOXEL_BACKENDS: tuple[VoxelBackend, ...] = get_args(VoxelBackend)
 TILE_M = 8.0
 #: Cell size of the grid that finds the points near a box (:func:`box_points_at_times`), metres.
 BOX_CELL_M = 4.0
+#: Down-sampled chunks of the static map kept before they are merged into one (:func:`voxel_merge`):
+#: a long segment's chunks would otherwise add up to several times its map (20 chunks of 2.5
+#: million points for a 200-frame Waymo segment) and be sorted all at once at the end.
+MERGE_CHUNKS = 4
 
 
 @dataclass(frozen=True)
@@ -136,8 +143,9 @@ class LidarMap:
     Size: 12 bytes per static point (float32 x, y, z) plus 16 per occupied 8 m tile, and 12 per
     object model point; it is all a scene keeps between frames (the frames stream). While it is
     built, ``chunk_sweeps`` sweeps' points wait for their down-sampling (about 60 bytes per raw
-    point: float64 world points, sort keys and order) and the down-sampled chunks add up to
-    about the map. Measured at 2 cm voxels: a 200-frame synthetic 64 x 1024 scene, 8.7 million
+    point at its peak: one float64 column, sort keys and order) and at most
+    :data:`MERGE_CHUNKS` down-sampled chunks wait beside the merged map. Measured at 2 cm
+    voxels: a 200-frame synthetic 64 x 1024 scene, 8.7 million
     points, 100 MiB (BENCHMARKS.md, depth-stage); 4 frames of a 128 x 2650 LiDAR (294k points a
     frame, about a real Waymo frame's count), 624k points, 7.5 MB.
 
@@ -210,6 +218,22 @@ class LidarMap:
         if counts.sum() == 0:
             return self.points_world[:0], np.zeros(0, np.int64)
         return np.concatenate(parts), np.repeat(np.arange(len(tiles)), counts)
+
+    def points_and_counts_of_tiles(
+        self, tiles: NDArray[np.int64], stride: NDArray[np.int64] | None = None
+    ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+        """:meth:`points_of_tiles`' points with, instead of a label per point, the (K,) number
+        taken from each tile (each tile's points are contiguous, in ``tiles``' order)."""
+        if stride is None:
+            stride = np.ones(len(tiles), np.int64)
+        parts = [
+            self.points_world[self.tile_start[i] : self.tile_start[i + 1] : int(k)]
+            for i, k in zip(tiles, stride, strict=True)
+        ]
+        counts = np.array([len(p) for p in parts], np.int64)
+        if counts.sum() == 0:
+            return self.points_world[:0], counts
+        return np.concatenate(parts), counts
 
     def points_near(self, xy_world: NDArray[np.float64], radius_m: float) -> NDArray[np.float32]:
         """(K, 3) static points in the tiles within ``radius_m`` (x-y) of a world position."""
@@ -428,7 +452,22 @@ def repeated_points(
 
 
 def _voxel_keys(points: NDArray[np.floating], voxel_m: float) -> NDArray[np.int64]:
-    """One int64 key per point for its voxel (21 bits per axis: +-1e6 voxels)."""
+    """One int64 key per point for its voxel (21 bits per axis: +-1e6 voxels).
+
+    Axis by axis, so that the float64 temporaries are one column (8 bytes a point, not the
+    whole (N, 3) array's 24 several times over): :func:`_voxel_keys_reference`'s keys."""
+    keys = np.zeros(len(points), np.int64)
+    for axis, shift in ((0, 42), (1, 21), (2, 0)):
+        column = np.floor(np.asarray(points[:, axis], np.float64) / voxel_m).astype(np.int64)
+        column += 1 << 20
+        if shift:
+            column <<= shift
+        keys |= column
+    return keys
+
+
+def _voxel_keys_reference(points: NDArray[np.floating], voxel_m: float) -> NDArray[np.int64]:
+    """The reference :func:`_voxel_keys` (whole-array arithmetic). Kept for the tests."""
     v = np.floor(np.asarray(points, np.float64) / voxel_m).astype(np.int64) + (1 << 20)
     return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
 
@@ -453,9 +492,46 @@ def voxel_downsample(
     order = np.argsort(keys)
     keys = keys[order]
     start = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-    sums = np.add.reduceat(np.asarray(points, np.float64)[order], start, axis=0)
-    counts = np.diff(np.r_[start, len(keys)])
-    return (sums / counts[:, None]).astype(np.float32)
+    del keys
+    counts = np.diff(np.r_[start, len(order)])
+    out = np.empty((len(start), 3), np.float32)
+    # Column by column (the same sums, in the same order, as over the (N, 3) float64 array):
+    # the float64 copies are 8 bytes a point at a time, not 48.
+    for axis in range(3):
+        column = np.asarray(points[:, axis], np.float64)[order]
+        out[:, axis] = np.add.reduceat(column, start) / counts
+    return out
+
+
+def voxel_merge(
+    parts: list[tuple[NDArray[np.float32], NDArray[np.float64] | None]], voxel_m: float
+) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+    """Weighted voxel centroids of several down-sampled parts: each part is (points (N, 3)
+    float32, weights (N,) float64 or None for 1 each); returns the (K, 3) float32 centroids, each
+    the weighted mean of the points in its voxel, and (K,) their summed weights.
+
+    With every weight 1 this is :func:`voxel_downsample` (numpy backend): the same keys, order
+    and sums. A part merged earlier enters with the number of points each of its centroids
+    stands for, so merging in stages gives the centroids of merging at once (to the float32
+    rounding of the stored centroids)."""
+    points = np.concatenate([q for q, _ in parts]) if parts else np.zeros((0, 3), np.float32)
+    weights = (
+        np.concatenate([np.ones(len(q)) if w is None else w for q, w in parts]) if parts else np.zeros(0)
+    )
+    if len(points) == 0 or voxel_m <= 0:
+        return np.asarray(points, np.float32), weights
+    keys = _voxel_keys(points, voxel_m)
+    order = np.argsort(keys)
+    keys = keys[order]
+    start = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    del keys
+    ordered_weights = weights[order]
+    total = np.add.reduceat(ordered_weights, start)
+    out = np.empty((len(start), 3), np.float32)
+    for axis in range(3):
+        column = np.asarray(points[:, axis], np.float64)[order]
+        out[:, axis] = np.add.reduceat(column * ordered_weights, start) / total
+    return out, total
 
 
 def remove_outliers(points: NDArray[np.float32], neighbors: int, std_ratio: float) -> NDArray[np.float32]:
@@ -475,6 +551,8 @@ class _Accumulator:
 
     params: AggregateParams
     static_chunks: list[NDArray[np.float32]] = field(default_factory=list)
+    # The chunks merged so far: voxel centroids and how many chunk centroids each stands for.
+    merged: tuple[NDArray[np.float32], NDArray[np.float64]] | None = None
     pending: list[NDArray[np.float32]] = field(default_factory=list)
     pending_sweeps: int = 0
     # Per track: points inside the enlarged box (world) and strictly inside (box frame).
@@ -497,6 +575,32 @@ class _Accumulator:
                 voxel_downsample(np.concatenate(self.pending), self.params.voxel_m, self.params.voxel_backend)
             )
         self.pending, self.pending_sweeps = [], 0
+        if len(self.static_chunks) >= MERGE_CHUNKS and self.params.voxel_backend == "numpy":
+            self.merge()
+
+    def merge(self) -> None:
+        """Folds the down-sampled chunks into ``merged``: each voxel's centroid with the number
+        of chunk centroids it stands for (:func:`voxel_merge`), so the map's final centroids are
+        those of the chunks' centroids as if no chunk had been merged (to float32 rounding)."""
+        parts = ([self.merged] if self.merged is not None else []) + [(c, None) for c in self.static_chunks]
+        self.static_chunks = []
+        self.merged = voxel_merge(parts, self.params.voxel_m)
+
+    def static_map(self) -> NDArray[np.float32]:
+        """(N, 3) float32: the static map's voxel centroids over every chunk (the chunks are
+        released as they are read)."""
+        p = self.params
+        if self.merged is not None:
+            self.merge()
+            assert self.merged is not None
+            points, _ = self.merged
+            self.merged = None
+            return points
+        if not self.static_chunks:
+            return np.zeros((0, 3), np.float32)
+        static = np.concatenate(self.static_chunks)
+        self.static_chunks = []
+        return voxel_downsample(static, p.voxel_m, p.voxel_backend)
 
 
 def return_elevations(sweep: LidarSweep) -> NDArray[np.float64]:
@@ -577,8 +681,7 @@ def aggregate_scene(scene: Scene, params: AggregateParams | None = None) -> Lida
     for track, parts in acc.boxed_world.items():
         if track not in moving:
             acc.static_chunks.append(voxel_downsample(np.concatenate(parts), p.voxel_m, p.voxel_backend))
-    static = np.concatenate(acc.static_chunks) if acc.static_chunks else np.zeros((0, 3), np.float32)
-    static = voxel_downsample(static, p.voxel_m, p.voxel_backend)
+    static = acc.static_map()
     before_outliers = len(static)
     static = remove_outliers(static, p.outlier_neighbors, p.outlier_std_ratio)
     objects = {}
