@@ -254,10 +254,10 @@ def test_the_dense_depth_caption_says_what_its_pixels_are_made_of(frame: Frame) 
 
     drawn = dataclasses.replace(frame, cameras=[all_rendered(c) for c in frame.cameras])
     rv = preview_range_view(drawn)
-    assert depth_caption(drawn, rv, "rendered") == "depth: rendered by the Gaussians phigenesis-render placed"
+    assert depth_caption(drawn, rv, "rendered") == "depth: rendered from phigenesis-render's Gaussians"
     assert (
         depth_caption(drawn, rv, "generated")
-        == "depth: rendered by the rollout's Gaussians (phigenesis-generate)"
+        == "depth: rendered from the rollout's Gaussians (phigenesis-generate)"
     )
-    assert depth_caption(drawn, rv) == "depth: rendered by Gaussians"
+    assert depth_caption(drawn, rv) == "depth: rendered from Gaussians"
     assert draw_frame(drawn, scale=1, cache_source="generated").shape[0] > 0

@@ -103,7 +103,7 @@ def has_depth(depth_m: NDArray[np.float32] | None) -> bool:
 
 #: What drew a cache's rendered depth, by the cache's source (its manifest's ``source``).
 RENDERED_BY: dict[str, str] = {
-    "rendered": "the Gaussians phigenesis-render placed",
+    "rendered": "phigenesis-render's Gaussians",
     "generated": "the rollout's Gaussians (phigenesis-generate)",
 }
 #: How the dense depth's caption groups its pixels' origins (:data:`DENSE_ORIGINS`).
@@ -124,7 +124,7 @@ def dense_caption(frame: Frame, cache_source: str | None = None) -> str:
         return DEPTH_SOURCE_NAMES["dense"]
     rendered = counts[DENSE_ORIGINS.index("rendered")]
     if rendered == total:
-        return f"depth: rendered by {RENDERED_BY.get(cache_source or '', 'Gaussians')}"
+        return f"depth: rendered from {RENDERED_BY.get(cache_source or '', 'Gaussians')}"
     shares: dict[str, int] = {}
     for k, name in enumerate(DENSE_ORIGINS):
         group = _ORIGIN_GROUPS.get(name, name)
@@ -233,7 +233,10 @@ def _rgb_row(
         _draw_boxes(view, cams[p.camera_name], frame, p, zoom)
         if x0 > 0:
             img[:, x0] = (255, 255, 255)
-        put_caption(img, p.camera_name, (x0 + 3, y0 + round(24 * font)), font)
+        name = p.camera_name
+        while len(name) > 1 and cv2.getTextSize(name, 0, font, 1)[0][0] > x1 - x0 - 6:
+            name = name[:-1]  # a narrow view shows as much of its name as fits
+        put_caption(img, name, (x0 + 3, y0 + round(24 * font)), font)
     return img
 
 
