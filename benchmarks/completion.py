@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -30,7 +31,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from benchmarks._report import Report, add_update_flag, output_path
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
+from _report import Report, add_update_flag, output_path
+
 from phigenesis.data import taxonomy as tx
 from phigenesis.data.pipeline import load_pipeline
 from phigenesis.data.records import DENSE_ORIGINS, CameraDepth, Frame, LazyFrames, Scene

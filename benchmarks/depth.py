@@ -31,6 +31,7 @@ import argparse
 import dataclasses
 import gc
 import resource
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -38,7 +39,9 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._report import Report, add_update_flag, output_path
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
+from _report import Report, add_update_flag, output_path
+
 from phigenesis.data.pipeline import load_pipeline
 from phigenesis.data.records import TRUSTED_DEPTH_CONFIDENCE, Frame, LazyFrames, Scene
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene

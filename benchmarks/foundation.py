@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import sys
 import tempfile
 import time
 from collections import defaultdict
@@ -34,6 +35,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pyarrow as pa
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
 from _report import Report, add_update_flag, round_ratio
 from torch.utils.data import DataLoader
 

@@ -26,12 +26,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import shutil
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 import trimesh
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
 from _report import Report, add_update_flag, output_path
 
 from phigenesis import geometry, prep

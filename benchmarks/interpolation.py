@@ -39,11 +39,15 @@ mean and p95 (m), yaw error p95 (deg), recall and spurious boxes. ``--update`` w
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
 from _report import Report, add_update_flag
 
 from phigenesis import geometry

@@ -10,11 +10,15 @@ pixels show, and rendering 480 x 720 scenes would take minutes. Run:
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import cv2
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
 from _report import Report, add_update_flag
 
 from phigenesis.data import rangeview as rvm

@@ -33,6 +33,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
 from _report import Report, add_update_flag
 
 from phigenesis.models.rasterizer import RenderOutput, native_available, rasterize, rasterize_reference

@@ -35,6 +35,8 @@ from importlib import metadata
 from pathlib import Path
 
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
 from _report import Report, add_update_flag, cpu_model, ram_gib
 from rasterizer import CAMERAS, COUNTS, SIZES, TILED_ROWS, _loss, _visible, make_cameras, make_scene
 

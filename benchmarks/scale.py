@@ -41,7 +41,8 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks._report import Report, add_update_flag
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
+from _report import Report, add_update_flag
 
 #: Frames of whole datasets at their native camera rate (../shared/reference/sensors.md):
 #: Waymo Perception 1150 segments x ~198.5 frames; nuScenes trainval 850 scenes x ~240 frames.

@@ -49,6 +49,8 @@ import time
 from pathlib import Path
 
 import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
 from _report import REPO_ROOT, Report, add_update_flag, output_path
 
 from phigenesis import prep

@@ -29,6 +29,8 @@ import time
 from pathlib import Path
 
 import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
 from _report import REPO_ROOT, Report, add_update_flag
 from stage2 import BIN, CEILING, RENDER_ONLY, _eval_cmd, _fixed_row, _in_pairs, _metric
 

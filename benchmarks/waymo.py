@@ -62,6 +62,8 @@ import cv2
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
 from _report import Report, add_update_flag, round_ratio
 
 from phigenesis import geometry

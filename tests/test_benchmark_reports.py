@@ -80,3 +80,28 @@ def test_a_real_benchmark_run_without_update_leaves_benchmarks_md_byte_identical
     assert _report.BENCHMARKS_MD.read_bytes() == before
     section = (tmp_path / "rangeview.md").read_text()
     assert section.startswith("## Range views: speed and size") and "Milliseconds per frame" in section
+
+
+@pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: p.stem)
+def test_every_benchmark_script_finds_its_helpers_as_a_script_and_as_a_module(script: Path):
+    """``python benchmarks/X.py`` and ``python -m benchmarks.X`` both work: each script puts its own
+    folder on the path before importing ``_report`` (or a sibling script)."""
+    text = script.read_text()
+    if "_report import" not in text:
+        pytest.skip(f"{script.name} imports no helper")
+    assert "from benchmarks._report" not in text
+    insert = text.find("sys.path.insert(0, str(Path(__file__).resolve().parent))")
+    assert 0 <= insert < text.find("from _report import"), script.name
+
+
+@pytest.mark.parametrize("form", ["script", "module"])
+@pytest.mark.parametrize("name", ["depth", "stage2_variants"])
+def test_a_benchmark_runs_both_ways(name: str, form: str):
+    import subprocess
+
+    argv = [f"benchmarks/{name}.py"] if form == "script" else ["-m", f"benchmarks.{name}"]
+    done = subprocess.run(
+        [sys.executable, *argv, "--help"], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
+    assert "--update" in done.stdout
