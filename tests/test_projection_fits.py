@@ -18,6 +18,7 @@ from phigenesis.data.stages.project import (
     ProjectParams,
     depth_edge_band,
     fit_pixels,
+    footprint_budgets,
     moments,
     normalized_bounds,
     project_camera,
@@ -313,3 +314,102 @@ def test_silhouette_pixels_need_both_a_rim_of_the_known_region_and_an_image_edge
     assert flagged[rim].all()  # the object's outline
     assert not flagged[12:28, 22:38].any()  # its interior
     assert not flagged[:, 45:].any()  # a rim where the image is flat
+
+
+def _covered_pixels(points_world: np.ndarray, camera_xyz: np.ndarray, focal_px: float) -> int:
+    """Pixels (of an unbounded pinhole looking along +x from ``camera_xyz``) that hold a point."""
+    rel = points_world.astype(np.float64) - camera_xyz
+    ahead = rel[:, 0] > 0.1
+    u = np.floor(focal_px * -rel[ahead, 1] / rel[ahead, 0]).astype(np.int64)
+    v = np.floor(focal_px * -rel[ahead, 2] / rel[ahead, 0]).astype(np.int64)
+    return len(np.unique(u * 1_000_003 + v))
+
+
+@pytest.mark.parametrize("distance_m", [20.0, 60.0, 110.0])
+@pytest.mark.parametrize("surface", ["floor", "wall", "floor and wall"])
+def test_footprint_budget_bounds_the_pixels_a_tile_covers(distance_m: float, surface: str):
+    """The budget is ``points_per_pixel`` times an upper bound on the pixels the tile's surfaces
+    can cover: a saturated 2 cm floor, a wall across the tile, or both, seen from 2 m up."""
+    focal, camera = 2000.0, np.array([0.0, 0.0, 2.0])
+    x0, y0 = distance_m, -TILE_M / 2
+    grid = np.arange(0.01, TILE_M, 0.02)
+    parts = []
+    if "floor" in surface:
+        gx, gy = np.meshgrid(grid, grid, indexing="ij")
+        parts.append(np.stack([x0 + gx.ravel(), y0 + gy.ravel(), np.zeros(gx.size)], axis=1))
+    if "wall" in surface:
+        gy, gz = np.meshgrid(grid, np.arange(0.01, 6.0, 0.02), indexing="ij")
+        parts.append(np.stack([np.full(gy.size, x0 + 1.0), y0 + gy.ravel(), gz.ravel()], axis=1))
+    points = np.concatenate(parts).astype(np.float32)
+    centre = np.array([[x0 + TILE_M / 2, 0.0]])
+    z = points[:, 2]
+    budget = footprint_budgets(centre, z.min(keepdims=True), z.max(keepdims=True), camera, focal, 1.0)[0]
+    covered = _covered_pixels(points, camera, focal)
+    assert budget >= covered
+    if surface == "floor":
+        # Tight where it matters: a far floor is seen at a grazing angle, and the bound follows.
+        assert budget <= 8 * covered
+        assert budget < len(points) / 20 or distance_m < 60
+    stride = thinning_strides(centre, camera, 0.02 * focal * 3.0)[0]
+    if surface == "floor" and distance_m >= 60:
+        assert stride == 1  # the distance rule alone would take every point of this tile
+
+
+def test_tile_sort_gives_each_tile_in_a_hashed_order_whose_prefixes_are_uniform():
+    """A saturated 2 cm floor tile: its first 2 % of points spread evenly over the tile (a prefix
+    of a key-sorted tile, or every 50th point, would keep whole rows or columns)."""
+    grid = np.arange(0.01, TILE_M, 0.02)
+    gx, gy = np.meshgrid(grid, grid, indexing="ij")
+    points = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1).astype(np.float32)
+    sorted_pts, keys, start = _tile_sort(points)
+    assert len(keys) == 1 and start.tolist() == [0, len(points)]
+    assert {tuple(p) for p in sorted_pts.tolist()} == {tuple(p) for p in points.tolist()}
+    prefix = sorted_pts[: len(points) // 50]
+    for axis in (0, 1):
+        counts = np.histogram(prefix[:, axis], bins=32, range=(0.0, TILE_M))[0]
+        expected = len(prefix) / 32
+        assert np.all(np.abs(counts - expected) < 5 * np.sqrt(expected))
+    # Sorted again, the same order: the cache's rows do not depend on the run.
+    again, _, _ = _tile_sort(points)
+    np.testing.assert_array_equal(again, sorted_pts)
+
+
+def test_tile_heights_are_each_tiles_lowest_and_highest_point():
+    rng = np.random.default_rng(5)
+    pts = rng.uniform([-30, -30, -2], [30, 30, 9], size=(20000, 3)).astype(np.float32)
+    sorted_pts, keys, start = _tile_sort(pts)
+    lidar_map = LidarMap(sorted_pts, keys, start, 0.05, frozenset(), frozenset(), {}, [])
+    tiles = np.arange(len(keys))
+    low, high = lidar_map.tile_heights(tiles)
+    for t in tiles:
+        z = sorted_pts[start[t] : start[t + 1], 2]
+        assert low[t] == z.min() and high[t] == z.max()
+    assert lidar_map.tile_counts(tiles).sum() == len(pts)
+
+
+def test_thinned_static_points_take_a_uniform_prefix_of_each_far_flat_tile():
+    """On a saturated floor a camera 2 m up gets every point of the tiles near it and a uniform
+    subset of about ``thin_points_per_cell`` per covered pixel of the far ones."""
+    grid = np.arange(0.01, 96.0, 0.04)
+    gx, gy = np.meshgrid(grid, np.arange(-8.0, 8.0, 0.04), indexing="ij")
+    pts = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1).astype(np.float32)
+    sorted_pts, keys, start = _tile_sort(pts)
+    lidar_map = LidarMap(sorted_pts, keys, start, 0.04, frozenset(), frozenset(), {}, [])
+    from phigenesis.data.records import Boxes, Frame
+
+    rotation = geometry.BODY_FROM_OPENCV
+    intrinsics = geometry.intrinsic_matrix(2000.0, 2000.0, 959.5, 639.5)
+    ego_from_camera = geometry.make_transform(rotation, [0.0, 0.0, 2.0])
+    cal = CameraCalibration("F", 1920, 1280, intrinsics, np.zeros(5), ego_from_camera)
+    cam = CameraImage(cal, 0, np.eye(4), None)
+    frame = Frame("s", 0, 0, np.eye(4), [cam], None, Boxes.empty())
+    whole = static_points_per_camera(frame, lidar_map, ProjectParams(thin=False))[0]
+    thinned = static_points_per_camera(frame, lidar_map, ProjectParams())[0]
+    near = lambda p: p[:, 0] < 16.0  # noqa: E731
+    far_of = lambda p: p[(p[:, 0] > 72.0) & (p[:, 0] < 80.0)]  # noqa: E731
+    assert near(thinned).sum() == near(whole).sum()
+    assert len(far_of(thinned)) < 0.5 * len(far_of(whole))
+    # Far away, each kept point stands for the same share of the floor across the road.
+    far = thinned[(thinned[:, 0] > 72.0) & (thinned[:, 0] < 80.0)]
+    counts = np.histogram(far[:, 1], bins=8, range=(-8.0, 8.0))[0]
+    assert counts.min() > 0.7 * counts.mean()

@@ -181,6 +181,20 @@ class LidarMap:
     angular_step_rad: float = float(np.radians(0.5))
     ground_clearance_m: float = 0.1
     stats: dict[str, Any] = field(default_factory=dict)
+    _tile_z: tuple[NDArray[np.float32], NDArray[np.float32]] | None = field(
+        default=None, repr=False, compare=False
+    )
+
+    def tile_heights(self, tiles: NDArray[np.int64]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """(K,) float32 lowest and highest z (world, metres) of the given tiles' points
+        (:func:`tile_height_ranges`, computed on first use)."""
+        if self._tile_z is None:
+            self._tile_z = tile_height_ranges(self.points_world, self.tile_start)
+        return self._tile_z[0][tiles], self._tile_z[1][tiles]
+
+    def tile_counts(self, tiles: NDArray[np.int64]) -> NDArray[np.int64]:
+        """(K,) number of points in each of the given tiles."""
+        return self.tile_start[tiles + 1] - self.tile_start[tiles]
 
     def tiles_near(self, xy_world: NDArray[np.float64], radius_m: float) -> NDArray[np.int64]:
         """Indices (into ``tile_keys``) of the occupied tiles within the square of half-side
@@ -220,15 +234,22 @@ class LidarMap:
         return np.concatenate(parts), np.repeat(np.arange(len(tiles)), counts)
 
     def points_and_counts_of_tiles(
-        self, tiles: NDArray[np.int64], stride: NDArray[np.int64] | None = None
+        self,
+        tiles: NDArray[np.int64],
+        stride: NDArray[np.int64] | None = None,
+        take: NDArray[np.int64] | None = None,
     ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
         """:meth:`points_of_tiles`' points with, instead of a label per point, the (K,) number
-        taken from each tile (each tile's points are contiguous, in ``tiles``' order)."""
+        taken from each tile (each tile's points are contiguous, in ``tiles``' order). ``take``:
+        at most this many of each tile's points, its first ones (a uniform subset: tiles hold
+        their points in a hashed order, :func:`_tile_sort`), after the ``stride``."""
         if stride is None:
             stride = np.ones(len(tiles), np.int64)
+        if take is None:
+            take = self.tile_counts(tiles)
         parts = [
-            self.points_world[self.tile_start[i] : self.tile_start[i + 1] : int(k)]
-            for i, k in zip(tiles, stride, strict=True)
+            self.points_world[self.tile_start[i] : self.tile_start[i + 1] : int(k)][: int(n)]
+            for i, k, n in zip(tiles, stride, take, strict=True)
         ]
         counts = np.array([len(p) for p in parts], np.int64)
         if counts.sum() == 0:
@@ -732,13 +753,39 @@ def aggregate_scene(scene: Scene, params: AggregateParams | None = None) -> Lida
 def _tile_sort(
     points: NDArray[np.float32],
 ) -> tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.int64]]:
-    """Points sorted by tile, the sorted occupied tile keys and their start offsets."""
+    """Points sorted by tile, the sorted occupied tile keys and their start offsets.
+
+    Within a tile the points come in a pseudo-random order (a hash of their position in
+    ``points``), so any prefix of a tile is a uniform subset of it: the projection takes a far
+    tile's first points rather than every k-th, which on a saturated voxel grid sorted by key
+    would keep whole rows and drop the rows between them."""
     tiles = np.floor(points[:, :2] / TILE_M).astype(np.int64)
     keys = _tile_key(tiles[:, 0], tiles[:, 1])
-    order = np.argsort(keys, kind="stable")
+    shuffle = (_mix64(np.arange(len(points), dtype=np.int64)) >> np.uint64(32)).astype(np.uint32)
+    order = np.lexsort((shuffle, keys))
+    del shuffle
     keys = keys[order]
     unique, first = np.unique(keys, return_index=True)
     return points[order], unique, np.append(first, len(keys)).astype(np.int64)
+
+
+def _mix64(x: NDArray[np.int64]) -> NDArray[np.uint64]:
+    """splitmix64's finaliser of ``x`` + its increment (uint64, wrapping): a cheap hash."""
+    z = x.astype(np.uint64) + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def tile_height_ranges(
+    points: NDArray[np.float32], start: NDArray[np.int64]
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """(T,) float32 lowest and highest z (world, metres) of each tile's points (``start``: the
+    tiles' (T + 1,) offsets into the tile-sorted ``points``)."""
+    if len(start) < 2:
+        return np.zeros(0, np.float32), np.zeros(0, np.float32)
+    z = np.ascontiguousarray(points[:, 2])
+    return np.minimum.reduceat(z, start[:-1]), np.maximum.reduceat(z, start[:-1])
 
 
 @register_stage("aggregate_lidar", params=AggregateParams)

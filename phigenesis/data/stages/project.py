@@ -400,13 +400,51 @@ def thinning_strides(
     return np.maximum(np.floor(ratio**2), 1).astype(np.int64)
 
 
+def footprint_budgets(
+    centres_xy: NDArray[np.float64],
+    z_low: NDArray[np.float32],
+    z_high: NDArray[np.float32],
+    camera_xyz: NDArray[np.float64],
+    focal_px: float,
+    points_per_pixel: float,
+) -> NDArray[np.int64]:
+    """(K,) how many points each map tile (x-y centre, lowest and highest z, world frame,
+    metres) needs to give about ``points_per_pixel`` per pixel it can cover in an image of
+    focal length ``focal_px`` taken from ``camera_xyz`` (world).
+
+    A surface's image area is at most the sum of those of its horizontal and vertical shadows:
+    the tile's floor (``TILE_M^2`` at height difference h seen from slant distance r covers at
+    most ``f^2 TILE_M^2 h / r^3`` pixels: a road far ahead is seen at a grazing angle) and a wall
+    across the tile's diagonal as high as its height span (``f^2 sqrt(2) TILE_M dz / r^2``),
+    with r the distance to the tile's nearest possible point, plus the outline of its image (a
+    far floor only a few pixels high touches more pixels than its area). The bound is loose near the
+    camera (every point is taken there) and tight on the far, flat tiles that hold most of a
+    long segment's saturated map."""
+    d = np.hypot(*(centres_xy - camera_xyz[:2]).T)
+    near_m = np.maximum(d - TILE_M / np.sqrt(2.0), 0.0)
+    dz_low = camera_xyz[2] - z_low.astype(np.float64)
+    dz_high = z_high.astype(np.float64) - camera_xyz[2]
+    height_m = np.maximum(np.maximum(np.abs(dz_low), np.abs(dz_high)), 0.5)
+    span_m = np.maximum(z_high.astype(np.float64) - z_low, 0.0)
+    slant_m = np.hypot(near_m, np.minimum(np.abs(dz_low), np.abs(dz_high)))
+    slant_m = np.maximum(slant_m, 0.5)
+    floor_px = focal_px**2 * TILE_M**2 * height_m / slant_m**3
+    wall_px = focal_px**2 * np.sqrt(2.0) * TILE_M * span_m / slant_m**2
+    # A shape thinner than a pixel touches more pixels than its area: add its outline.
+    outline_px = 2.0 * focal_px * (np.sqrt(2.0) * TILE_M + span_m) / slant_m + 1.0
+    budget = np.ceil(points_per_pixel * (floor_px + wall_px + outline_px))
+    return np.minimum(budget, np.iinfo(np.int64).max // 2).astype(np.int64)
+
+
 def static_points_per_camera(
     frame: Frame, lidar_map: LidarMap, params: ProjectParams
 ) -> list[NDArray[np.float32]]:
     """For each image of the frame, the static map points that may appear in it: the tiles in
-    range of the ego and in the image's azimuth wedge, thinned with distance
-    (:func:`thinning_strides`, when ``params.thin``), minus points above the LiDAR's field that
-    something unmeasured may hide (:func:`seen_past_lidar_top`, evaluated once per frame)."""
+    range of the ego and in the image's azimuth wedge, thinned (when ``params.thin``) to about
+    ``thin_points_per_cell`` points per cell of the visibility grid they can cover
+    (:func:`thinning_strides` by distance, :func:`footprint_budgets` by the tile's shape; a
+    thinned tile gives its first points, a uniform subset), minus points above the LiDAR's field
+    that something unmeasured may hide (:func:`seen_past_lidar_top`, evaluated once per frame)."""
     position = frame.world_from_ego[:3, 3]
     tiles = lidar_map.tiles_near(position, params.max_range_m + TILE_M)
     centres = lidar_map.tile_centres(tiles)
@@ -414,15 +452,31 @@ def static_points_per_camera(
         len(frame.cameras), len(tiles)
     )
     used = np.flatnonzero(in_view.any(axis=0))
-    stride = None
+    take = None
     if params.thin and frame.cameras:
-        grid_focal = max(
+        focals = [
             float(c.calibration.intrinsics[0, 0]) * supersample_of(params, c.calibration.width)
             for c in frame.cameras
-        )
-        full_density_m = lidar_map.voxel_m * grid_focal * np.sqrt(params.thin_points_per_cell)
+        ]
+        full_density_m = lidar_map.voxel_m * max(focals) * np.sqrt(params.thin_points_per_cell)
+        counts = lidar_map.tile_counts(tiles[used])
         stride = thinning_strides(centres[used], position, full_density_m)
-    points, counts = lidar_map.points_and_counts_of_tiles(tiles[used], stride)
+        take = -(-counts // stride)  # ceil: the first count / stride points of the hashed order
+        z_low, z_high = lidar_map.tile_heights(tiles[used])
+        budget = np.zeros(len(used), np.int64)
+        for k, cam in enumerate(frame.cameras):
+            seen = in_view[k, used]
+            need = footprint_budgets(
+                centres[used][seen],
+                z_low[seen],
+                z_high[seen],
+                cam.world_from_camera[:3, 3],
+                focals[k],
+                params.thin_points_per_cell,
+            )
+            budget[seen] = np.maximum(budget[seen], need)
+        take = np.minimum(take, budget)
+    points, counts = lidar_map.points_and_counts_of_tiles(tiles[used], take=take)
     if frame.lidar is not None and len(frame.lidar):
         sensor = geometry.transform_points(
             frame.world_from_ego, np.median(frame.lidar.origins_ego, axis=0)[None]
