@@ -20,11 +20,7 @@ import pyarrow as pa
 
 from phigenesis.errors import CacheError
 
-log = logging.getLogger("phigenesis.data.shards")
-
-
-# --------------------------------------------------------------------------------------------
-# Checksums
+log = logging.getLogger("phigenesis.data.shards")  # the name the warning below had in shards.py
 
 #: The checksum of every shard this toolkit writes: CRC-32C (Castagnoli, as TFRecord and ext4 use),
 #: which SSE 4.2 / ARMv8 compute at over 20 GB/s, of every row's metadata, every column, the footer

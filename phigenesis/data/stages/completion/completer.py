@@ -251,7 +251,7 @@ class _Completer(_FacadeFills, _ThinFills):
     # -- planes ------------------------------------------------------------------------------
 
     def fit_segments(self, segs: NDArray[np.intp]) -> tuple[list[PlaneFits], NDArray[np.int8]]:
-        """Up to two planes per segment of ``segs`` (module docstring, step 2), and per pixel the
+        """Up to two planes per segment of ``segs`` (complete.py's docstring, step 2), and per pixel the
         plane (1, 2) it is an inlier of (0: none)."""
         p = self.p
         each = dataclasses.replace(p, min_inlier_share=p.min_plane_share)
@@ -534,7 +534,7 @@ class _Completer(_FacadeFills, _ThinFills):
         cap: float | None = None,
     ) -> None:
         """Fills ``pixels`` with plane ``s`` of ``fits`` (where valid), with the confidence of the
-        module docstring (``dist``: each pixel's distance to the data)."""
+        complete.py's docstring (``dist``: each pixel's distance to the data)."""
         if len(pixels) == 0:
             return
         normal, offset = fits.normal[s], float(fits.offset[s])

@@ -73,7 +73,7 @@ def complete_depth_map(
         params: :class:`CompletionParams` (None: the defaults).
 
     Returns:
-        The completed depth, its confidence and origin codes (module docstring), and the image's
+        The completed depth, its confidence and origin codes (complete.py's docstring), and the image's
         segments. The inputs are not modified. Raises ValueError naming the argument for a wrong
         shape or dtype, NaN or infinite values, negative depths, confidences outside [0, 1], a
         zero up vector or rays without z = 1.

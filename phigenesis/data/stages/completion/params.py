@@ -80,10 +80,10 @@ class CompletionParams:
             few depths that leak across a silhouette).
         sparse_plane_confidence: confidence factor of such a segment's pixels.
         line_planes: segments labelled ground or standing whose known pixels form a line take
-            the plane through it their label implies (module docstring, step 2).
+            the plane through it their label implies (complete.py's docstring, step 2).
         min_line_m: least length of such a line of ground points.
         line_confidence: confidence factor of those segments' pixels.
-        crowns: fill green segments no plane explains at one depth (module docstring, 6b).
+        crowns: fill green segments no plane explains at one depth (complete.py's docstring, 6b).
         crown_max_spread: largest interquartile range of such a segment's known depths, relative
             to their median.
         crown_confidence: cap of their pixels' confidence.
@@ -133,7 +133,7 @@ class CompletionParams:
         base_band_ref_px: a thin segment's base: its evidence this close to the lowest.
         max_confidence: cap of plane confidences.
         vertical_confidence: cap of thin structures' confidences.
-        conf_distance_ref_px: ``d0`` of the confidence (module docstring).
+        conf_distance_ref_px: ``d0`` of the confidence (complete.py's docstring).
         conf_relative_residual: ``rel0`` of the confidence.
         max_side_px: images with a longer side are completed on a coarser grid with this one.
         seed: seed of the RANSAC sampling (results are deterministic).

@@ -121,7 +121,7 @@ def fit_planes(
     lies: Mask | None = None,
     stands: Mask | None = None,
 ) -> tuple[PlaneFits, Mask]:
-    """A robust plane for each group of camera-frame points (the tests of the module docstring),
+    """A robust plane for each group of camera-frame points (the tests of the complete.py's docstring),
     all groups at once.
 
     Args:
@@ -133,7 +133,7 @@ def fit_planes(
         p: the tests' parameters (``min_inlier_share`` is the share each plane needs).
         rng: draws the RANSAC samples.
         lies, stands: (G,) bool or None, groups labelled ground / a standing structure: with
-            ``line_planes``, a line of their points fixes their plane (module docstring, step 2).
+            ``line_planes``, a line of their points fixes their plane (complete.py's docstring, step 2).
 
     Returns:
         The planes (``share``: each plane's own inlier share) and each point's inlier flag.
@@ -244,7 +244,7 @@ def _refine_and_accept(
 ) -> tuple[Mask, Mask, Mask]:
     """Refines the planes of ``todo`` in place by least squares on their inliers (``rounds`` times:
     inliers, then the fit to them); returns each point's final inlier flag, whether each
-    group's plane passes the tests of the module docstring, and whether it passes only as a plane
+    group's plane passes the tests of the complete.py's docstring, and whether it passes only as a plane
     through a line (``_MODE_GROUND_LINE``, or a vertical plane of a group ``stands`` marks
     without the height test)."""
     member = np.zeros(len(g.count), bool)

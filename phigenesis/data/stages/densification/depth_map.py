@@ -54,7 +54,7 @@ def densify(
             range in :class:`DensifyParams`, raises :class:`~phigenesis.options.ConfigError`).
 
     Returns:
-        The dense depth and its confidence (module docstring). The inputs are never modified:
+        The dense depth and its confidence (densify.py's docstring). The inputs are never modified:
         methods get read-only views of them.
     """
     get_densifier(method)

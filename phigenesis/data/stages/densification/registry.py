@@ -89,7 +89,7 @@ class DensifyParams:
         edge_filter, smooth_ref_px, sigma_color, min_image_support: ``guided``'s image-guided mean.
         occlusion_ref_px, occlusion_tau: see-through samples dropped (all but ``ipbasic``).
         max_fill_ref_px, extrapolate_top, conf_distance_ref_px, conf_relative_depth: what every
-            method may fill and the confidence of what it fills (module docstring).
+            method may fill and the confidence of what it fills (densify.py's docstring).
     """
 
     method: str = option(DEFAULT_DENSIFIER)

@@ -94,7 +94,7 @@ def depth_confidence(
     distance_scale_px: float,
     relative_depth_scale: float,
 ) -> F32:
-    """Confidence of ``dense``, (H, W) float32 (formula in the module docstring).
+    """Confidence of ``dense``, (H, W) float32 (formula in densify.py's docstring).
 
     ``nearest_index`` / ``distance_px``: flat index of and distance to the nearest trusted
     measurement (:func:`nearest_trusted`); ``distance_scale_px`` is ``d0`` and
@@ -134,7 +134,7 @@ class _CleanResult(DenseResult):
 
 @dataclass(frozen=True)
 class FillParams:
-    """Parameters every method shares (see the module docstring)."""
+    """Parameters every method shares (see densify.py's docstring)."""
 
     max_fill_ref_px: float
     extrapolate_top: bool
