@@ -748,7 +748,7 @@ def fail_fsync_of(monkeypatch: pytest.MonkeyPatch, name_part: str, error: OSErro
             raise error
         real_fsync(fd)
 
-    monkeypatch.setattr(shards.os, "fsync", fsync)
+    monkeypatch.setattr(os, "fsync", fsync)
 
 
 def disk_fills_after(monkeypatch: pytest.MonkeyPatch, limit: int) -> None:
@@ -763,7 +763,7 @@ def disk_fills_after(monkeypatch: pytest.MonkeyPatch, limit: int) -> None:
             raise OSError(errno.ENOSPC, ENOSPC_REASON)
         return real_writev(fd, [data[:room]])
 
-    monkeypatch.setattr(shards.os, "writev", writev)
+    monkeypatch.setattr(os, "writev", writev)
 
 
 def test_a_full_disk_while_writing_rows_removes_the_unfinished_shard_and_names_it(

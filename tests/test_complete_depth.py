@@ -930,7 +930,7 @@ def test_the_fine_pass_kernel_equals_its_numpy_reference(monkeypatch):
     """The coarse grid's fine pass (every fillable pixel of a completed cell takes the cell's
     plane) in C (csrc/complete_fine.c) is bit-identical to the numpy path it replaces."""
     from phigenesis.data import native
-    from phigenesis.data.stages import complete as complete_module
+    from phigenesis.data.stages.completion import depth_map as complete_module
 
     assert native.load_complete_fine() is not None, native.failure_reason()  # a C compiler here
     depth, conf, rgb, truth, sky, *_ = facade_scene(windows=True, noise_m=0.01)
@@ -948,7 +948,7 @@ def test_the_fine_pass_kernel_equals_its_numpy_reference(monkeypatch):
 def test_a_camera_without_depth_is_left_empty_without_segmenting_its_image(completed_scene, monkeypatch):
     """A frame without LiDAR (every map 0) costs next to nothing: the stage neither segments the
     image nor fits anything, and the map stays all 0, exactly what the full completion returns."""
-    import phigenesis.data.stages.complete as complete_module
+    import phigenesis.data.stages.completion.depth_map as complete_module
     from phigenesis.data.stages.project import pixel_rays
 
     before, _ = completed_scene

@@ -24,6 +24,7 @@ from phigenesis.data.records import (
 )
 from phigenesis.data.sources.synthetic import SyntheticScene
 from phigenesis.data.stages import get_stage
+from phigenesis.data.stages.densification import support as densify_support
 from phigenesis.data.stages.densify import (
     DEFAULT_DENSIFIER,
     DENSIFIERS,
@@ -474,11 +475,11 @@ def test_the_native_last_pass_equals_its_numpy_reference(method, monkeypatch):
     """Depths bit-identical, confidences within 2e-7 (float32 exp's last bit), on every camera of
     a rendered frame."""
     pytest.importorskip("ctypes")
-    if densify_module.load_densify_finish() is None:
+    if densify_support.load_densify_finish() is None:
         pytest.skip("no C compiler: the numpy reference is what runs")
     inputs = _rendered_inputs()
     native = [run(method, s, c, rgb, f) for s, c, rgb, f in inputs]
-    monkeypatch.setattr(densify_module, "load_densify_finish", lambda: None)
+    monkeypatch.setattr(densify_support, "load_densify_finish", lambda: None)
     for (s, c, rgb, f), got in zip(inputs, native, strict=True):
         want = run(method, s, c, rgb, f)
         assert np.array_equal(got.depth_m, want.depth_m)

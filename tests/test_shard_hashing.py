@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phigenesis.data import shards
+from phigenesis.data.cache import checksums, files, sink, writer
 from phigenesis.data.native import load_crc32c_combine
 from phigenesis.data.shards import ShardInfo, ShardReader, ShardWriter
 
@@ -88,10 +89,10 @@ def test_the_writer_never_reads_a_shard_back(tmp_path: Path, monkeypatch: pytest
     def refuse(*args: object, **kwargs: object) -> None:
         raise AssertionError("the writer read a shard back")
 
-    monkeypatch.setattr(shards, "shard_info", refuse)
-    monkeypatch.setattr(shards, "crc32c_file", refuse)
+    monkeypatch.setattr(checksums, "shard_info", refuse)
+    monkeypatch.setattr(files, "crc32c_file", refuse)
     monkeypatch.setattr(Path, "read_bytes", refuse)
-    monkeypatch.setattr(shards.pa, "memory_map", refuse)
+    monkeypatch.setattr(pa, "memory_map", refuse)
     infos = write(tmp_path, rows(4).to_batches(max_chunksize=1), max_bytes=30_000)
     monkeypatch.undo()
     for info in infos:
@@ -99,15 +100,15 @@ def test_the_writer_never_reads_a_shard_back(tmp_path: Path, monkeypatch: pytest
 
 
 def _count_fallbacks(monkeypatch: pytest.MonkeyPatch) -> list[int]:
-    """Counts the rows indexed by decoding (:func:`shards._row_entry`) instead of from metadata."""
+    """Counts the rows indexed by decoding (:func:`writer._row_entry`) instead of from metadata."""
     calls: list[int] = []
-    decode = shards._row_entry
+    decode = writer._row_entry
 
     def counting(*args: object, **kwargs: object) -> object:
         calls.append(1)
         return decode(*args, **kwargs)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(shards, "_row_entry", counting)
+    monkeypatch.setattr(writer, "_row_entry", counting)
     return calls
 
 
@@ -141,13 +142,13 @@ def test_a_type_the_metadata_reader_does_not_know_is_indexed_by_decoding(
 def test_short_writes_are_continued_where_they_stopped(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    writev = shards.os.writev
+    writev = sink.os.writev
 
     def short(fd: int, pieces: list[object]) -> int:  # at most 1,000 bytes a call, split mid-piece
         data = b"".join(bytes(p) for p in pieces)[:1000]  # type: ignore[call-overload]
         return writev(fd, [data])
 
-    monkeypatch.setattr(shards.os, "writev", short)
+    monkeypatch.setattr(sink.os, "writev", short)
     batches = rows(3, image_bytes=9_000).to_batches(max_chunksize=1)
     (info,) = write(tmp_path, batches, max_bytes=1 << 30)
     monkeypatch.undo()
@@ -162,14 +163,14 @@ def test_shards_are_flushed_behind_the_writer_and_a_failed_flush_names_the_shard
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     flushed: list[int] = []
-    fdatasync = shards.os.fdatasync
+    fdatasync = sink.os.fdatasync
 
     def counting(fd: int) -> None:
         flushed.append(fd)
         fdatasync(fd)
 
-    monkeypatch.setattr(shards, "FLUSH_BYTES", 15_000)
-    monkeypatch.setattr(shards.os, "fdatasync", counting)
+    monkeypatch.setattr(sink, "FLUSH_BYTES", 15_000)
+    monkeypatch.setattr(sink.os, "fdatasync", counting)
     (info,) = write(tmp_path / "a", rows(6, image_bytes=10_000).to_batches(max_chunksize=1), 1 << 30)
     assert flushed  # flushed along the way (fdatasync), not only by the closing fsync
     assert dataclasses.asdict(info) == dataclasses.asdict(reread(tmp_path / "a", info))
@@ -177,7 +178,7 @@ def test_shards_are_flushed_behind_the_writer_and_a_failed_flush_names_the_shard
     def failing(fd: int) -> None:
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(shards.os, "fdatasync", failing)
+    monkeypatch.setattr(sink.os, "fdatasync", failing)
     with pytest.raises(shards.CacheWriteError, match=r"scene-a-00000\.arrow: cannot write .*No space left"):
         write(tmp_path / "b", rows(6, image_bytes=10_000).to_batches(max_chunksize=1), 1 << 30)
     assert list((tmp_path / "b" / shards.SHARDS_DIR).iterdir()) == []  # the unfinished file is gone
@@ -199,9 +200,9 @@ def test_a_system_without_writev_or_fdatasync_writes_the_same_shards(
 ) -> None:
     batches = rows(5, image_bytes=10_000).to_batches(max_chunksize=1)
     (expected,) = write(tmp_path / "a", batches, max_bytes=1 << 30)
-    monkeypatch.delattr(shards.os, "writev")
-    monkeypatch.delattr(shards.os, "fdatasync")
-    monkeypatch.setattr(shards, "FLUSH_BYTES", 15_000)
+    monkeypatch.delattr(sink.os, "writev")
+    monkeypatch.delattr(sink.os, "fdatasync")
+    monkeypatch.setattr(sink, "FLUSH_BYTES", 15_000)
     (info,) = write(tmp_path / "b", batches, max_bytes=1 << 30)
     monkeypatch.undo()
     assert dataclasses.asdict(info) == dataclasses.asdict(expected)
@@ -243,7 +244,7 @@ def _hashed_bytes(monkeypatch: pytest.MonkeyPatch) -> list[int]:
         counted.append(len(memoryview(data)))
         return real(crc, data)
 
-    monkeypatch.setattr(shards, "google_crc32c", SimpleNamespace(extend=extend, value=google_crc32c.value))
+    monkeypatch.setattr(sink, "google_crc32c", SimpleNamespace(extend=extend, value=google_crc32c.value))
     return counted
 
 
@@ -254,7 +255,7 @@ def test_the_file_crc_comes_from_the_rows_crcs_without_a_second_pass(
     if native_combine and load_crc32c_combine() is None:
         pytest.skip("native data kernels not built here")
     if not native_combine:
-        monkeypatch.setattr(shards, "load_crc32c_combine", lambda: None)
+        monkeypatch.setattr(sink, "load_crc32c_combine", lambda: None)
     hashed = _hashed_bytes(monkeypatch)
     (info,) = write(
         tmp_path, rows(5, image_bytes=200_000, seed=4).to_batches(max_chunksize=1), max_bytes=1 << 30
@@ -272,11 +273,11 @@ def test_parts_that_overlap_or_overrun_the_row_are_not_combined() -> None:
     def combine(a: int, b: int, n: int) -> int:
         return 0
 
-    row = shards._RowBytes(0, [pa.py_buffer(b"0123456789")])
-    assert shards._crc_from_parts(row, [(0, 6, 1), (5, 8, 2)], combine) is None
-    assert shards._crc_from_parts(row, [(4, 11, 1)], combine) is None
+    row = sink._RowBytes(0, [pa.py_buffer(b"0123456789")])
+    assert sink._crc_from_parts(row, [(0, 6, 1), (5, 8, 2)], combine) is None
+    assert sink._crc_from_parts(row, [(4, 11, 1)], combine) is None
     real = load_crc32c_combine()
     if real is not None:
         crc = google_crc32c.value
         parts = [(2, 5, crc(b"234")), (7, 7, 123), (8, 10, crc(b"89"))]  # gaps and an empty part
-        assert shards._crc_from_parts(row, parts, real) == crc(b"0123456789")
+        assert sink._crc_from_parts(row, parts, real) == crc(b"0123456789")

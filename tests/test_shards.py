@@ -17,6 +17,7 @@ from numpy.testing import assert_array_equal
 
 from phigenesis import prep
 from phigenesis.data import codec, shards
+from phigenesis.data.cache import reader as cache_reader
 from phigenesis.data.codec import DEPTH_MAX_M, DEPTH_SCALE
 from phigenesis.data.loader import FIELD_GROUPS, FrameDataset
 from phigenesis.data.pipeline import load_pipeline
@@ -469,7 +470,7 @@ def test_a_manifest_save_that_fails_before_the_rename_leaves_the_previous_manife
     def crash(*args: object) -> None:
         raise OSError("simulated crash before the rename")
 
-    monkeypatch.setattr(shards.os, "replace", crash)
+    monkeypatch.setattr(os, "replace", crash)
     with pytest.raises(OSError, match="simulated"):
         _manifest("new").save(tmp_path)
     monkeypatch.undo()
@@ -562,8 +563,8 @@ def test_a_reader_checks_each_row_and_column_once(tiny_cache: Path, monkeypatch:
     reader = CacheReader(tiny_cache)
     reader.read(1, ["cameras"])  # opens the shard (footer) and checks row 1's metadata and cameras
     calls: list[int] = []
-    real = shards._crc_range
-    monkeypatch.setattr(shards, "_crc_range", lambda *a: calls.append(a[3] - a[2]) or real(*a))
+    real = cache_reader._crc_range
+    monkeypatch.setattr(cache_reader, "_crc_range", lambda *a: calls.append(a[3] - a[2]) or real(*a))
     reader.read(1, ["cameras"])
     assert calls == []  # already checked by this reader
     reader.read(1, ["cameras", "lidar"])

@@ -38,24 +38,22 @@ from pathlib import Path
 from typing import Any
 
 from phigenesis import __version__
-from phigenesis.data.cache_lock import LOCK_NAME, CacheLock
-from phigenesis.data.schema import SCHEMA_VERSION
-from phigenesis.data.shards import (
+from phigenesis.data.cache.checksums import ShardInfo
+from phigenesis.data.cache.files import (
     MANIFEST_NAME,
     SHARDS_DIR,
     STAGING_DIR,
     SWAP_MARKER,
     TMP_MARKER,
-    CacheError,
     CacheWriteError,
-    Manifest,
-    SceneEntry,
-    ShardInfo,
     atomic_write_bytes,
     fsync_dir,
     scene_id_problem,
 )
-from phigenesis.errors import PrepError, argument
+from phigenesis.data.cache.manifest import Manifest, SceneEntry
+from phigenesis.data.cache_lock import LOCK_NAME, CacheLock
+from phigenesis.data.schema import SCHEMA_VERSION
+from phigenesis.errors import CacheError, PrepError, argument
 
 #: The output folder and the overwrite switch, as a message names them (Python or command line).
 OUT = argument("out", "--out")

@@ -14,7 +14,7 @@ int32 metadata length, the FlatBuffers ``Message`` table (padded to 8 bytes), th
 ``{offset: int64, length: int64}`` structs, in the pre-order of the schema's fields),
 ``compression`` (3). Anything this module does not expect (a dictionary batch, compression, a type
 whose buffer count it does not know) raises :class:`LayoutUnknown`, and the caller decodes the
-batch instead (:func:`phigenesis.data.shards._row_entry`).
+batch instead (:func:`phigenesis.data.cache.writer._row_entry`).
 """
 
 from __future__ import annotations

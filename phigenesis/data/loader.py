@@ -76,10 +76,11 @@ import torch
 from torch.utils.data import Dataset
 
 from phigenesis.data import batch_pool, codec
+from phigenesis.data.cache.reader import CacheReader
 from phigenesis.data.loader_rangeview import lidar_range_sample, range_view_sample
 from phigenesis.data.records import decode_whole
 from phigenesis.data.schema import cameras_of
-from phigenesis.data.shards import CacheError, CacheReader
+from phigenesis.errors import CacheError
 
 FIELD_GROUPS = ("images", "cameras", "truth", "depth", "pseudo", "lidar", "boxes")
 #: Groups of packed views, documented in :mod:`phigenesis.data.loader_rangeview`.

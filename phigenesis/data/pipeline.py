@@ -25,6 +25,10 @@ from typing import Any, Literal
 
 import yaml
 
+from phigenesis.data.cache.checksums import ShardInfo
+from phigenesis.data.cache.files import DEFAULT_SHARD_MAX_BYTES, CacheWriteError
+from phigenesis.data.cache.manifest import SceneEntry
+from phigenesis.data.cache.writer import ShardWriter
 from phigenesis.data.cache_lock import CacheLock
 from phigenesis.data.cache_run import POLICY_ARGUMENTS as POLICY_ARGUMENTS  # re-exported
 from phigenesis.data.cache_run import CacheRun, check_out_dir, start_run, swap_in
@@ -33,13 +37,6 @@ from phigenesis.data.coverage import SceneCoverage
 from phigenesis.data.executors import ExecutorName, ProgressHandle, ProgressMessage, run_tasks
 from phigenesis.data.records import Frame, LazyFrames, Scene
 from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
-from phigenesis.data.shards import (
-    DEFAULT_SHARD_MAX_BYTES,
-    CacheWriteError,
-    SceneEntry,
-    ShardInfo,
-    ShardWriter,
-)
 from phigenesis.data.sources import given, make_source, source_config
 from phigenesis.data.stages import get_stage, run_stage, stage_params
 from phigenesis.errors import PhiGenesisError, PrepError, describe
