@@ -32,6 +32,7 @@ from phigenesis.data.stages.aggregate import (
     box_points_at_times_reference,
     in_ego_body,
 )
+from phigenesis.data.stages.projection import occluders
 
 PARAMS = project.ProjectParams()
 
@@ -144,7 +145,7 @@ def test_vehicle_far_depth_on_the_footprint_equals_the_whole_image_reference(
     rays = project.pixel_rays(camera)
     tracks = frozenset(boxes.track_id)
     if kernel == "numpy":
-        monkeypatch.setattr(project, "load_ray_box", lambda: None)
+        monkeypatch.setattr(occluders, "load_ray_box", lambda: None)
     elif native.load_ray_box() is None:
         pytest.skip(f"native kernels not built here: {native.failure_reason()}")
     fast = project.vehicle_far_depth(frame, camera, tracks, PARAMS, rays)

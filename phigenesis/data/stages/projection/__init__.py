@@ -1,0 +1,1 @@
+"""The depth projection's parts by role; the stage is :mod:`phigenesis.data.stages.project`."""
