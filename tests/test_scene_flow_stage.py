@@ -317,3 +317,27 @@ def test_camera_flow_records_refuse_maps_of_another_size():
     small = CameraFlow(np.zeros((4, 5, 3), np.float32), np.zeros((4, 5), bool), np.zeros((4, 5), np.float32))
     with pytest.raises(ValueError, match="camera FRONT flow is"):
         dataclasses.replace(cam, flow=small)
+
+
+# --------------------------------------------------------------------------------------------
+# Stage 1's targets
+
+
+def test_stage1_takes_moving_pixels_from_the_flow_maps_leaving_unconfident_ones_unknown():
+    import torch
+
+    from phigenesis.train.stage1_data import MIN_FLOW_CONFIDENCE, _stage_flow_pixels
+
+    flow = torch.zeros(1, 3, 2, 3)
+    flow[0, :, 0, 0] = torch.tensor([4.0, 1.0, 0.0])
+    flow[0, :, 0, 1] = torch.tensor([2.0, 0.0, 0.0])
+    frame = {
+        "flow_world": flow,
+        "flow_dynamic": torch.tensor([[[1, 1, 0], [0, 0, 0]]], dtype=torch.uint8),
+        "flow_confidence": torch.tensor([[[1.0, MIN_FLOW_CONFIDENCE / 2, 1.0], [1.0, 1.0, 0.0]]]),
+    }
+    depth = torch.tensor([[[5.0, 5.0, 5.0], [5.0, 5.0, 0.0]]])
+    moving, velocity = _stage_flow_pixels(frame, depth, (2, 3))
+    assert moving.tolist() == [[[1.0, -1.0, 0.0], [0.0, 0.0, -1.0]]]
+    assert velocity[0, 0, 0].tolist() == [4.0, 1.0, 0.0] and not velocity[0, 0, 1:].any()
+    assert _stage_flow_pixels({}, depth, (2, 3)) is None  # a cache without the stage's maps

@@ -472,7 +472,8 @@ class FrameDataset(Dataset):
             if "truth_instance" in lf and lf["truth_instance"][0].is_valid:
                 out["lidar_truth_instance"] = torch.from_numpy(_flat(lf["truth_instance"]).astype(np.int32))
             if "flow_world_mps" in lf and lf["flow_world_mps"][0].is_valid:
-                out["lidar_flow_world_mps"] = torch.from_numpy(_flat(lf["flow_world_mps"]).reshape(-1, 3).copy())
+                flow = _flat(lf["flow_world_mps"]).reshape(-1, 3)
+                out["lidar_flow_world_mps"] = torch.from_numpy(flow.copy())
         if "range_view" in self.fields:
             out.update(range_view_sample(batch, cameras_of(batch), out))
         if "lidar_range_image" in self.fields:

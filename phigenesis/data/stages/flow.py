@@ -319,6 +319,9 @@ def camera_flow(
     depth_m = np.asarray(depth_m)
     if depth_m.shape != (h, w):
         raise ValueError(f"scene_flow: camera {cal.name}: depth is {depth_m.shape}, the image {(h, w)}")
+    if not np.isfinite(depth_m.sum(dtype=np.float64)):  # one pass: any NaN or inf makes the sum so
+        where = f"camera {cal.name} at {camera.timestamp_micros}"
+        raise ValueError(f"scene_flow: {where}: the depth map holds non-finite values")
     flow = np.zeros((h, w, 3), np.float32)
     dynamic = np.zeros((h, w), bool)
     confidence = (depth_m > 0).astype(np.float32)
@@ -329,39 +332,51 @@ def camera_flow(
     rects = box_rectangles(camera, mb, params.margin_m)
     rays = pixel_rays_cam(cal).reshape(h, w, 3)
     world_from_camera = camera.world_from_camera
-    rotations = geometry.quaternion_to_matrix(mb.orientation_world).reshape(-1, 3, 3)
-    best = np.zeros((h, w), np.float32)  # squared distance to the winning centre + 1; 0 = none
+    world_rotation = world_from_camera[:3, :3]
+    # Each box in the camera frame, so a pixel's point is tested without a transform to the world.
+    center_cam = (mb.center_world - world_from_camera[:3, 3]) @ world_rotation  # [M, 3]: R^T (c - t)
+    camera_from_box = world_rotation.T @ geometry.quaternion_to_matrix(mb.orientation_world).reshape(-1, 3, 3)
+    # The z range of each grown box's corners: a point inside the (convex) box has its z in it, so
+    # only the pixels of its rectangle whose depth lies in that range are back-projected.
+    grown = 0.5 * mb.size_lwh + params.margin_m  # [M, 3]
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)  # [8, 3]
+    corner_z = center_cam[:, None, 2] + np.einsum("mk,ck,mk->mc", camera_from_box[:, 2, :], signs, grown)
+    flat_flow, flat_dynamic, flat_confidence = (
+        flow.reshape(-1, 3),
+        dynamic.reshape(-1),
+        confidence.reshape(-1),
+    )
+    best = np.zeros(h * w, np.float32)  # squared distance to the winning centre + 1; 0 = none
     for j, rect in enumerate(rects):
         if rect is None:
             continue
         v0, v1, u0, u1 = rect
         d = depth_m[v0:v1, u0:u1]
-        if not np.isfinite(d).all():
-            raise ValueError(
-                f"scene_flow: camera {cal.name} at {camera.timestamp_micros}: the depth map holds non-finite "
-                "values"
-            )
-        rows, cols = np.nonzero(d > 0)
-        if rows.size == 0:
+        z_near, z_far = max(float(corner_z[j].min()), 0.0), float(corner_z[j].max())
+        known = (d > z_near) & (d <= z_far)
+        z = d[known].astype(np.float64)
+        if z.size == 0:
             continue
-        rows, cols = rows + v0, cols + u0
-        p_cam = rays[rows, cols] * depth_m[rows, cols, None].astype(np.float64)  # [P, 3]
-        p = p_cam @ world_from_camera[:3, :3].T + world_from_camera[:3, 3]  # [P, 3] world
-        offset = p - mb.center_world[j]
-        inside = _inside(offset @ rotations[j], 0.5 * mb.size_lwh[j], params.margin_m, params.clearance_m)
+        offset_cam = rays[v0:v1, u0:u1][known] * z[:, None] - center_cam[j]  # [P, 3] point - centre
+        local = offset_cam @ camera_from_box[j]  # [P, 3] box frame
+        inside = _inside(local, 0.5 * mb.size_lwh[j], params.margin_m, params.clearance_m)
         if not inside.any():
             continue
-        rows, cols, p, offset = rows[inside], cols[inside], p[inside], offset[inside]
-        dist = (np.einsum("ij,ij->i", offset, offset) + 1.0).astype(np.float32)
-        win = (best[rows, cols] == 0) | (dist < best[rows, cols])
-        rows, cols = rows[win], cols[win]
-        best[rows, cols] = dist[win]
+        within = np.flatnonzero(known.ravel())[inside]  # positions in the rectangle, row-major
+        index = (within // (u1 - u0) + v0) * w + within % (u1 - u0) + u0  # [P'] flat pixel index
+        offset_cam = offset_cam[inside]
+        dist = (np.einsum("ij,ij->i", offset_cam, offset_cam) + 1.0).astype(np.float32)
+        win = (best[index] == 0) | (dist < best[index])
+        index = index[win]
+        best[index] = dist[win]
         k = moving[j]
-        flow[rows, cols] = rigid_flow(
-            p[win], mb.center_world[j], mb.velocity_world[j], motion.yaw_rate_radps[k]
-        )
-        dynamic[rows, cols] = True
-        confidence[rows, cols] = motion.confidence[k]
+        offset_xy = offset_cam[win] @ world_rotation[:2].T  # [P', 2] world x, y of point - centre
+        omega, v = float(motion.yaw_rate_radps[k]), mb.velocity_world[j]
+        flat_flow[index, 0] = v[0] - omega * offset_xy[:, 1]
+        flat_flow[index, 1] = v[1] + omega * offset_xy[:, 0]
+        flat_flow[index, 2] = v[2]
+        flat_dynamic[index] = True
+        flat_confidence[index] = motion.confidence[k]
     return CameraFlow(flow, dynamic, confidence)
 
 
