@@ -129,7 +129,7 @@ def test_every_pixel_seeing_a_moving_box_gets_its_rigid_flow_and_no_other_pixel_
     boxes = one_box(c, yaw, v)
     depth_m = np.full((48, 64), depth, np.float32)
     depth_m[:, :4] = 0.0  # no depth: unknown, confidence 0
-    out = camera_flow(cam, boxes, moving(omega, 0.75), depth_m, P)
+    out = camera_flow(cam, boxes, moving(omega, 0.75), depth_m, P, backend="numpy")
     # Independent back-projection of every pixel: pinhole rays at the depth, camera -> ego = world.
     uv = geometry.pixel_grid(64, 48)
     rays = geometry.unproject_pixels(uv, cam.calibration.intrinsics, np.zeros(5))
@@ -147,9 +147,11 @@ def test_every_pixel_seeing_a_moving_box_gets_its_rigid_flow_and_no_other_pixel_
     np.testing.assert_allclose(out.flow_world_mps.reshape(-1, 3), want, atol=1e-4 * (1 + np.abs(want).max()))
     conf = out.confidence.reshape(-1)
     np.testing.assert_array_equal(conf[inside], 0.75)
-    assert (conf[~inside & (depth_m.reshape(-1) > 0)] == 1).all() and (
-        conf[depth_m.reshape(-1) == 0] == 0
-    ).all()
+    known = depth_m.reshape(-1) > 0
+    assert (conf[~inside & known] == 1).all() and (conf[~known] == 0).all()
+    native = camera_flow(cam, boxes, moving(omega, 0.75), depth_m, P)  # the C pass where it builds
+    for name in ("flow_world_mps", "dynamic", "confidence"):
+        np.testing.assert_array_equal(getattr(native, name), getattr(out, name))
 
 
 def track_frames(times_s, yaws, track="car") -> list[Frame]:
@@ -341,3 +343,27 @@ def test_stage1_takes_moving_pixels_from_the_flow_maps_leaving_unconfident_ones_
     assert moving.tolist() == [[[1.0, -1.0, 0.0], [0.0, 0.0, -1.0]]]
     assert velocity[0, 0, 0].tolist() == [4.0, 1.0, 0.0] and not velocity[0, 0, 1:].any()
     assert _stage_flow_pixels({}, depth, (2, 3)) is None  # a cache without the stage's maps
+
+
+def test_the_native_pixel_pass_agrees_with_the_numpy_reference_on_a_synthetic_frame(synthetic_flow):
+    from phigenesis.data.native import load_scene_flow_pixels
+    from phigenesis.data.stages.flow import boxes_moved, frame_motion
+
+    if load_scene_flow_pixels() is None:
+        pytest.skip("the native kernels do not build here")
+    table = BoxTrackTable(synthetic_flow)
+    dynamic = 0
+    for frame in synthetic_flow:
+        kf = np.zeros(0, np.int64)
+        motion = frame_motion(frame, frame.boxes, frame.timestamp_micros, table, kf, P, "f")
+        for cam in frame.cameras:
+            dt_s = (cam.timestamp_micros - frame.timestamp_micros) * 1e-6
+            boxes = boxes_moved(frame.boxes, motion.yaw_rate_radps, dt_s)
+            ref = camera_flow(cam, boxes, motion, cam.depth.dense_m, P, backend="numpy")
+            fast = camera_flow(cam, boxes, motion, cam.depth.dense_m, P)
+            np.testing.assert_array_equal(fast.dynamic, ref.dynamic)
+            np.testing.assert_allclose(fast.flow_world_mps, ref.flow_world_mps, rtol=0, atol=1e-5)
+            np.testing.assert_array_equal(fast.confidence, ref.confidence)
+            np.testing.assert_array_equal(fast.flow_world_mps, cam.flow.flow_world_mps)  # the stage's
+            dynamic += int(ref.dynamic.sum())
+    assert dynamic > 2000

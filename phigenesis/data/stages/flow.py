@@ -44,12 +44,14 @@ import dataclasses
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
 from phigenesis.data.camera_tables import pixel_rays_cam
+from phigenesis.data.native import load_scene_flow_pixels
 from phigenesis.data.records import (
     BOX_STATUSES,
     Boxes,
@@ -67,6 +69,8 @@ from phigenesis.options import check_options, option
 
 log = logging.getLogger("phigenesis.prep")
 
+#: Which implementation of the per-box pixel pass :func:`camera_flow` uses.
+PixelBackend = Literal["auto", "numpy"]
 #: ``Scene.products`` key of the :class:`BoxTrackTable` that ``box_tracks`` leaves.
 TRACKS_PRODUCT = "box_tracks"
 #: Confidence of a yaw rate from a central difference, a one-sided one, and none.
@@ -301,6 +305,7 @@ def camera_flow(
     motion: BoxMotion,
     depth_m: NDArray[np.float32],
     params: SceneFlowParams,
+    backend: PixelBackend = "auto",
 ) -> CameraFlow:
     """The flow map, dynamic mask and confidence of one image (:class:`CameraFlow`).
 
@@ -310,6 +315,8 @@ def camera_flow(
         motion: their :class:`BoxMotion`.
         depth_m: (H, W) float32 z-depth, metres, 0 where unknown.
         params: margin, clearance.
+        backend: "auto" (the native pixel pass where it builds, else numpy) or "numpy" (the plain
+            reference, :func:`_box_pixels_numpy`).
 
     Only the pixels inside the projected rectangle of a moving box are back-projected; where boxes
     overlap, the one whose centre is nearest the point wins.
@@ -330,7 +337,6 @@ def camera_flow(
         return CameraFlow(flow, dynamic, confidence)
     mb = boxes.select(moving)
     rects = box_rectangles(camera, mb, params.margin_m)
-    rays = pixel_rays_cam(cal).reshape(h, w, 3)
     world_from_camera = camera.world_from_camera
     world_rotation = world_from_camera[:3, :3]
     # Each box in the camera frame, so a pixel's point is tested without a transform to the world.
@@ -341,43 +347,81 @@ def camera_flow(
     grown = 0.5 * mb.size_lwh + params.margin_m  # [M, 3]
     signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)  # [8, 3]
     corner_z = center_cam[:, None, 2] + np.einsum("mk,ck,mk->mc", camera_from_box[:, 2, :], signs, grown)
-    flat_flow, flat_dynamic, flat_confidence = (
-        flow.reshape(-1, 3),
-        dynamic.reshape(-1),
-        confidence.reshape(-1),
-    )
-    best = np.zeros(h * w, np.float32)  # squared distance to the winning centre + 1; 0 = none
+    best = np.zeros((h, w), np.float32)  # squared distance to the winning centre + 1; 0 = none
+    kernel = load_scene_flow_pixels() if backend == "auto" else None
+    box_pass = _box_pixels_numpy if kernel is None else kernel
+    depth32 = np.ascontiguousarray(depth_m, np.float32)
+    rays_flat = pixel_rays_cam(cal)
+    rows_xy = np.ascontiguousarray(world_rotation[:2])
     for j, rect in enumerate(rects):
         if rect is None:
             continue
-        v0, v1, u0, u1 = rect
-        d = depth_m[v0:v1, u0:u1]
-        z_near, z_far = max(float(corner_z[j].min()), 0.0), float(corner_z[j].max())
-        known = (d > z_near) & (d <= z_far)
-        z = d[known].astype(np.float64)
-        if z.size == 0:
-            continue
-        offset_cam = rays[v0:v1, u0:u1][known] * z[:, None] - center_cam[j]  # [P, 3] point - centre
-        local = offset_cam @ camera_from_box[j]  # [P, 3] box frame
-        inside = _inside(local, 0.5 * mb.size_lwh[j], params.margin_m, params.clearance_m)
-        if not inside.any():
-            continue
-        within = np.flatnonzero(known.ravel())[inside]  # positions in the rectangle, row-major
-        index = (within // (u1 - u0) + v0) * w + within % (u1 - u0) + u0  # [P'] flat pixel index
-        offset_cam = offset_cam[inside]
-        dist = (np.einsum("ij,ij->i", offset_cam, offset_cam) + 1.0).astype(np.float32)
-        win = (best[index] == 0) | (dist < best[index])
-        index = index[win]
-        best[index] = dist[win]
+        half = 0.5 * mb.size_lwh[j]
+        limits = np.array([half[0] + params.margin_m, half[1] + params.margin_m, half[2] + params.margin_m,
+                           -half[2] + params.clearance_m])  # fmt: skip
         k = moving[j]
-        offset_xy = offset_cam[win] @ world_rotation[:2].T  # [P', 2] world x, y of point - centre
-        omega, v = float(motion.yaw_rate_radps[k]), mb.velocity_world[j]
-        flat_flow[index, 0] = v[0] - omega * offset_xy[:, 1]
-        flat_flow[index, 1] = v[1] + omega * offset_xy[:, 0]
-        flat_flow[index, 2] = v[2]
-        flat_dynamic[index] = True
-        flat_confidence[index] = motion.confidence[k]
+        box_pass(
+            depth32, rays_flat, rect, (max(float(corner_z[j].min()), 0.0), float(corner_z[j].max())),
+            center_cam[j], camera_from_box[j], limits, rows_xy, mb.velocity_world[j],
+            float(motion.yaw_rate_radps[k]), float(motion.confidence[k]), best, flow, dynamic, confidence,
+        )  # fmt: skip
     return CameraFlow(flow, dynamic, confidence)
+
+
+def _box_pixels_numpy(
+    depth: NDArray[np.float32],
+    rays: NDArray[np.float64],
+    rect: tuple[int, int, int, int],
+    z_range: tuple[float, float],
+    center_cam: NDArray[np.float64],
+    camera_from_box: NDArray[np.float64],
+    limits: NDArray[np.float64],
+    world_rotation_xy: NDArray[np.float64],
+    velocity: NDArray[np.float64],
+    yaw_rate_radps: float,
+    box_confidence: float,
+    best: NDArray[np.float32],
+    flow: NDArray[np.float32],
+    dynamic: NDArray[np.bool_],
+    confidence: NDArray[np.float32],
+) -> int:
+    """The plain numpy twin of the native pixel pass (``csrc/scene_flow.c``,
+    :class:`~phigenesis.data.native.SceneFlowPixels`, same arguments): the pixels of ``rect`` =
+    (v0, v1, u0, u1) whose depth lies in ``z_range`` = (exclusive, inclusive) and whose point lies
+    inside the box (camera-frame centre ``center_cam``, rotation ``camera_from_box``, box-frame
+    ``limits`` |x|, |y| <= limits[0:2], limits[3] <= z <= limits[2]) take its rigid flow where its
+    centre is nearer than ``best`` (|o|^2 + 1, 0 = none). Writes in place; returns how many took it."""
+    h, w = depth.shape
+    v0, v1, u0, u1 = rect
+    d = depth[v0:v1, u0:u1]
+    known = (d > z_range[0]) & (d <= z_range[1])
+    z = d[known].astype(np.float64)
+    if z.size == 0:
+        return 0
+    offset = rays.reshape(h, w, 3)[v0:v1, u0:u1][known] * z[:, None] - center_cam  # [P, 3] camera frame
+    local = offset @ camera_from_box  # [P, 3] box frame
+    inside = (
+        (np.abs(local[:, 0]) <= limits[0])
+        & (np.abs(local[:, 1]) <= limits[1])
+        & (local[:, 2] <= limits[2])
+        & (local[:, 2] >= limits[3])
+    )
+    within = np.flatnonzero(known.ravel())[inside]  # positions in the rectangle, row-major
+    index = (within // (u1 - u0) + v0) * w + within % (u1 - u0) + u0  # [P'] flat pixel index
+    offset = offset[inside]
+    dist = (np.einsum("ij,ij->i", offset, offset) + 1.0).astype(np.float32)
+    flat_best = best.reshape(-1)
+    win = (flat_best[index] == 0) | (dist < flat_best[index])
+    index = index[win]
+    flat_best[index] = dist[win]
+    q = offset[win] @ world_rotation_xy.T  # [P', 2] world x, y of point - centre
+    flat_flow = flow.reshape(-1, 3)
+    flat_flow[index, 0] = velocity[0] - yaw_rate_radps * q[:, 1]
+    flat_flow[index, 1] = velocity[1] + yaw_rate_radps * q[:, 0]
+    flat_flow[index, 2] = velocity[2]
+    dynamic.reshape(-1)[index] = True
+    confidence.reshape(-1)[index] = box_confidence
+    return int(index.size)
 
 
 def points_flow(
@@ -399,11 +443,17 @@ def points_flow(
     best = np.full(len(p_all), np.inf)
     reach = float(np.abs(dt).max(initial=0.0))
     rotations = geometry.quaternion_to_matrix(boxes.orientation_world).reshape(-1, 3, 3)
-    for k in np.flatnonzero(motion.moving).tolist():
+    movers = np.flatnonzero(motion.moving).tolist()
+    # The points by world x: a box's candidates are the run within its reach in x (bisection), not
+    # a pass over every point per box.
+    by_x = np.argsort(p_all[:, 0], kind="stable") if movers else np.zeros(0, np.int64)
+    xs = p_all[by_x, 0]
+    for k in movers:
         c, v, omega = boxes.center_world[k], boxes.velocity_world[k], float(motion.yaw_rate_radps[k])
         half = 0.5 * boxes.size_lwh[k]
         radius = float(np.linalg.norm(half + params.margin_m)) + float(np.linalg.norm(v)) * reach + 1e-6
-        near = np.flatnonzero(np.sum((p_all[:, :2] - c[:2]) ** 2, axis=1) <= radius**2)
+        run = by_x[np.searchsorted(xs, c[0] - radius) : np.searchsorted(xs, c[0] + radius, "right")]
+        near = run[np.sum((p_all[run, :2] - c[:2]) ** 2, axis=1) <= radius**2]
         if near.size == 0:
             continue
         t = dt[near]
