@@ -183,6 +183,16 @@ def test_a_track_seen_once_or_across_a_gap_turns_at_zero_with_lower_confidence()
     assert rate.tolist() == [0.0] and support.tolist() == [0.5]
 
 
+def test_a_heading_flipped_by_pi_between_frames_is_not_taken_for_a_turn():
+    frames = track_frames([0.0, 0.1, 0.2], [0.1, 0.1 + np.pi, 0.1])  # frame 1's label flipped
+    table = BoxTrackTable(frames)
+    # At the scene's end only the flipped neighbour is there: a one-sided difference of pi in 0.1 s.
+    rate, support = yaw_rates(frames[2].boxes, frames[2].timestamp_micros, table.at(1), None, 0.3, 2.0)
+    assert rate.tolist() == [0.0] and support.tolist() == [0.5]
+    rate, _ = yaw_rates(frames[2].boxes, frames[2].timestamp_micros, table.at(1), None, 0.3)  # no limit
+    np.testing.assert_allclose(np.abs(rate), [10 * np.pi])
+
+
 def test_extrapolated_boxes_and_interpolated_ones_far_from_keyframes_have_lower_confidence():
     from phigenesis.data.stages.flow import status_confidence
 

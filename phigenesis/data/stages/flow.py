@@ -10,14 +10,17 @@ so a point ``p`` inside it moves at
 Points outside every moving box have zero flow. Boxes carry no yaw rate: a track's yaw rate at a
 frame is the finite difference of its yaw (wrapped to the shortest arc) between the frame's
 neighbours that hold the same track (central where both lie within ``max_gap_s`` of the frame,
-one-sided where one does), from :class:`BoxTrackTable`. A box is moving when its centre's
+one-sided where one does), from :class:`BoxTrackTable`; a difference faster than
+``max_yaw_rate_radps`` (a label whose heading flipped by pi, a track id reused) is not a turn and
+gives no yaw rate. A box is moving when its centre's
 horizontal speed, or its rim's speed from turning (``|omega|`` times its half-diagonal in the
 ground plane), exceeds ``moving_mps``; a slower box is static (a parked car, a label's jitter).
 
 Confidence of a box's motion, in [0, 1], the product of:
 
 - the yaw rate's support: 1 for a central difference, 0.75 for a one-sided one, 0.5 for none
-  (a track seen in one frame only, or its neighbours beyond the gap: omega taken as 0);
+  (a track seen in one frame only, its neighbours beyond the gap, or an implausible difference:
+  omega taken as 0);
 - the box's status: 1 annotated; interpolated ``1 - 0.5 min(1, d / h)`` with ``d`` the time to
   the nearest annotated keyframe and ``h`` half the median keyframe interval (a scene without
   keyframes: 1); 0.5 extrapolated.
@@ -27,8 +30,10 @@ Per camera image (:func:`camera_flow`), the dense depth (the completed one where
 time; a point inside a moving box (grown by ``margin_m`` per side, its bottom ``clearance_m``
 left out so the road under a car stays static) takes the box's flow, the box at the image's time
 (the image's own boxes where a stage made them, else the frame's moved by their motion). Only
-the pixels inside each moving box's projected rectangle are visited: an image pays per-pixel work
-only for its depth test (the confidence map) and the maps' allocation. Per LiDAR point
+the pixels inside each moving box's projected rectangle whose depth lies within the box's range of
+camera z are back-projected (in one C pass per box where the native kernels build,
+``csrc/scene_flow.c``, else :func:`_box_pixels_numpy`): the rest of an image pays only for its
+maps' allocation, a depth test (the confidence map) and a finiteness check. Per LiDAR point
 (:func:`points_flow`), the box is taken at the point's own measurement time.
 
 Pipelines place ``box_tracks`` early (after the boxes exist: after ``interpolate_boxes`` for
@@ -91,6 +96,8 @@ class SceneFlowParams:
         clearance_m: the bottom this much of a box is left out (the road under it stays static).
         max_gap_s: a neighbouring frame further than this from the frame does not give the yaw
             rate (a track lost and found again is not differenced across the gap).
+        max_yaw_rate_radps: a yaw difference faster than this (rad/s) is not a turn (a heading
+            flipped by pi, a reused track id): the box gets no yaw rate, at lower confidence.
         lidar: also give every LiDAR point of the frame's sweep its flow.
     """
 
@@ -98,6 +105,7 @@ class SceneFlowParams:
     margin_m: float = option(0.1, ge=0, le=10)
     clearance_m: float = option(0.1, ge=0, le=10)
     max_gap_s: float = option(0.3, gt=0, le=60)
+    max_yaw_rate_radps: float = option(2.0, gt=0, le=100)
     lidar: bool = option(True)
 
     def __post_init__(self) -> None:
@@ -239,11 +247,13 @@ def yaw_rates(
     before: tuple[int, dict[str, float]] | None,
     after: tuple[int, dict[str, float]] | None,
     max_gap_s: float,
+    max_yaw_rate_radps: float = np.inf,
 ) -> tuple[NDArray[np.float64], NDArray[np.float32]]:
     """(M,) yaw rates (rad/s) of ``boxes`` at ``time_micros`` from the yaws of the same tracks in
     the neighbouring frames ``before`` and ``after`` (each (time, track -> yaw) or None), and
     (M,) the support's confidence (:data:`YAW_SUPPORT_CONFIDENCE`). Differences are wrapped to
-    the shortest arc; a neighbour further than ``max_gap_s`` is not used."""
+    the shortest arc; a neighbour further than ``max_gap_s`` is not used, and a rate beyond
+    ``max_yaw_rate_radps`` is dropped (0, support as for none)."""
     m = len(boxes)
     rate = np.zeros(m)
     support = np.full(m, YAW_SUPPORT_CONFIDENCE[2], np.float32)
@@ -262,6 +272,8 @@ def yaw_rates(
         else:
             continue
         rate[k] = float(geometry.angle_difference(y1, y0)) / ((t1 - t0) * 1e-6)
+        if abs(rate[k]) > max_yaw_rate_radps:
+            rate[k], support[k] = 0.0, YAW_SUPPORT_CONFIDENCE[2]
     return rate, support
 
 
@@ -505,7 +517,8 @@ def frame_motion(
     its own time) from the frame's neighbours in ``table``."""
     _check_boxes(boxes, where)
     i = frame.frame_index
-    rate, support = yaw_rates(boxes, time_micros, table.at(i - 1), table.at(i + 1), params.max_gap_s)
+    before, after = table.at(i - 1), table.at(i + 1)
+    rate, support = yaw_rates(boxes, time_micros, before, after, params.max_gap_s, params.max_yaw_rate_radps)
     status = status_confidence(boxes, time_micros, keyframe_micros)
     return box_motion(boxes, rate, support, status, params.moving_mps)
 
