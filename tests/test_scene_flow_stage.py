@@ -102,10 +102,13 @@ def test_a_point_on_a_rotating_translating_box_moves_with_the_rigid_motion(
 
 def test_points_outside_moving_boxes_and_points_of_static_boxes_have_zero_flow():
     boxes = one_box([10.0, 0.0, 1.0], 0.3, [5.0, 0.0, 0.0])
-    pts = np.array([[10.0, 0.0, 1.0], [20.0, 0.0, 1.0], [10.0, 0.0, 0.15]])  # inside, outside, road under it
+    # Inside; 10 m beyond it; 5 cm above its bottom face (the road under a car: clearance_m 0.1).
+    pts = np.array([[10.0, 0.0, 1.0], [20.0, 0.0, 1.0], [10.0, 0.0, 0.3]])
     flow = points_flow(pts, np.zeros(3), boxes, moving(0.2), P)
     np.testing.assert_allclose(flow[0], [5.0, 0.0, 0.0], atol=1e-6)
     assert not flow[1:].any()
+    no_clearance = points_flow(pts, np.zeros(3), boxes, moving(0.2), SceneFlowParams(clearance_m=0.0))
+    np.testing.assert_allclose(no_clearance[2], [5.0, 0.0, 0.0], atol=1e-6)
     static = BoxMotion(np.zeros(1), np.array([False]), np.ones(1, np.float32))
     assert not points_flow(pts, np.zeros(3), boxes, static, P).any()
 
