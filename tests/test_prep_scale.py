@@ -18,11 +18,13 @@ from phigenesis.data.stages import SETUP_RUNS
 from tests.conftest import TINY_PREP_ARGS
 
 STAGES = (
+    "box_tracks",
     "aggregate_lidar",
     "project_depth",
     "densify_depth",
     "pseudo_semantics",
     "complete_depth",
+    "scene_flow",
     "range_view",
 )
 

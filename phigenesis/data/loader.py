@@ -29,12 +29,16 @@ depth_dense_origin         uint8 [C, H, W]               records.DENSE_ORIGINS i
 pseudo_semantic            uint8 [C, H, W]               pseudo labels, unified classes, 255 = none
 pseudo_confidence          float32 [C, H, W]             in [0, 1], 0 where no label
 pseudo_source              uint8 [C, H, W]               records.PSEUDO_SOURCES index (0 = none)
+flow_world                 float32 [C, 3, H, W]          stage scene_flow: box-motion flow, world, m/s
+flow_dynamic               uint8 [C, H, W]               1 inside a moving box, 0 elsewhere
+flow_confidence            float32 [C, H, W]             in [0, 1], 0 where the flow is unknown
 lidar_points_ego           float32 [N, 3]                LiDAR points, ego frame at frame time
 lidar_intensity            float32 [N]
 lidar_beam_index           int64 [N]
 lidar_origins_ego          float32 [N, 3]                ray origins
 lidar_truth_semantic       uint8 [N]                     (synthetic)
 lidar_truth_instance       int32 [N]
+lidar_flow_world_mps       float32 [N, 3]                stage scene_flow: per-point flow, world, m/s
 boxes_center_world         float64 [M, 3]
 boxes_size_lwh             float64 [M, 3]
 boxes_yaw_world            float64 [M]
@@ -49,7 +53,8 @@ plane of its image segment and 4 a thin vertical structure (both from ``complete
 confidence), 5 the rendered depth of generated Gaussians (caches ``phigenesis-generate`` writes); weigh or
 mask the depth loss by it.
 
-Choose groups with ``fields`` ("images", "cameras", "truth", "depth", "pseudo", "lidar", "boxes"); only
+Choose groups with ``fields`` ("images", "cameras", "truth", "depth", "pseudo", "flow", "lidar",
+"boxes"); only
 what is asked for is read, checked and decoded. Label maps stay compact (uint8 classes, int32 instances);
 cast them on the device (``.long()`` for a cross-entropy target). :func:`collate_frames` stacks
 fixed-size entries over the batch and keeps variable-size ones (LiDAR, boxes, per-camera lists)
@@ -82,7 +87,7 @@ from phigenesis.data.records import decode_whole
 from phigenesis.data.schema import cameras_of
 from phigenesis.errors import CacheError
 
-FIELD_GROUPS = ("images", "cameras", "truth", "depth", "pseudo", "lidar", "boxes")
+FIELD_GROUPS = ("images", "cameras", "truth", "depth", "pseudo", "flow", "lidar", "boxes")
 #: Groups of packed views, documented in :mod:`phigenesis.data.loader_rangeview`.
 RANGE_FIELD_GROUPS = ("range_view", "lidar_range_image")
 
@@ -191,6 +196,12 @@ _PSEUDO_JOBS = (
     _MapJob("pseudo_semantic", "pseudo_semantic_png", codec.decode_semantic, np.uint8, None),
     _MapJob("pseudo_confidence", "pseudo_semantic_confidence_png", codec.decode_confidence, np.float32, None),
     _MapJob("pseudo_source", "pseudo_semantic_source_png", codec.decode_semantic, np.uint8, None),
+)
+
+_FLOW_JOBS = (
+    _MapJob("flow_world", "flow_world_mps_png", _decode_flow_channels_first, np.float32, 3),
+    _MapJob("flow_dynamic", "flow_dynamic_png", codec.decode_semantic, np.uint8, None),
+    _MapJob("flow_confidence", "flow_confidence_png", codec.decode_confidence, np.float32, None),
 )
 
 
@@ -384,6 +395,7 @@ class FrameDataset(Dataset):
             + (list(_TRUTH_JOBS) if "truth" in self.fields else [])
             + (list(_DEPTH_JOBS) if "depth" in self.fields else [])
             + (list(_PSEUDO_JOBS) if "pseudo" in self.fields else [])
+            + (list(_FLOW_JOBS) if "flow" in self.fields else [])
         )
         self._arenas = _Arenas()
         if decode_threads is not None and decode_threads < 1:
@@ -460,6 +472,9 @@ class FrameDataset(Dataset):
                 out["lidar_truth_semantic"] = torch.from_numpy(_flat(lf["truth_semantic"]).copy())
             if "truth_instance" in lf and lf["truth_instance"][0].is_valid:
                 out["lidar_truth_instance"] = torch.from_numpy(_flat(lf["truth_instance"]).astype(np.int32))
+            if "flow_world_mps" in lf and lf["flow_world_mps"][0].is_valid:
+                flow = _flat(lf["flow_world_mps"]).reshape(-1, 3)
+                out["lidar_flow_world_mps"] = torch.from_numpy(flow.copy())
         if "range_view" in self.fields:
             out.update(range_view_sample(batch, cameras_of(batch), out))
         if "lidar_range_image" in self.fields:

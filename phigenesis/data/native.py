@@ -7,11 +7,13 @@ side of a moving vehicle along each ray of its footprint, one pass instead of nu
 first pass over the map points (``camera_points.c``: transform, cull, distort, project and test
 against the ego body and vehicles in one pass) and its per-pixel plane fits (``plane_fits.c``), and
 a camera's per-calibration tables (``camera_rays.c``: undistorted pixel rays, their ego-frame
-directions and the range view's overlap map).
+directions and the range view's overlap map), and scene flow's pass over a moving box's pixels
+(``scene_flow.c``).
 
 Entry points: :func:`load_range_points`, :func:`load_crc32c_combine`, :func:`load_box_labels`,
 :func:`load_complete_fine`, :func:`load_ray_box`, :func:`load_camera_rays`,
-:func:`load_densify_finish`, :func:`load_camera_points`, :func:`load_plane_fits`.
+:func:`load_densify_finish`, :func:`load_camera_points`, :func:`load_plane_fits`,
+:func:`load_scene_flow_pixels`.
 
 Turning a Waymo frame's range images into points was a quarter of the v1 reader's time in numpy
 (16 ms of 65 ms a frame: a mask, a gather per channel, the ray arithmetic and the concatenation, each
@@ -55,6 +57,7 @@ SOURCES = (
     Path(__file__).parent / "csrc" / "densify_finish.c",
     Path(__file__).parent / "csrc" / "camera_points.c",
     Path(__file__).parent / "csrc" / "plane_fits.c",
+    Path(__file__).parent / "csrc" / "scene_flow.c",
 )
 LIBRARY_NAME = "libphigenesis_data"
 CFLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fPIC", "-shared", "-std=c99")
@@ -607,6 +610,7 @@ class _Kernels(NamedTuple):
     densify_finish: DensifyFinish
     camera_points: CameraPointsKernel
     plane_fits: PlaneFits
+    scene_flow_pixels: SceneFlowPixels
 
 
 def _load_library() -> _Kernels | None:
@@ -631,6 +635,7 @@ def _load_library() -> _Kernels | None:
                 DensifyFinish(library),
                 CameraPointsKernel(library),
                 PlaneFits(library),
+                SceneFlowPixels(library),
             )
         except (OSError, subprocess.SubprocessError, AttributeError) as error:
             _failure = str(error).splitlines()[0][:300] if str(error) else type(error).__name__
@@ -735,6 +740,82 @@ class BoxLabels:
                 _address(best),
             )
         )
+
+
+class SceneFlowPixels:
+    """The loaded ``phigenesis_scene_flow_pixels`` (see ``csrc/scene_flow.c``): scene flow's pass over
+    one moving box's rectangle."""
+
+    def __init__(self, library: ctypes.CDLL):
+        i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+        self._pass = library.phigenesis_scene_flow_pixels
+        self._pass.argtypes = (
+            [ptr, ptr, i64, i64, i64, i64, i64, f64, f64] + [ptr] * 5 + [f64, ctypes.c_float]
+        )
+        self._pass.argtypes += [ptr] * 4
+        self._pass.restype = i64
+
+    def __call__(
+        self,
+        depth: NDArray[np.float32],
+        rays: NDArray[np.float64],
+        rect: tuple[int, int, int, int],
+        z_range: tuple[float, float],
+        center_cam: NDArray[np.float64],
+        camera_from_box: NDArray[np.float64],
+        limits: NDArray[np.float64],
+        world_rotation_xy: NDArray[np.float64],
+        velocity: NDArray[np.float64],
+        yaw_rate_radps: float,
+        box_confidence: float,
+        best: NDArray[np.float32],
+        flow: NDArray[np.float32],
+        dynamic: NDArray[np.bool_],
+        confidence: NDArray[np.float32],
+    ) -> int:
+        """Writes (in place) ``best``, ``flow``, ``dynamic``, ``confidence`` of the pixels of
+        ``rect`` = (v0, v1, u0, u1) that take the box (``csrc/scene_flow.c``); returns how many.
+        ``depth`` (H, W) float32 and ``rays`` (H * W, 3) float64 (z = 1) C order; ``best``,
+        ``dynamic`` (bool), ``confidence`` (H, W) and ``flow`` (H, W, 3) float32, C order."""
+        h, w = depth.shape
+        v0, v1, u0, u1 = (int(x) for x in rect)
+        if not (0 <= v0 <= v1 <= h and 0 <= u0 <= u1 <= w):
+            raise ValueError(f"scene flow pixels: rectangle {rect} outside a {w}x{h} image")
+        checks = (
+            (depth, np.float32, (h, w)),
+            (rays, np.float64, (h * w, 3)),
+            (best, np.float32, (h, w)),
+            (flow, np.float32, (h, w, 3)),
+            (dynamic, np.bool_, (h, w)),
+            (confidence, np.float32, (h, w)),
+        )
+        for a, dtype, shape in checks:
+            if a.dtype != dtype or a.shape != shape or not a.flags.c_contiguous:
+                raise ValueError(
+                    f"scene flow pixels: expected C-order {np.dtype(dtype).name} {shape}, "
+                    f"got {a.dtype} {a.shape}"
+                )
+        small = [
+            np.ascontiguousarray(x, np.float64).reshape(-1)
+            for x in (center_cam, camera_from_box, limits, world_rotation_xy, velocity)
+        ]
+        if [len(x) for x in small] != [3, 9, 4, 6, 3]:
+            raise ValueError(
+                "scene flow pixels: box centre (3), rotation (3x3), limits (4), rows (2x3), velocity (3)"
+            )
+        return int(
+            self._pass(
+                _address(depth), _address(rays), w, v0, v1, u0, u1, float(z_range[0]), float(z_range[1]),
+                *(_address(x) for x in small), float(yaw_rate_radps), float(box_confidence),
+                _address(best), _address(flow), _address(dynamic), _address(confidence),
+            )
+        )  # fmt: skip
+
+
+def load_scene_flow_pixels() -> SceneFlowPixels | None:
+    """Scene flow's pixel pass, or ``None`` where the library cannot be built (:func:`_load_library`)."""
+    kernels = _load_library()
+    return None if kernels is None else kernels.scene_flow_pixels
 
 
 def load_box_labels() -> BoxLabels | None:
@@ -945,4 +1026,5 @@ __all__ = [
     "load_plane_fits",
     "load_range_points",
     "load_ray_box",
+    "load_scene_flow_pixels",
 ]

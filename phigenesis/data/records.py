@@ -527,6 +527,33 @@ class CameraSemantics:
 
 
 @dataclass
+class CameraFlow:
+    """Scene flow of one image from its boxes and dense depth (stage ``scene_flow``), (H, W) at the
+    image's size.
+
+    Attributes:
+        flow_world_mps: float32 (H, W, 3) velocity of the surface point each pixel sees (its
+            depth's back-projection), world frame, m/s, at the image's capture time: the rigid
+            motion ``v + omega x (p - c)`` of the moving box holding the point, 0 elsewhere.
+        dynamic: bool (H, W): the pixel's point lies inside a moving box (grown by the stage's
+            margin).
+        confidence: float32 (H, W) in [0, 1]: how far the flow can be trusted: the box's motion
+            confidence on dynamic pixels, 1 on static pixels with a depth, 0 where the pixel has
+            no depth (its flow is unknown).
+    """
+
+    flow_world_mps: NDArray[np.float32]
+    dynamic: NDArray[np.bool_]
+    confidence: NDArray[np.float32]
+
+    def __post_init__(self) -> None:
+        self.flow_world_mps = _check_array("flow_world_mps", self.flow_world_mps, (None, None, 3), np.float32)
+        shape = self.flow_world_mps.shape[:2]
+        self.dynamic = _check_array("flow dynamic", self.dynamic, shape, bool)
+        self.confidence = _check_array("flow confidence", self.confidence, shape, np.float32)
+
+
+@dataclass
 class CameraImage:
     """One image of one camera.
 
@@ -549,6 +576,7 @@ class CameraImage:
         boxes: the boxes at this camera's own ``timestamp_micros`` where a stage made them
             (``interpolate_boxes`` for nuScenes' staggered cameras); None: use the frame's boxes.
         pseudo: pseudo-semantic labels from the ``pseudo_semantics`` stage, where it ran.
+        flow: scene flow, dynamic mask and confidence from the ``scene_flow`` stage, where it ran.
     """
 
     calibration: CameraCalibration
@@ -566,6 +594,7 @@ class CameraImage:
     angular_velocity_world_radps: NDArray[np.float64] | None = None
     boxes: Boxes | None = None
     pseudo: CameraSemantics | None = None
+    flow: CameraFlow | None = None
     # The decoded image with the bytes it came from: several stages read one frame's images
     # (projection, densification, labels), and each JPEG should be decoded once.
     _decoded: tuple[bytes, NDArray[np.uint8]] | None = field(default=None, repr=False, compare=False)
@@ -580,6 +609,7 @@ class CameraImage:
             ("labels", None if self.labels is None else self.labels.semantic.shape),
             ("depth", None if self.depth is None else self.depth.sparse_m.shape),
             ("pseudo", None if self.pseudo is None else self.pseudo.semantic.shape),
+            ("flow", None if self.flow is None else self.flow.dynamic.shape),
         ):
             if shape is not None and shape != size:
                 raise InvalidRecord(f"{cam} {what}", f"is {shape}, calibration says {size}")
@@ -722,6 +752,7 @@ _POINT_FIELDS: tuple[tuple[str, tuple[int, ...], type, bool], ...] = (
     ("instance", (), np.uint16, True),
     ("elongation", (), np.float32, True),
     ("return_index", (), np.uint8, True),
+    ("flow_world_mps", (3,), np.float32, True),
 )
 
 
@@ -745,6 +776,9 @@ class LidarSweep:
         elongation: (N,) float32 pulse elongation per point (Waymo), or None.
         return_index: (N,) uint8 0 for the strongest (first) return, 1 for the second; None =
             all first returns.
+        flow_world_mps: (N, 3) float32 velocity of each point's surface at its measurement time,
+            world frame, m/s (stage ``scene_flow``: its box's rigid motion, 0 for static points),
+            or None.
     """
 
     timestamp_micros: int
@@ -759,6 +793,7 @@ class LidarSweep:
     instance: NDArray[np.uint16] | None = None
     elongation: NDArray[np.float32] | None = None
     return_index: NDArray[np.uint8] | None = None
+    flow_world_mps: NDArray[np.float32] | None = None
 
     def __post_init__(self) -> None:
         self._convert()

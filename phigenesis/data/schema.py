@@ -27,6 +27,7 @@ from phigenesis.data.records import (
     Boxes,
     CameraCalibration,
     CameraDepth,
+    CameraFlow,
     CameraImage,
     CameraLabels,
     CameraSemantics,
@@ -54,6 +55,8 @@ class CacheContents:
         pseudo_semantics: store the ``pseudo_semantics`` stage's labels, confidences and sources.
         range_view: store the ``range_view`` stage's layout and overlap map (the pixels are the
             cameras' own columns).
+        scene_flow: store the ``scene_flow`` stage's per-camera flow maps, dynamic masks and
+            confidences, and (with ``lidar``) each LiDAR point's flow.
         lidar_range_image: store the ``lidar_range_image`` stage's cell -> point index map (needs
             ``lidar``: range and intensity are read from the sweep through it).
     """
@@ -66,6 +69,7 @@ class CacheContents:
     pseudo_semantics: bool = option(False)
     range_view: bool = option(False)
     lidar_range_image: bool = option(False)
+    scene_flow: bool = option(False)
 
     def __post_init__(self) -> None:
         check_options(self, "CacheContents")
@@ -92,6 +96,10 @@ class CacheContents:
             return self.range_view
         if group == "lidar_range_image":
             return self.lidar_range_image
+        if group == "scene_flow":
+            return self.scene_flow
+        if group == "lidar_scene_flow":
+            return self.lidar and self.scene_flow
         raise ValueError(f"unknown column group {group!r}")
 
 
@@ -305,6 +313,34 @@ class CameraColumns:
         "pseudo_semantics",
         True,
     )
+    flow_world_mps_png: bytes = col(
+        pa.binary(),
+        "scene flow from the boxes' rigid motion (stage scene_flow): world-frame velocity of the surface "
+        "point each pixel's dense depth gives, at this image's capture time, 0 for static points, 16-bit "
+        "3-channel map, m/s = (value - 32768) / 256; null if the stage did not run",
+        "m/s",
+        "world",
+        "scene_flow",
+        True,
+    )
+    flow_dynamic_png: bytes = col(
+        pa.binary(),
+        "1 where the pixel's dense-depth point lies inside a moving box (stage scene_flow), 0 elsewhere, "
+        "8-bit map",
+        "",
+        "",
+        "scene_flow",
+        True,
+    )
+    flow_confidence_png: bytes = col(
+        pa.binary(),
+        "confidence of flow_world_mps_png, 8-bit map, value / 255: the box's motion confidence on dynamic "
+        "pixels, 1 on static pixels with a depth, 0 where the depth (so the flow) is unknown",
+        "1/255",
+        "",
+        "scene_flow",
+        True,
+    )
     boxes: list = col(
         BoxColumns,
         "3D boxes at this image's timestamp_micros (the interpolate_boxes stage: nuScenes' staggered "
@@ -341,6 +377,15 @@ class LidarColumns:
     truth_semantic: list = col(pa.list_(pa.uint8()), "exact class per point", "", "", "lidar_truth", True)
     truth_instance: list = col(
         pa.list_(pa.uint16()), "exact instance id per point, 0 = none", "", "", "lidar_truth", True
+    )
+    flow_world_mps: list = col(
+        pa.list_(pa.float32()),
+        "flat x, y, z velocity of each point's surface at its measurement time (stage scene_flow: its box's "
+        "rigid motion, 0 for static points); null if the stage did not run",
+        "m/s",
+        "world",
+        "lidar_scene_flow",
+        True,
     )
 
 
@@ -584,6 +629,9 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
         "pseudo_semantic_source_png": png(
             "pseudo_semantic_source_png", codec.encode_semantic, "pseudo", "source"
         ),
+        "flow_world_mps_png": png("flow_world_mps_png", codec.encode_flow, "flow", "flow_world_mps"),
+        "flow_dynamic_png": png("flow_dynamic_png", _encode_mask, "flow", "dynamic"),
+        "flow_confidence_png": png("flow_confidence_png", codec.encode_confidence, "flow", "confidence"),
         "boxes": _boxes_array(cam_type.value_type.field("boxes").type, [c.boxes for c in cams]),
     }
     arrays: dict[str, pa.Array] = {
@@ -615,6 +663,7 @@ def frame_to_batch(frame: Frame, source: str, schema: pa.Schema) -> pa.RecordBat
                 "truth_instance": None if s.instance is None else [s.instance],
                 "elongation": None if s.elongation is None else [s.elongation],
                 "return_index": None if s.return_index is None else [s.return_index],
+                "flow_world_mps": None if s.flow_world_mps is None else [s.flow_world_mps],
             }
             arrays["lidar"] = _struct(lt, lidar, 1)
     if "range_view" in schema.names:
@@ -680,6 +729,7 @@ def row_to_frame(batch: pa.RecordBatch, row: int = 0, decode_truth: bool = True)
                 labels=_camera_labels(cf, i, (heights[i], widths[i])) if decode_truth else None,
                 depth=_camera_depth(cf, i, (heights[i], widths[i])) if decode_truth else None,
                 pseudo=_camera_pseudo(cf, i, (heights[i], widths[i])) if decode_truth else None,
+                flow=_camera_flow(cf, i, (heights[i], widths[i])) if decode_truth else None,
                 trigger_micros=triggers[i],
                 shutter_micros=shutters[i],
                 readout_micros=readouts[i],
@@ -751,6 +801,22 @@ def _camera_pseudo(cf: dict[str, pa.Array], i: int, shape: tuple[int, int]) -> C
     )
 
 
+def _encode_mask(mask: np.ndarray) -> bytes:
+    return codec.encode_semantic(np.asarray(mask, np.uint8))
+
+
+def _camera_flow(cf: dict[str, pa.Array], i: int, shape: tuple[int, int]) -> CameraFlow | None:
+    """The ``scene_flow`` stage's maps of camera ``i``, or None where the cache (a cache written
+    before the stage existed) or the camera has none."""
+    if "flow_world_mps_png" not in cf or cf["flow_world_mps_png"][i].as_py() is None:
+        return None
+    return CameraFlow(
+        flow_world_mps=codec.decode_flow(cf["flow_world_mps_png"][i].as_py(), shape=shape),
+        dynamic=codec.decode_semantic(cf["flow_dynamic_png"][i].as_py(), shape=shape) > 0,
+        confidence=codec.decode_confidence(cf["flow_confidence_png"][i].as_py(), shape=shape),
+    )
+
+
 def _camera_truth(cf: dict[str, pa.Array], i: int, h: int, w: int) -> CameraTruth | None:
     def get(name: str) -> bytes | None:
         return cf[name][i].as_py() if name in cf else None
@@ -779,6 +845,7 @@ def _lidar(lf: dict[str, pa.Array]) -> LidarSweep:
     sem = lf.get("truth_semantic")
     inst = lf.get("truth_instance")
     elong, ret = lf["elongation"], lf["return_index"]
+    flow = lf.get("flow_world_mps")
     return LidarSweep(
         timestamp_micros=lf["timestamp_micros"][0].as_py(),
         world_from_ego=_mat(lf["world_from_ego"], 1, (4, 4))[0],
@@ -792,6 +859,7 @@ def _lidar(lf: dict[str, pa.Array]) -> LidarSweep:
         instance=None if inst is None or inst.null_count else _flat(inst, np.uint16),
         elongation=None if elong.null_count else _flat(elong, np.float32),
         return_index=None if ret.null_count else _flat(ret, np.uint8),
+        flow_world_mps=None if flow is None or flow.null_count else _flat(flow, np.float32).reshape(-1, 3),
     )
 
 

@@ -4,9 +4,12 @@ A clip is ``T`` consecutive context frames of one scene plus target frames (the 
 themselves and frames a few steps before or after them), every view resized to the model's size.
 Times are seconds after the first context frame's timestamp (the clip's time origin).
 
-Per view of a context frame, what moves is found from the cache's boxes: a pixel whose dense-depth
-point lies in a box moving faster than ``MOVING_MPS`` (the box shifted to the image's own capture
-time at its velocity) is dynamic and moves at the box's velocity.
+Per view of a context frame, what moves comes from the ``scene_flow`` stage's maps where the cache
+holds them (:func:`_stage_flow_pixels`: its dynamic mask and flow, the box's rotation included;
+pixels whose flow confidence is below ``MIN_FLOW_CONFIDENCE`` are left unknown), else from the
+cache's boxes: a pixel whose dense-depth point lies in a box moving faster than ``MOVING_MPS`` (the
+box shifted to the image's own capture time at its velocity) is dynamic and moves at the box's
+velocity.
 """
 
 from __future__ import annotations
@@ -29,6 +32,9 @@ from phigenesis.train.views import resize_images, resize_intrinsics, resize_near
 
 #: A box moving faster than this (m/s) makes its pixels dynamic.
 MOVING_MPS = 0.5
+#: A dynamic pixel of the scene_flow stage's maps whose confidence is below this is left unknown
+#: (-1) rather than trained on: its box's yaw rate or velocity is a guess.
+MIN_FLOW_CONFIDENCE = 0.5
 #: Boxes are enlarged by this (metres per side) when testing which pixels they hold.
 BOX_MARGIN_M = 0.1
 #: A cache whose dense depth covers less than this share of the pixels of the frames sampled
@@ -103,7 +109,7 @@ def _frame_views(
     d = resize_nearest(f["depth_dense"], size_hw)
     k = resize_intrinsics(f["intrinsics"].double(), (h_in, w_in), size_hw)
     if context:
-        m, v = _moving_pixels(f, d, k, wfc)
+        m, v = _stage_flow_pixels(f, d, size_hw) or _moving_pixels(f, d, k, wfc)
     else:
         m, v = torch.full(d.shape, -1.0), torch.zeros(*d.shape, 3)
     return _FrameViews(
@@ -147,6 +153,26 @@ def _semantic_map(frame: dict[str, Any], semantic: SemanticTarget) -> Tensor:
     if semantic in ("auto", "pseudo") and "pseudo_semantic" in frame:
         return frame["pseudo_semantic"]
     return torch.full_like(frame["depth_dense"], IGNORE_ID, dtype=torch.uint8)
+
+
+def _stage_flow_pixels(
+    frame: dict[str, Any], depth: Tensor, size_hw: tuple[int, int]
+) -> tuple[Tensor, Tensor] | None:
+    """([V, H, W] moving label, [V, H, W, 3] world velocity, m/s) of one frame's views from the
+    ``scene_flow`` stage's maps (loader group "flow") at ``size_hw``: 1 on its dynamic pixels whose
+    confidence is at least :data:`MIN_FLOW_CONFIDENCE`, -1 on less confident ones and where
+    ``depth`` [V, H, W] (at ``size_hw``) is unknown, 0 elsewhere; None where the cache has no
+    such maps (caches written without the stage)."""
+    if "flow_world" not in frame or isinstance(frame["flow_world"], list):
+        return None
+    dynamic = resize_nearest(frame["flow_dynamic"], size_hw) > 0
+    confidence = resize_nearest(frame["flow_confidence"], size_hw)
+    velocity = resize_nearest(frame["flow_world"], size_hw).permute(0, 2, 3, 1).float()  # [V, H, W, 3]
+    moving = torch.where(depth > 0, 0.0, -1.0).float()
+    moving[dynamic & (depth > 0)] = 1.0
+    moving[dynamic & (confidence < MIN_FLOW_CONFIDENCE)] = -1.0
+    velocity = velocity * (moving > 0)[..., None]
+    return moving, velocity.contiguous()
 
 
 def _moving_pixels(
@@ -232,7 +258,7 @@ class Stage1Clips:
         check_crc: bool = True,
         cache_mb: float = 0.0,
     ):
-        fields_ = ["images", "cameras", "depth", "pseudo", "boxes"] + (
+        fields_ = ["images", "cameras", "depth", "pseudo", "flow", "boxes"] + (
             ["truth"] if semantic != "pseudo" else []
         )
         self.cache_dir = str(cache_dir)

@@ -43,6 +43,7 @@ BUILTIN_STAGE_MODULES = (
     "interpolate",
     "semantics",
     "rangeview",
+    "flow",
 )
 
 
