@@ -10,13 +10,15 @@ one machine another's build. ``PHIGENESIS_NATIVE=0`` turns every native part off
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import os
 import platform
 from collections.abc import Iterator
 from pathlib import Path
 
-from phigenesis.data.cache_lock import NO_FLOCK
+#: errno values of a file system that cannot flock (NFS without lockd, some FUSE mounts).
+NO_FLOCK = frozenset({errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL})
 
 
 def cache_root() -> Path:
