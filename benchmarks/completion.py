@@ -34,7 +34,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
 from _report import Report, add_update_flag, output_path
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.pipeline import load_pipeline
 from phigenesis.data.records import DENSE_ORIGINS, CameraDepth, Frame, LazyFrames, Scene
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene

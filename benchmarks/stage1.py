@@ -57,8 +57,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, a
 from _report import REPO_ROOT, Report, add_update_flag, output_path
 
 from phigenesis import prep
+from phigenesis.models.checkpoint import read_safetensors_metadata
 from phigenesis.models.rasterizer import native_available
-from phigenesis.train.checkpoint import read_safetensors_metadata
 from phigenesis.train.runner import read_metrics
 
 BIN = Path(sys.executable).parent

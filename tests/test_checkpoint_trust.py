@@ -22,8 +22,9 @@ from safetensors.torch import load_file, save_file
 from phigenesis.cli.train import main as train_main
 from phigenesis.errors import CheckpointError, PhiGenesisError
 from phigenesis.models import create_model, list_models
+from phigenesis.models.checkpoint import load_checkpoint
 from phigenesis.train import runner, segmenter, stage1, stage2, vae
-from phigenesis.train.checkpoint import load_checkpoint, read_trainer_state, save_checkpoint
+from phigenesis.train.checkpoint import read_trainer_state, save_checkpoint
 from phigenesis.train.runner import latest_checkpoint
 from phigenesis.train.stage1 import Stage1TrainConfig, load_stage1, train_stage1
 from phigenesis.train.stage2 import Stage2TrainConfig, load_stage2
@@ -213,7 +214,7 @@ def _peak_of_loading(paths: list[Path]) -> tuple[list[str], int]:
         import torch
         torch.set_num_threads(1)
         from phigenesis.errors import PhiGenesisError
-        from phigenesis.train.checkpoint import load_checkpoint
+        from phigenesis.models.checkpoint import load_checkpoint
         for path in {[str(p) for p in paths]!r}:
             try:
                 load_checkpoint(path)

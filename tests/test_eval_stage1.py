@@ -450,7 +450,7 @@ def test_the_evaluation_skips_the_clips_whose_shifted_rig_would_collide(
 def test_depth_by_class_is_pooled_over_each_truth_classs_pixels() -> None:
     from types import SimpleNamespace
 
-    from phigenesis.data.taxonomy import CLASS_NAMES, IGNORE_ID
+    from phigenesis.taxonomy import CLASS_NAMES, IGNORE_ID
     from phigenesis.train.evaluate_stage1 import SectionScores
 
     # Six pixels of a 16 x 16 image (SSIM needs its size); the others have no truth and no class.

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.colormap import DEPTH_FAR_M, DEPTH_NEAR_M, depth_color
 from phigenesis.data.preview import (
     EMPTY_RGB,

@@ -11,7 +11,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.loader import FrameDataset
 from phigenesis.data.records import CameraDepth, CameraSemantics, Frame, Scene
 from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch, row_to_frame

@@ -23,7 +23,6 @@ from phigenesis import geometry, prep
 from phigenesis.data.pipeline import PipelineSpec
 from phigenesis.data.schema import SCHEMA_VERSION
 from phigenesis.data.shards import Manifest
-from phigenesis.data.taxonomy import SKY
 from phigenesis.export.ply import scene_from_ply
 from phigenesis.export.stage1 import export_ply, predict_frame
 from phigenesis.models import create_model, list_models
@@ -36,6 +35,7 @@ from phigenesis.models.stage1 import (
     quaternion_multiply,
     range_view_order,
 )
+from phigenesis.taxonomy import SKY
 from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 from phigenesis.train.runner import ProcessGroup, latest_checkpoint, read_metrics
 from phigenesis.train.stage1 import (

@@ -221,7 +221,7 @@ def test_generation_samples_on_the_geometry_its_checkpoint_was_trained_on(
 
     from phigenesis.errors import CheckpointError
     from phigenesis.infer.generate import GenerateOptions, Stage2Runner, trained_geometry
-    from phigenesis.train.checkpoint import read_safetensors_metadata
+    from phigenesis.models.checkpoint import read_safetensors_metadata
 
     runner = Stage2Runner(stage2_checkpoint, cache)
     assert runner.geometry == "stage1" and runner.resolve(None).geometry == "stage1"

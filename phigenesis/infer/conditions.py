@@ -25,7 +25,6 @@ from typing import Any, Literal, get_args
 import torch
 from torch import Tensor
 
-from phigenesis.data.taxonomy import SKY
 from phigenesis.infer.render import SKY_ALPHA, Views, lift_views
 from phigenesis.infer.uncertainty import (
     DEFAULT_LP_TRUST,
@@ -37,6 +36,7 @@ from phigenesis.infer.uncertainty import (
 )
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.stage1 import Stage1Model
+from phigenesis.taxonomy import SKY
 from phigenesis.train.stage1_data import Clip
 
 GeometrySource = Literal["stage1", "cache", "truth"]

@@ -676,7 +676,7 @@ def _stage2_checkpoint(path: str | os.PathLike[str]) -> tuple[MultiViewDiT, dict
     """(the denoiser, its training config as recorded) of a Stage 2 checkpoint, the config checked
     by the training config's own checks (:func:`phigenesis.train.stage2.trained_config`);
     CheckpointError otherwise."""
-    from phigenesis.train.checkpoint import load_checkpoint
+    from phigenesis.models.checkpoint import load_checkpoint
     from phigenesis.train.stage2 import trained_config
 
     path = Path(path)

@@ -68,7 +68,7 @@ import numpy as np
 import torch
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import (
     BOX_STATUSES,
     MAX_BOX_SIZE_M,
@@ -175,7 +175,7 @@ def load_asset(
 
     Args:
         path: a 3DGS PLY, or a mesh: .obj, .glb, .gltf, .ply, .stl or .off (not compressed).
-        class_name: the asset's class, one of :data:`phigenesis.data.taxonomy.CLASS_NAMES`.
+        class_name: the asset's class, one of :data:`phigenesis.taxonomy.CLASS_NAMES`.
         spacing_m: distance between neighbouring surface Gaussians of a mesh, metres after
             ``scale`` (default: the mesh's bounding-box diagonal / 100); it widens so that at most
             :data:`MAX_MESH_GAUSSIANS` are made (logged). Unused for a Gaussian asset.

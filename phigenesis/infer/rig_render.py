@@ -338,7 +338,7 @@ def _scene_seed(seed: int, scene_index: int) -> int:
 
 def _sky_colour(clip: Clip) -> Tensor:
     """(3,) mean colour of the clip's context pixels labelled sky (black without any)."""
-    from phigenesis.data.taxonomy import SKY
+    from phigenesis.taxonomy import SKY
 
     ctx = clip.context
     sky = ctx.semantic == SKY

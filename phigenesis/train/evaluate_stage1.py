@@ -84,15 +84,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from phigenesis.data import taxonomy
+from phigenesis import taxonomy
 from phigenesis.data.records import DENSE_ORIGINS, CameraCalibration, CameraTruth
 from phigenesis.data.shards import MANIFEST_NAME
-from phigenesis.data.taxonomy import CLASS_NAMES, IGNORE_ID, NUM_CLASSES
 from phigenesis.eval.depth_protocol import ALL, DEPTH_METRICS, DepthAccumulator
 from phigenesis.eval.scene_flow import FlowAccumulator, dynamic_mask, flow_pixels, masked_mean, masked_psnr
 from phigenesis.infer.render import Rendered, Views, lift_views, render_views, sky_background
 from phigenesis.models.losses import psnr, ssim
 from phigenesis.models.stage1 import Stage1Model
+from phigenesis.taxonomy import CLASS_NAMES, IGNORE_ID, NUM_CLASSES
 from phigenesis.train.metrics import confusion_matrix, segmentation_scores
 from phigenesis.train.stage1 import clip_inputs, load_stage1
 from phigenesis.train.stage1_data import Clip, Stage1Clips

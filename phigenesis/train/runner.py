@@ -55,13 +55,12 @@ from torch import Tensor, nn
 
 from phigenesis.data.shards import os_reason
 from phigenesis.errors import CheckpointError, TrainingDivergedError
+from phigenesis.models.checkpoint import FORMAT, read_safetensors_metadata
 from phigenesis.options import ConfigError
 from phigenesis.train.checkpoint import (
-    FORMAT,
     CheckpointWriteError,
     TrainingState,
     atomic_path,
-    read_safetensors_metadata,
     read_trainer_state,
     restore_optimizer,
     save_checkpoint,

@@ -37,16 +37,17 @@ import torch
 import torch.nn.functional as F
 from numpy.typing import NDArray
 
+from phigenesis import taxonomy as tx
 from phigenesis.data import codec
-from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import decode_whole
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheReader
 from phigenesis.errors import CacheError
 from phigenesis.models import create_model
+from phigenesis.models.checkpoint import load_checkpoint
 from phigenesis.options import check_options, option
 from phigenesis.train import limits
-from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
+from phigenesis.train.checkpoint import save_checkpoint
 from phigenesis.train.metrics import confusion_matrix, segmentation_scores
 from phigenesis.train.runner import (
     DivergenceCheck,

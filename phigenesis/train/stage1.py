@@ -48,15 +48,16 @@ import yaml
 from torch import Tensor
 from tqdm import tqdm
 
-from phigenesis.data.taxonomy import GROUND_IDS, IGNORE_ID, SKY
 from phigenesis.errors import argument
+from phigenesis.models.checkpoint import load_checkpoint
 from phigenesis.models.depth_bins import DepthBins
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.losses import edge_aware_smoothness, log_depth_loss, photometric_loss, semantic_loss
 from phigenesis.models.stage1 import Stage1Model, Stage1Prediction
 from phigenesis.options import ConfigError, check_options, from_mapping, option
+from phigenesis.taxonomy import GROUND_IDS, IGNORE_ID, SKY
 from phigenesis.train import limits
-from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 from phigenesis.train.memory_cache import BoundedCache, tensor_bytes
 from phigenesis.train.runner import (
     DivergenceCheck,

@@ -23,7 +23,7 @@ from phigenesis import geometry
 from phigenesis.data.loader import FrameDataset
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheReader
-from phigenesis.data.taxonomy import IGNORE_ID
+from phigenesis.taxonomy import IGNORE_ID
 from phigenesis.train.memory_cache import BoundedCache, tensor_bytes
 from phigenesis.train.views import resize_images, resize_intrinsics, resize_nearest
 

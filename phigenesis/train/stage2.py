@@ -49,10 +49,11 @@ from phigenesis.infer.conditions import ConditionKind, GeometrySource, TargetCam
 from phigenesis.infer.flow import flow_loss, interpolate, sample_time
 from phigenesis.infer.stereo_forcing import drop_condition, stereo_forcing
 from phigenesis.infer.uncertainty import LpTrust
+from phigenesis.models.checkpoint import load_checkpoint
 from phigenesis.models.dit import MultiViewDiT
 from phigenesis.options import ConfigError, check_options, from_mapping, option, same_as
 from phigenesis.train import limits
-from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 from phigenesis.train.runner import (
     DivergenceCheck,
     MetricsLog,

@@ -50,10 +50,11 @@ from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheReader
 from phigenesis.errors import CacheError
 from phigenesis.models import create_model
+from phigenesis.models.checkpoint import load_checkpoint
 from phigenesis.models.vae import VideoVAE, vae_loss
 from phigenesis.options import check_options, option
 from phigenesis.train import limits
-from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
+from phigenesis.train.checkpoint import save_checkpoint
 from phigenesis.train.runner import (
     DivergenceCheck,
     MetricsLog,

@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.camera_tables import RayComponents, pixel_rays_cam, ray_components_of
 from phigenesis.data.native import load_box_labels
 from phigenesis.data.records import (
@@ -168,7 +168,7 @@ class Segmenter:
         cls, path: str, model: str | None = None, input_height: int | None = None, device: str = "cpu"
     ) -> Segmenter:
         """The model of the checkpoint at ``path`` (which must be of variant ``model`` if given)."""
-        from phigenesis.train.checkpoint import load_checkpoint
+        from phigenesis.models.checkpoint import load_checkpoint
 
         return cls(load_checkpoint(path, model, map_location=device).model.to(device), input_height, device)
 

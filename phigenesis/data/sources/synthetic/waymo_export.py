@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import CameraImage, Frame
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene
 from phigenesis.data.sources.synthetic.rigs import LidarSpec
