@@ -41,7 +41,7 @@ from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene
 from phigenesis.data.stages import get_stage
 from phigenesis.data.stages.complete import CompletionParams, segment_image
 from phigenesis.data.stages.densify import camera_focal_px
-from phigenesis.train.metrics import depth_errors
+from phigenesis.models.metrics import depth_errors
 
 FIGURE = "docs/images/depth_completion.png"
 STAGES = [stage for stage in load_pipeline("synthetic").stages if stage.name != "range_view"]

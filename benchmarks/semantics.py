@@ -50,8 +50,8 @@ from phigenesis.data.sources.synthetic import SyntheticConfig, synthetic_scene
 from phigenesis.data.stages import get_stage
 from phigenesis.data.stages.semantics import PseudoSemanticsParams, RayCache, Segmenter, label_frame
 from phigenesis.models.checkpoint import load_checkpoint
+from phigenesis.models.metrics import confusion_matrix, segmentation_scores
 from phigenesis.train.checkpoint import save_checkpoint
-from phigenesis.train.metrics import confusion_matrix, segmentation_scores
 from phigenesis.train.segmenter import train_segmenter
 
 DEPTH_STAGES = ("aggregate_lidar", "project_depth", "densify_depth")

@@ -433,7 +433,7 @@ def _eval_table(
     baseline_path: Path | None = None,
     baseline_note: str = "",
 ) -> tuple[str, list[str], list[list[object]], str]:
-    """The held-out table from the evaluation JSON (keys of :mod:`phigenesis.train.evaluate_stage1`):
+    """The held-out table from the evaluation JSON (keys of :mod:`phigenesis.eval.stage1`):
     per section a row for the new model, the baseline (when given) and the oracle."""
     headers = ["views", "images", "renderer", *EVAL_COLUMNS.values()]
     rows = []

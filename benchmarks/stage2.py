@@ -258,7 +258,7 @@ def main() -> None:
     base |= {"stage1_checkpoint": str(stage1 / "model.safetensors"), "steps": args.stage2_steps, "threads": 1}
     rows = [r for r in ROWS if not args.rows or r[1] in args.rows or r[0] in args.rows]
     # The latent caches, one per geometry, before any training run reads them.
-    from phigenesis.train.stage1 import load_stage1
+    from phigenesis.models.loading import load_stage1
     from phigenesis.train.stage2 import Stage2TrainConfig
     from phigenesis.train.stage2_data import precompute_stage2
 

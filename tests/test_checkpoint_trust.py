@@ -23,11 +23,12 @@ from phigenesis.cli.train import main as train_main
 from phigenesis.errors import CheckpointError, PhiGenesisError
 from phigenesis.models import create_model, list_models
 from phigenesis.models.checkpoint import load_checkpoint
+from phigenesis.models.loading import load_stage1, load_stage2
 from phigenesis.train import runner, segmenter, stage1, stage2, vae
 from phigenesis.train.checkpoint import read_trainer_state, save_checkpoint
 from phigenesis.train.runner import latest_checkpoint
-from phigenesis.train.stage1 import Stage1TrainConfig, load_stage1, train_stage1
-from phigenesis.train.stage2 import Stage2TrainConfig, load_stage2
+from phigenesis.train.stage1 import Stage1TrainConfig, train_stage1
+from phigenesis.train.stage2 import Stage2TrainConfig
 from phigenesis.train.vae import train_vae
 from tests.conftest import one_scene_cache, stage2_latents, two_step_stage1
 

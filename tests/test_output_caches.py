@@ -36,7 +36,7 @@ from phigenesis.data.shards import (
 from phigenesis.errors import PrepError
 from phigenesis.infer.generate import GENERATED_SUFFIX, GenerateOptions, generate
 from phigenesis.infer.rig_render import render
-from phigenesis.train.stage1 import load_stage1
+from phigenesis.models.loading import load_stage1
 from phigenesis.train.stage2 import Stage2TrainConfig, train_stage2
 from phigenesis.train.stage2_data import Stage2DataConfig, precompute_stage2
 from tests.conftest import TINY_PREP_ARGS, two_step_stage1
@@ -119,7 +119,7 @@ GENERATE_CLI = "import sys\nfrom phigenesis.cli.generate import main\nsys.exit(m
 PREP_CLI = "import sys\nfrom phigenesis.cli.prep import main\nsys.exit(main(sys.argv[1:]))\n"
 LATENTS = r"""
 import sys
-from phigenesis.train.stage1 import load_stage1
+from phigenesis.models.loading import load_stage1
 from phigenesis.train.stage2_data import Stage2DataConfig, precompute_stage2
 cache, out, ckpt = sys.argv[1:4]
 precompute_stage2(cache, out, load_stage1(ckpt), Stage2DataConfig(), stage1_checkpoint=ckpt)

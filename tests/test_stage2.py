@@ -14,21 +14,15 @@ import pytest
 import torch
 
 from phigenesis.cli.train import main as train_main
+from phigenesis.data.clips import Stage1Clips
+from phigenesis.data.frame_truth import frame_truth
 from phigenesis.data.shards import CacheError, verify_cache
 from phigenesis.errors import PrepError
 from phigenesis.infer.conditions import context_cameras, future_cameras, history_scene, render_condition
+from phigenesis.models.loading import load_stage1, load_stage2
 from phigenesis.train.checkpoint import CheckpointError
-from phigenesis.train.evaluate_stage1 import frame_truth
 from phigenesis.train.runner import read_metrics
-from phigenesis.train.stage1 import load_stage1
-from phigenesis.train.stage1_data import Stage1Clips
-from phigenesis.train.stage2 import (
-    Stage2TrainConfig,
-    load_stage2,
-    make_batch,
-    restarted_cosine_lr,
-    train_stage2,
-)
+from phigenesis.train.stage2 import Stage2TrainConfig, make_batch, restarted_cosine_lr, train_stage2
 from phigenesis.train.stage2_data import (
     Stage2DataConfig,
     Stage2Latents,
@@ -716,10 +710,10 @@ def test_generation_refuses_bad_inputs_naming_what_is_wrong(
 def test_the_stage2_evaluation_scores_rollouts_against_the_truth(
     cache: Path, stage2_checkpoint: Path, tmp_path: Path
 ) -> None:
+    from phigenesis.data.views import resize_images
     from phigenesis.eval.stage2 import evaluate_stage2
     from phigenesis.infer.generate import GenerateOptions, Stage2Runner
     from phigenesis.models.losses import psnr
-    from phigenesis.train.views import resize_images
 
     class Tiny(torch.nn.Module):
         def forward(self, x: torch.Tensor) -> torch.Tensor:

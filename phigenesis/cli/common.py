@@ -111,7 +111,7 @@ def add_anchor_options(parser: argparse.ArgumentParser) -> None:
     ``lift_frames``),
     the localization potential's mapping (``lp_trust``) and the history's geometry (``geometry``)."""
     from phigenesis.infer.generate import GEOMETRY_SOURCES, GenerateOptions
-    from phigenesis.infer.uncertainty import LP_TRUSTS
+    from phigenesis.models.uncertainty import LP_TRUSTS
 
     defaults = GenerateOptions()
     parser.add_argument(

@@ -1,6 +1,6 @@
 """``phigenesis-eval``: evaluate trained models on caches (a thin front end over phigenesis.train).
 
-Subcommand ``stage1`` (:func:`phigenesis.train.evaluate_stage1.evaluate_stage1`): renders a Stage 1
+Subcommand ``stage1`` (:func:`phigenesis.eval.stage1.evaluate_stage1`): renders a Stage 1
 model's Gaussians at the context views, at future frames and at laterally shifted novel views and
 prints PSNR, SSIM, depth errors and mIoU beside those of a ground-truth-depth oracle.
 Subcommand ``stage2`` (:func:`phigenesis.eval.stage2.evaluate_stage2`): rolls a Stage 2 model out on
@@ -190,7 +190,7 @@ def format_table(report: dict[str, Any]) -> str:
 
 
 def _stage1(args: argparse.Namespace) -> int:
-    from phigenesis.train.evaluate_stage1 import evaluate_stage1
+    from phigenesis.eval.stage1 import evaluate_stage1
 
     report = evaluate_stage1(
         args.ckpt,

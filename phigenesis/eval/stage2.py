@@ -9,7 +9,7 @@ the history, the rollout from ``T + 1`` on), sections:
 - ``shift_1m``, ``shift_2m``, ``shift_4m`` (``shifts_m``): the first window of a rollout along the
   recorded trajectory moved d metres to the ego's left, against the synthetic renderer's exact
   images of those cameras (the NVS table). Frames where the shifted rig would collide with a
-  labelled road user (:func:`~phigenesis.train.evaluate_stage1.shift_collision`) are not scored
+  labelled road user (:func:`~phigenesis.eval.stage1.shift_collision`) are not scored
   (``skipped_frames``): their truth is the inside of that road user;
 - ``rollout_50`` .. ``rollout_200`` (``rollout_frames``): one long rollout per scene from its first
   frame with a history; the generated frame ``start + k - 1`` against the true one (PSNR, SSIM),
@@ -92,8 +92,8 @@ def _section_name(kind: str, value: float) -> str:
 
 def _truth_frame(runner: Stage2Runner, scene: str, index: int) -> tuple[Tensor, Tensor]:
     """(images [V, H, W, 3], truth depth [V, H, W]) of a cache frame at the model's size."""
-    from phigenesis.train.evaluate_stage1 import frame_truth
-    from phigenesis.train.views import resize_images
+    from phigenesis.data.frame_truth import frame_truth
+    from phigenesis.data.views import resize_images
 
     sample = runner.data._frame(scene, index)
     size = tuple(runner.stage1.config.image_size)
@@ -154,7 +154,7 @@ def evaluate_stage2(
     their sample counts) in the rollout sections when ``fid_model`` is given. Writes it as JSON to
     ``out_json``. Raises ValueError when no scene is long enough for any section, CheckpointError for a
     checkpoint that is not Stage 2's."""
-    from phigenesis.train.evaluate_stage1 import SyntheticTruth, shift_collision, shifted_views
+    from phigenesis.eval.stage1 import SyntheticTruth, shift_collision, shifted_views
 
     if threads:
         torch.set_num_threads(int(threads))

@@ -5,19 +5,19 @@ A rollout generates ``frames`` frames of a scene from frame ``start`` on, window
 
 1. the history's Gaussians (window 0: the recorded history frames before ``start``, through the
    Stage 1 model or ``geometry``; later windows: what the rollout generated) live in a
-   :class:`~phigenesis.infer.buffer.GaussianBuffer` (static ones persist, moving ones move, bounded);
+   :class:`~phigenesis.models.buffer.GaussianBuffer` (static ones persist, moving ones move, bounded);
 2. the buffer is rendered at every camera of the window at its own capture time, the chosen
    uncertainty map ``u`` computed (with ``generated_trust < 1``, scaled per pixel by the trust of the
    Gaussians it shows: 1 for the recorded history's, ``generated_trust`` for generated windows', so a
    rollout leans less on its own output than on what was observed), and the render's latent turned
-   into Stereo Forcing's condition ``SF(u, z_ren)`` (:mod:`phigenesis.infer.stereo_forcing`);
+   into Stereo Forcing's condition ``SF(u, z_ren)`` (:mod:`phigenesis.models.stereo_forcing`);
 3. the denoiser samples the window's latents by Euler steps of the rectified flow with guidance
-   ``omega`` (:func:`~phigenesis.infer.flow.euler_sample`), the history's latents held at a small
+   ``omega`` (:func:`~phigenesis.models.flow.euler_sample`), the history's latents held at a small
    noise level (0 for recorded history, ``history_level`` for generated history: DFoT's
    stabilisation against drift); with render anchoring (``anchor > 0``) each latent cell of the
    window is pulled, after every step down to flow time ``anchor_until``, ``anchor * u`` of the way
    to the straight path from its starting noise to the latent of the render over Stage 1's sky
-   (:class:`~phigenesis.infer.flow.Anchor`): the render fixes the layout where u trusts it and the
+   (:class:`~phigenesis.models.flow.Anchor`): the render fixes the layout where u trusts it and the
    network fills the holes and finishes the details;
 4. the latents go through the VAE decoder; with render pasting (``paste > 0``) each pixel of the
    decoded frame is then moved ``paste * u`` of the way to the render over Stage 1's sky (the
@@ -86,7 +86,6 @@ from phigenesis.data.records import (
 from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
 from phigenesis.data.shards import MANIFEST_NAME, SceneEntry, ShardInfo, ShardWriter, atomic_write_bytes
 from phigenesis.errors import CheckpointError, PhiGenesisError, argument
-from phigenesis.infer.buffer import BufferConfig, GaussianBuffer
 from phigenesis.infer.conditions import (
     GEOMETRY_SOURCES,
     ConditionKind,
@@ -100,12 +99,13 @@ from phigenesis.infer.conditions import (
     uncertainty_maps,
     with_sky,
 )
-from phigenesis.infer.flow import Anchor, FixedFrames, euler_sample
-from phigenesis.infer.stereo_forcing import pool_to_latent, stereo_forcing
-from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LEGACY_LP_TRUST, LpTrust, check_lp_trust
+from phigenesis.models.buffer import BufferConfig, GaussianBuffer
 from phigenesis.models.dit import MultiViewDiT
+from phigenesis.models.flow import Anchor, FixedFrames, euler_sample
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.stage1 import Stage1Model
+from phigenesis.models.stereo_forcing import pool_to_latent, stereo_forcing
+from phigenesis.models.uncertainty import DEFAULT_LP_TRUST, LEGACY_LP_TRUST, LpTrust, check_lp_trust
 from phigenesis.options import check_options, option, same_as
 from phigenesis.user_files import check_keys, matrix_problem, read_small_file
 
@@ -733,8 +733,8 @@ class Stage2Runner:
         shards: str | os.PathLike[str],
         stage1: str | os.PathLike[str] | None = None,
     ):
-        from phigenesis.train.stage1 import load_stage1
-        from phigenesis.train.stage1_data import Stage1Clips
+        from phigenesis.data.clips import Stage1Clips
+        from phigenesis.models.loading import load_stage1
 
         self.ckpt, self.shards = str(ckpt), str(shards)
         self.denoiser, self.train = _stage2_checkpoint(ckpt)

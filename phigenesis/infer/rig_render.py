@@ -67,6 +67,7 @@ from torch import Tensor
 from phigenesis import geometry
 from phigenesis.data import records
 from phigenesis.data.cache_run import writing_cache
+from phigenesis.data.clips import Clip, Stage1Clips
 from phigenesis.data.records import (
     Boxes,
     CameraCalibration,
@@ -98,7 +99,6 @@ from phigenesis.infer.insert import (
 from phigenesis.infer.rigs import RandomRigRanges, Rig, resolve_rig
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.stage1 import Stage1Model
-from phigenesis.train.stage1_data import Clip, Stage1Clips
 
 log = logging.getLogger(__name__)
 
@@ -425,7 +425,7 @@ def render(
     CacheWriteError naming the file when one cannot be written (a full disk: the finished scenes
     are kept and a rerun resumes).
     """
-    from phigenesis.train.stage1 import load_stage1
+    from phigenesis.models.loading import load_stage1
 
     t0 = time.perf_counter()
     if threads:

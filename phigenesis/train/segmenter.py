@@ -37,6 +37,7 @@ import torch
 import torch.nn.functional as F
 from numpy.typing import NDArray
 
+from phigenesis import limits
 from phigenesis import taxonomy as tx
 from phigenesis.data import codec
 from phigenesis.data.records import decode_whole
@@ -45,15 +46,11 @@ from phigenesis.data.shards import CacheReader
 from phigenesis.errors import CacheError
 from phigenesis.models import create_model
 from phigenesis.models.checkpoint import load_checkpoint
+from phigenesis.models.config_checks import check_model_name
+from phigenesis.models.metrics import confusion_matrix, segmentation_scores
 from phigenesis.options import check_options, option
-from phigenesis.train import limits
 from phigenesis.train.checkpoint import save_checkpoint
-from phigenesis.train.metrics import confusion_matrix, segmentation_scores
-from phigenesis.train.runner import (
-    DivergenceCheck,
-    check_model_name,
-    write_text_atomic,
-)
+from phigenesis.train.runner import DivergenceCheck, write_text_atomic
 
 log = logging.getLogger("phigenesis.train")
 

@@ -9,12 +9,12 @@ Each step draws ``batch_size`` windows from a generator seeded by (seed, step, r
 sequence ``[history latent frames, target latent frames]`` of each ([B, V, C, T_h + T, h, w]):
 
 - **rectified flow** ``z_t = (1 - t) z_0 + t eps``, the network predicting the velocity
-  ``z_0 - eps`` (:mod:`phigenesis.infer.flow`); target frames share one logit-normal ``t`` per
+  ``z_0 - eps`` (:mod:`phigenesis.models.flow`); target frames share one logit-normal ``t`` per
   window, shifted by ``time_shift``; history frames carry a small level drawn uniformly in
   ``[0, history_noise]`` (diffusion forcing: at sampling time the generated history is held at
   such a level, DFoT's stabilisation), and the loss counts the target frames only;
 - **Stereo Forcing** condition ``SF(u, z_ren) = u * z_ren`` with ``u`` the chosen ``uncertainty``
-  map, and ``u`` itself as a channel (:func:`~phigenesis.infer.stereo_forcing.stereo_forcing`), on
+  map, and ``u`` itself as a channel (:func:`~phigenesis.models.stereo_forcing.stereo_forcing`), on
   the target frames (the history frames' condition is zero: they are themselves the history);
   ``uncertainty: none`` trains the diffusion model without geometry (the ablation's "no geometry"
   row); the whole condition is dropped with probability ``condition_dropout``, so one network gives
@@ -45,31 +45,28 @@ import yaml
 from torch import Tensor
 from tqdm import tqdm
 
+from phigenesis import limits
 from phigenesis.infer.conditions import ConditionKind, GeometrySource, TargetCameras, sequence_plucker
-from phigenesis.infer.flow import flow_loss, interpolate, sample_time
-from phigenesis.infer.stereo_forcing import drop_condition, stereo_forcing
-from phigenesis.infer.uncertainty import LpTrust
-from phigenesis.models.checkpoint import load_checkpoint
+from phigenesis.models.config_checks import check_model_name, check_model_overrides, create_overridden
 from phigenesis.models.dit import MultiViewDiT
+from phigenesis.models.flow import flow_loss, interpolate, sample_time
+from phigenesis.models.loading import load_stage1, load_stage2
+from phigenesis.models.stereo_forcing import drop_condition, stereo_forcing
+from phigenesis.models.uncertainty import LpTrust
 from phigenesis.options import ConfigError, check_options, from_mapping, option, same_as
-from phigenesis.train import limits
 from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 from phigenesis.train.runner import (
     DivergenceCheck,
     MetricsLog,
     ProcessGroup,
-    check_model_name,
-    check_model_overrides,
-    create_overridden,
     load_training_state,
     process_group,
-    read_config_file,
     restore_optimizer,
     save_training_state,
     step_generator,
     write_text_atomic,
 )
-from phigenesis.train.stage1 import check_run_folder, load_stage1
+from phigenesis.train.stage1 import check_run_folder
 from phigenesis.train.stage2_data import (
     UNCERTAINTY_KINDS,
     Stage2DataConfig,
@@ -77,6 +74,7 @@ from phigenesis.train.stage2_data import (
     Stage2Sample,
     precompute_stage2,
 )
+from phigenesis.user_files import read_config_file
 
 log = logging.getLogger(__name__)
 
@@ -316,17 +314,6 @@ def build_denoiser(
     model = create_overridden(cfg.model, overrides, "Stage2TrainConfig")
     if not isinstance(model, MultiViewDiT):
         raise ValueError(f"Stage2TrainConfig.model {cfg.model!r} is not a Stage 2 denoiser (stage2_*)")
-    return model
-
-
-def load_stage2(path: str | os.PathLike[str]) -> MultiViewDiT:
-    """A trained Stage 2 denoiser from its checkpoint; raises :class:`CheckpointError` for files that
-    are not Stage 2 checkpoints (a Stage 1 checkpoint, a VAE)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / "model.safetensors"
-    model = load_checkpoint(path, kind="dit").model
-    assert isinstance(model, MultiViewDiT), type(model)  # every "dit" variant is one
     return model
 
 

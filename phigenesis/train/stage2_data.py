@@ -10,10 +10,10 @@ cache, :func:`precompute_stage2` writes one row holding:
 - ``z_render`` [V, C, T, h, w]: the latents of the history's Gaussians (``geometry``: ``stage1``,
   ``cache`` or ``truth``, :mod:`phigenesis.infer.conditions`) rendered at every target camera at
   its own capture time, holes black;
-- ``u_<kind>`` [V, T, h, w]: each uncertainty map of :mod:`phigenesis.infer.uncertainty`
+- ``u_<kind>`` [V, T, h, w]: each uncertainty map of :mod:`phigenesis.models.uncertainty`
   (``coverage``, ``random``, ``entropy``, ``localization_potential``; ``entropy`` only where the
   Gaussians carry a depth entropy) at image resolution, pooled to the latent grid
-  (:func:`~phigenesis.infer.stereo_forcing.pool_to_latent`), so that training picks the kind;
+  (:func:`~phigenesis.models.stereo_forcing.pool_to_latent`), so that training picks the kind;
 - the target and history cameras (``world_from_camera`` [F, V, 4, 4] float64, ``intrinsics``
   [V, 3, 3] at the model's size, capture times [F, V] in seconds after the window's first history
   frame).
@@ -43,6 +43,7 @@ import torch
 from torch import Tensor
 
 from phigenesis.data.cache_run import writing_cache
+from phigenesis.data.clips import Clip, Stage1Clips
 from phigenesis.data.schema import SCHEMA_VERSION
 from phigenesis.data.shards import (
     MANIFEST_NAME,
@@ -63,11 +64,10 @@ from phigenesis.infer.conditions import (
     truth_maps,
     uncertainty_maps,
 )
-from phigenesis.infer.stereo_forcing import pool_to_latent
-from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LpTrust
 from phigenesis.models.stage1 import Stage1Model
+from phigenesis.models.stereo_forcing import pool_to_latent
+from phigenesis.models.uncertainty import DEFAULT_LP_TRUST, LpTrust
 from phigenesis.options import check_options, option
-from phigenesis.train.stage1_data import Clip, Stage1Clips
 
 log = logging.getLogger(__name__)
 
