@@ -46,9 +46,10 @@ from phigenesis import taxonomy as tx
 from phigenesis.data.pipeline import PipelineSpec
 from phigenesis.data.records import Frame, Scene
 from phigenesis.data.schema import CacheContents
+from phigenesis.data.segmenter import Segmenter
 from phigenesis.data.sources.synthetic import SyntheticConfig, synthetic_scene
 from phigenesis.data.stages import get_stage
-from phigenesis.data.stages.semantics import PseudoSemanticsParams, RayCache, Segmenter, label_frame
+from phigenesis.data.stages.semantics import PseudoSemanticsParams, RayCache, label_frame
 from phigenesis.models.checkpoint import load_checkpoint
 from phigenesis.models.metrics import confusion_matrix, segmentation_scores
 from phigenesis.train.checkpoint import save_checkpoint

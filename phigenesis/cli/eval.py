@@ -57,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--picture", help="write a PNG of the first clip here")
     s.add_argument("--threads", type=positive, help="torch CPU threads")
 
-    from phigenesis.infer.conditions import UNCERTAINTY_KINDS
+    from phigenesis.rollout.conditions import UNCERTAINTY_KINDS
 
     d = sub.add_parser("stage2", help="evaluate a Stage 2 model on held-out synthetic scenes")
     d.add_argument("--ckpt", required=True, help="Stage 2 checkpoint (file or run folder)")
@@ -119,7 +119,7 @@ def format_stage2_table(report: dict[str, Any]) -> str:
 
 def _stage2(args: argparse.Namespace) -> int:
     from phigenesis.eval.stage2 import evaluate_stage2
-    from phigenesis.infer.generate import GenerateOptions, trained_uncertainty
+    from phigenesis.rollout.runner import GenerateOptions, trained_uncertainty
 
     options = GenerateOptions(
         uncertainty=args.uncertainty or trained_uncertainty(args.ckpt),

@@ -10,7 +10,7 @@ from phigenesis.cli.common import Parser, add_anchor_options, positive, run
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from phigenesis.infer.conditions import UNCERTAINTY_KINDS
+    from phigenesis.rollout.conditions import UNCERTAINTY_KINDS
 
     parser = Parser(prog="phigenesis-generate", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -60,7 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _generate(args: argparse.Namespace) -> int:
-    from phigenesis.infer.generate import GenerateOptions, generate, trained_uncertainty
+    from phigenesis.infer.generate import generate
+    from phigenesis.rollout.runner import GenerateOptions, trained_uncertainty
 
     kind = args.uncertainty or trained_uncertainty(args.ckpt)
     options = GenerateOptions(

@@ -101,7 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _train_stage2(args: argparse.Namespace) -> int:
-    from phigenesis.train.stage2 import Stage2TrainConfig, train_stage2
+    from phigenesis.rollout.config import Stage2TrainConfig
+    from phigenesis.train.stage2 import train_stage2
 
     config = Stage2TrainConfig.load(args.config, steps=args.steps, threads=args.threads)
     result = train_stage2(

@@ -46,9 +46,9 @@ import torch
 from torch import Tensor
 
 from phigenesis.eval.depth_protocol import DepthAccumulator
-from phigenesis.infer.conditions import TargetCameras, history_scene, render_condition, with_sky
-from phigenesis.infer.generate import GenerateOptions, Rollout, Stage2Runner
 from phigenesis.models.losses import psnr, ssim
+from phigenesis.rollout.conditions import TargetCameras, history_scene, render_condition, with_sky
+from phigenesis.rollout.runner import GenerateOptions, Rollout, Stage2Runner
 
 log = logging.getLogger(__name__)
 

@@ -7,7 +7,7 @@ drawn per scene), and written as a new cache in the same frame schema:
 - **Gaussians** (``geometry``): ``stage1``, the Stage 1 model of ``ckpt`` on the frame's clip
   (the frame and the ``history_frames - 1`` before it, default none; the first frames of a scene
   use the scene's first clip); or ``cache``, the cache's own dense depth lifted to one Gaussian per
-  pixel at its full size (:func:`phigenesis.infer.conditions.cache_scene`; no checkpoint needed); or
+  pixel at its full size (:func:`phigenesis.rollout.conditions.cache_scene`; no checkpoint needed); or
   ``truth``,
   a synthetic cache's exact truth depth, classes and flow lifted the same way (the oracle). A Stage 2
   rollout is re-rendered through its generated cache, whose dense depth is the rollout's rendered
@@ -79,14 +79,6 @@ from phigenesis.data.records import (
 )
 from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
 from phigenesis.data.shards import MANIFEST_NAME, CacheReader, SceneEntry, ShardInfo, ShardWriter
-from phigenesis.infer.conditions import (
-    TargetCameras,
-    cache_scene,
-    lifted_scene,
-    render_condition,
-    stage1_scene,
-    truth_maps,
-)
 from phigenesis.infer.insert import (
     Asset,
     AssetError,
@@ -99,6 +91,14 @@ from phigenesis.infer.insert import (
 from phigenesis.infer.rigs import RandomRigRanges, Rig, resolve_rig
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.stage1 import Stage1Model
+from phigenesis.rollout.conditions import (
+    TargetCameras,
+    cache_scene,
+    lifted_scene,
+    render_condition,
+    stage1_scene,
+    truth_maps,
+)
 
 log = logging.getLogger(__name__)
 
