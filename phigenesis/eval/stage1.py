@@ -80,12 +80,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
 from phigenesis import taxonomy
 from phigenesis.data.clips import Clip, Stage1Clips, clip_inputs
+from phigenesis.data.colormap import class_legend, classes_present, depth_color, depth_color_bar
 from phigenesis.data.frame_truth import FrameTruth, frame_truth
 from phigenesis.data.records import CameraCalibration, CameraTruth
 from phigenesis.data.shards import MANIFEST_NAME
@@ -634,7 +636,6 @@ def picture_panels(
     rendered depth entropy when the render has one (:func:`entropy_color`, scaled to the largest
     shown, which the title gives in nats), rendered semantics, and the shifted render beside its
     truth for the shift nearest 2 m when there is one."""
-    from phigenesis.data.colormap import depth_color
 
     def u8(rgb: np.ndarray) -> np.ndarray:
         return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
@@ -676,8 +677,6 @@ def picture_panels(
 def entropy_color(entropy_nats: np.ndarray, high_nats: float) -> np.ndarray:
     """(..., 3) uint8 RGB of entropies (..., nats) on the stretch of the turbo map the depth panels
     use (its dark ends left out): 0 blue to ``high_nats`` (and above) red."""
-    import cv2
-
     u = np.clip(np.nan_to_num(np.asarray(entropy_nats, np.float64)) / high_nats, 0.0, 1.0)
     index = np.round(20 + u * 220).astype(np.uint8)
     turbo = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
@@ -687,13 +686,10 @@ def entropy_color(entropy_nats: np.ndarray, high_nats: float) -> np.ndarray:
 def save_picture(result: ClipResult, path: str | os.PathLike[str], shifts_m: tuple[float, ...] = ()) -> Path:
     """A PNG of one clip: the panels of :func:`picture_panels` in a grid, then the depth colour bar
     (metres) and the legend of the classes the rendered semantics show."""
-    import cv2
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from phigenesis.data.colormap import class_legend, classes_present, depth_color_bar
 
     columns, rows = picture_panels(result, shifts_m)
     fig, axes = plt.subplots(

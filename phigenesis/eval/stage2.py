@@ -45,7 +45,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from phigenesis.data.frame_truth import frame_truth
+from phigenesis.data.views import resize_images
 from phigenesis.eval.depth_protocol import DepthAccumulator
+from phigenesis.eval.fid import fid, image_features, kid, load_feature_extractor
+from phigenesis.eval.stage1 import SyntheticTruth, shift_collision, shifted_views
 from phigenesis.models.losses import psnr, ssim
 from phigenesis.rollout.conditions import TargetCameras, history_scene, render_condition, with_sky
 from phigenesis.rollout.runner import GenerateOptions, Rollout, Stage2Runner
@@ -92,9 +96,6 @@ def _section_name(kind: str, value: float) -> str:
 
 def _truth_frame(runner: Stage2Runner, scene: str, index: int) -> tuple[Tensor, Tensor]:
     """(images [V, H, W, 3], truth depth [V, H, W]) of a cache frame at the model's size."""
-    from phigenesis.data.frame_truth import frame_truth
-    from phigenesis.data.views import resize_images
-
     sample = runner.data._frame(scene, index)
     size = tuple(runner.stage1.config.image_size)
     images = resize_images(sample["images"], size).permute(0, 2, 3, 1)
@@ -154,8 +155,6 @@ def evaluate_stage2(
     their sample counts) in the rollout sections when ``fid_model`` is given. Writes it as JSON to
     ``out_json``. Raises ValueError when no scene is long enough for any section, CheckpointError for a
     checkpoint that is not Stage 2's."""
-    from phigenesis.eval.stage1 import SyntheticTruth, shift_collision, shifted_views
-
     if threads:
         torch.set_num_threads(int(threads))
     if fid_frames is not None and fid_frames < 1:
@@ -278,8 +277,6 @@ def evaluate_stage2(
         )
     sections = {name: {r: sc.summary() for r, sc in by.items()} for name, by in scores.items()}
     if fid_model is not None and long_frames:
-        from phigenesis.eval.fid import fid, image_features, kid, load_feature_extractor
-
         extractor = load_feature_extractor(fid_model)
         for k, bucket in long_frames.items():
             tru = torch.cat(bucket["truth"]).permute(0, 3, 1, 2)

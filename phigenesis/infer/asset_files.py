@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Any
 
 from phigenesis.errors import PhiGenesisError
+from phigenesis.export.ply import PlyError, check_ply_size
 from phigenesis.user_files import read_regular_file
 
 #: The formats an asset file may have (by suffix).
@@ -108,8 +109,6 @@ def check_mesh_file(path: Path, max_faces: int) -> None:
     if suffix == ".stl":
         _check_stl(path, head, size, max_faces)
     elif suffix == ".ply":
-        from phigenesis.export.ply import PlyError, check_ply_size
-
         try:
             check_ply_size(path)
         except PlyError as e:

@@ -41,6 +41,7 @@ from phigenesis.data.records import (
 )
 from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
 from phigenesis.data.shards import MANIFEST_NAME, SceneEntry, ShardInfo, ShardWriter, atomic_write_bytes
+from phigenesis.export.ply import write_ply
 from phigenesis.rollout.runner import HOLE_ALPHA, GenerateOptions, Rollout, Stage2Runner
 
 log = logging.getLogger(__name__)
@@ -293,8 +294,6 @@ def _generated_calibrations(runner: Stage2Runner, clip: Any, start: int) -> list
 def _write_extras(out: Path, result: Rollout, camera_names: list[str], start: int) -> tuple[Path, list[Path]]:
     """Writes the rollout's ``strip.png`` and ``gaussians/window-KKK.ply`` (each window's Gaussians
     added to the buffer) into ``out``; returns their paths."""
-    from phigenesis.export.ply import write_ply
-
     strip = save_strip(result, out / "strip.png", camera_names, start)
     (out / "gaussians").mkdir(exist_ok=True)
     plys = [

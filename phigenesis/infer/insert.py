@@ -77,6 +77,7 @@ from phigenesis.data.records import (
     InvalidRecord,
     check_transform,
 )
+from phigenesis.export.ply import PlyError, scene_from_ply
 from phigenesis.infer.asset_files import AssetError, AssetFolder, check_mesh_file, check_textures
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.user_files import check_keys, is_number, matrix_problem, read_small_file
@@ -267,8 +268,6 @@ def _fmt(v: np.ndarray) -> str:
 
 
 def _gaussian_asset(path: Path, class_id: int, scale: float, rotation: np.ndarray, k: int) -> Asset:
-    from phigenesis.export.ply import PlyError, scene_from_ply
-
     try:
         scene = scene_from_ply(path, max_vertices=MAX_ASSET_GAUSSIANS)
     except PlyError as e:

@@ -79,6 +79,9 @@ from phigenesis.data.records import (
 )
 from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
 from phigenesis.data.shards import MANIFEST_NAME, CacheReader, SceneEntry, ShardInfo, ShardWriter
+from phigenesis.data.stages.aggregate import DEFAULT_EGO_BOXES
+from phigenesis.data.stages.project import ProjectParams, ego_body_depth, project_camera, sweep_points
+from phigenesis.export.ply import write_ply
 from phigenesis.infer.insert import (
     Asset,
     AssetError,
@@ -90,6 +93,7 @@ from phigenesis.infer.insert import (
 )
 from phigenesis.infer.rigs import RandomRigRanges, Rig, resolve_rig
 from phigenesis.models.gaussians import GaussianScene
+from phigenesis.models.loading import load_stage1
 from phigenesis.models.stage1 import Stage1Model
 from phigenesis.rollout.conditions import (
     TargetCameras,
@@ -99,6 +103,7 @@ from phigenesis.rollout.conditions import (
     stage1_scene,
     truth_maps,
 )
+from phigenesis.taxonomy import SKY
 
 log = logging.getLogger(__name__)
 
@@ -244,8 +249,6 @@ def render_camera(
 
 def _sparse_depth(camera: CameraImage, frame: Frame, ego_boxes: list[dict]) -> CameraDepth:
     """The frame's own LiDAR sweep projected into ``camera`` (the ego body occludes)."""
-    from phigenesis.data.stages.project import ProjectParams, ego_body_depth, project_camera, sweep_points
-
     h, w = camera.calibration.height, camera.calibration.width
     if frame.lidar is None or len(frame.lidar.points_ego) == 0:
         return CameraDepth.empty(h, w)
@@ -338,8 +341,6 @@ def _scene_seed(seed: int, scene_index: int) -> int:
 
 def _sky_colour(clip: Clip) -> Tensor:
     """(3,) mean colour of the clip's context pixels labelled sky (black without any)."""
-    from phigenesis.taxonomy import SKY
-
     ctx = clip.context
     sky = ctx.semantic == SKY
     if not sky.any():
@@ -370,8 +371,6 @@ def _export(
     folder: Path, scene_id: str,
 ) -> Path:  # fmt: skip
     """Writes the (edited) Gaussians at ``t_micros`` to ``folder/<scene_id>.ply``."""
-    from phigenesis.export.ply import write_ply
-
     if assets:
         gaussians = GaussianScene.concatenate([gaussians, _placed(assets, placements, t_micros, gaussians)])
     folder.mkdir(parents=True, exist_ok=True)
@@ -425,8 +424,6 @@ def render(
     CacheWriteError naming the file when one cannot be written (a full disk: the finished scenes
     are kept and a rerun resumes).
     """
-    from phigenesis.models.loading import load_stage1
-
     t0 = time.perf_counter()
     if threads:
         torch.set_num_threads(int(threads))
@@ -565,8 +562,6 @@ def _plan_scene(job: _RenderJob, scene_id: str, scene_index: int) -> _ScenePlan:
     """The rig, metadata and asset placements of one scene; raises (ValueError, RigError,
     AssetError) naming what is wrong. ``scene_index``: the scene's position in the source cache
     (seeds a random rig)."""
-    from phigenesis.data.stages.aggregate import DEFAULT_EGO_BOXES
-
     indices = job.reader.frames_of(scene_id)
     if len(indices) < job.data.frames:
         raise ValueError(

@@ -26,6 +26,9 @@ import torch
 from torch import Tensor
 
 from phigenesis.data.clips import Clip
+from phigenesis.data.frame_truth import frame_truth
+from phigenesis.data.views import resize_intrinsics
+from phigenesis.models.dit import plucker_rays
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.render import SKY_ALPHA, Views, lift_views
 from phigenesis.models.stage1 import Stage1Model
@@ -169,8 +172,6 @@ def truth_maps(clip: Clip) -> tuple[Tensor, Tensor, Tensor | None]:
     """The synthetic truth (depth [F, V, H, W] metres, classes [F, V, H, W], flow [F, V, H, W, 3] m/s or
     None) of the clip's context frames at its image size: what ``geometry: truth`` lifts. The clip must
     carry its frames (``keep_frames``); a cache without truth depth is refused naming the scene."""
-    from phigenesis.data.frame_truth import frame_truth
-
     assert clip.frames is not None
     size = tuple(clip.context.images.shape[-2:])
     truths = [frame_truth(clip.frames[i], size) for i in clip.frame_indices]  # type: ignore[arg-type]
@@ -323,9 +324,6 @@ def sequence_plucker(
     latent token of a sequence of history then target latent frames (``latent_frames`` = (T_h, T)),
     in the frame of the first history camera of view 0 (so the moments stay small however far the
     scene has driven)."""
-    from phigenesis.data.views import resize_intrinsics
-    from phigenesis.models.dit import plucker_rays
-
     t_h, t = latent_frames
     h, w = latent_hw
     cams = torch.cat(

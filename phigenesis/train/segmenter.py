@@ -48,6 +48,7 @@ from phigenesis.models import create_model
 from phigenesis.models.checkpoint import load_checkpoint
 from phigenesis.models.config_checks import check_model_name
 from phigenesis.models.metrics import confusion_matrix, segmentation_scores
+from phigenesis.models.segformer import load_hf_weights
 from phigenesis.options import check_options, option
 from phigenesis.train.checkpoint import save_checkpoint
 from phigenesis.train.runner import DivergenceCheck, write_text_atomic
@@ -364,8 +365,6 @@ def train_segmenter(
     else:
         model = create_model(cfg.model)
     if cfg.pretrained is not None:
-        from phigenesis.models.segformer import load_hf_weights
-
         model = load_hf_weights(model, cfg.pretrained)
     model.to(cfg.device).train()
     optimizer = _optimizer(model, cfg)
