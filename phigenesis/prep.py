@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from phigenesis.data.executors import ExecutorName
 from phigenesis.data.pipeline import OnError, PipelineSpec, PrepSummary, prepare
+from phigenesis.data.records import InvalidRecord
 from phigenesis.data.shards import CacheReader, VerifyReport, verify_cache
 from phigenesis.errors import CacheError
 
@@ -193,7 +194,6 @@ def preview(
     A value of the frame that is invalid (an image that does not decode, ...) raises a
     :class:`~phigenesis.errors.CacheError` naming the shard, the row and the field."""
     from phigenesis.data.preview import draw_frame
-    from phigenesis.data.records import InvalidRecord
 
     reader = CacheReader(cache_dir)
     try:

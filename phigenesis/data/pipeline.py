@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
+from tqdm import tqdm
 
 from phigenesis.data.cache_lock import CacheLock
 from phigenesis.data.cache_run import POLICY_ARGUMENTS as POLICY_ARGUMENTS  # re-exported
@@ -692,7 +693,6 @@ class _ProgressBars:
     def update(self, msg: ProgressMessage) -> None:
         if not self.enabled:
             return
-        from tqdm import tqdm
 
         key, done, total, phase = msg
         bar = self.bars.get(key)

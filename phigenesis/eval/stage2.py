@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -321,8 +322,6 @@ def _rollout_cameras(result: Rollout, clip: Any) -> TargetCameras:
 def _save_picture(picture: dict[str, Tensor], path: Path) -> Path:
     """One row per panel (the last history frame, the condition render at the scored frame, its u, the
     generated frame, the truth), the views side by side, each row labelled."""
-    import cv2
-
     rows = []
     for name, views in picture.items():
         row = (torch.cat(list(views), dim=1).clamp(0, 1).numpy() * 255).round().astype(np.uint8)

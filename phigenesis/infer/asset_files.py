@@ -46,6 +46,8 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
+from PIL import Image
+
 from phigenesis.errors import PhiGenesisError
 from phigenesis.export.ply import PlyError, check_ply_size
 from phigenesis.user_files import read_regular_file
@@ -167,8 +169,6 @@ def read_referenced(asset: Path, name: str, what: str) -> bytes:
 def check_image(data: bytes, where: str) -> None:
     """Raises :class:`AssetError` starting with ``where`` unless ``data`` is an image Pillow reads
     of at most :data:`MAX_TEXTURE_PIXELS` pixels (only its header is read: nothing is decoded)."""
-    from PIL import Image
-
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
@@ -213,8 +213,6 @@ def check_textures(asset: Path, geometries: Iterable[Any]) -> None:
 
 def _images_of(material: Any) -> Iterator[Any]:
     """The PIL images a trimesh material (or a MultiMaterial's materials) holds."""
-    from PIL import Image
-
     if material is None:
         return
     for value in vars(material).values():
@@ -227,8 +225,6 @@ def _images_of(material: Any) -> Iterator[Any]:
 
 
 def _image_suffixes() -> set[str]:
-    from PIL import Image
-
     return set(Image.registered_extensions())
 
 

@@ -66,6 +66,7 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
+import yaml
 
 from phigenesis import geometry
 from phigenesis import taxonomy as tx
@@ -629,8 +630,6 @@ def load_path_file(path: str | os.PathLike[str]) -> list[Keyframe]:
     +-:data:`MAX_PATH_SECONDS`, or ``timestamp_micros`` in [0, 2^62); the same kind throughout,
     increasing), and ``xyz`` (with an optional ``yaw_deg``) or ``world_from_asset``, plain finite
     numbers (not strings), rigid. Refusals are AssetErrors naming the file and the keyframe."""
-    import yaml
-
     path = Path(path)
     text = read_small_file(path, "path file", AssetError, MAX_PATH_FILE_BYTES)
     try:

@@ -63,6 +63,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from tqdm import tqdm
 
 from phigenesis import geometry
 from phigenesis.data import records
@@ -589,8 +590,6 @@ def _render_scene(
 ) -> tuple[SceneEntry, list[ShardInfo]]:
     """Renders one scene of the source cache as ``plan`` says into complete shards in ``target``:
     (its manifest entry, its shards), which the caller commits."""
-    from tqdm import tqdm
-
     reader, data, model, geometry = job.reader, job.data, job.model, job.geometry
     inserts, assets, max_frames = job.inserts, job.assets, job.max_frames
     scene_rig, ego_boxes, placements = plan.rig, plan.ego_boxes, plan.placements

@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from phigenesis.data import records
 from phigenesis.data.clips import Stage1Clips
@@ -422,7 +423,6 @@ def rollout(
         time_s=torch.empty(0),
         time_origin_micros=origin,
     )
-    from tqdm import tqdm
 
     for w in tqdm(range(windows), disable=not progress, unit="window", desc="generate"):
         tic = time.perf_counter()

@@ -41,6 +41,7 @@ import numpy as np
 import pyarrow as pa
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from phigenesis.data.cache_run import writing_cache
 from phigenesis.data.clips import Clip, Stage1Clips
@@ -411,8 +412,6 @@ def precompute_stage2(
     inputs resumes after a kill or a full disk, skipping the scenes already finished; a folder
     holding a cache made from other inputs, or anything else, is refused (PrepError). Returns
     ``out``."""
-    from tqdm import tqdm
-
     out = Path(out)
     data = Stage1Clips(shards, model.config.image_size, config.history_frames, "auto")
     if config.history_frames % int(model.config.frames):
