@@ -56,6 +56,7 @@ def synthetic(
     """
     overrides: dict[str, Any] = {}
     if preset is not None:
+        # the synthetic source (Open3D, trimesh) loads only for a synthetic preset
         from phigenesis.data.sources.synthetic.presets import preset_values
 
         overrides.update(preset_values(preset))
@@ -193,6 +194,7 @@ def preview(
 
     A value of the frame that is invalid (an image that does not decode, ...) raises a
     :class:`~phigenesis.errors.CacheError` naming the shard, the row and the field."""
+    # the preview's drawing (OpenCV fonts, colour maps) loads only for previews
     from phigenesis.data.preview import draw_frame
 
     reader = CacheReader(cache_dir)

@@ -272,6 +272,7 @@ class SyntheticTruth:
     """
 
     def __init__(self, arguments: dict[str, Any], source: str):
+        # the synthetic renderer (Open3D, trimesh) loads only for synthetic caches
         from phigenesis.data.sources.synthetic import SOURCE_NAME, SyntheticConfig, SyntheticScene
 
         if source != SOURCE_NAME:
@@ -686,9 +687,11 @@ def entropy_color(entropy_nats: np.ndarray, high_nats: float) -> np.ndarray:
 def save_picture(result: ClipResult, path: str | os.PathLike[str], shifts_m: tuple[float, ...] = ()) -> Path:
     """A PNG of one clip: the panels of :func:`picture_panels` in a grid, then the depth colour bar
     (metres) and the legend of the classes the rendered semantics show."""
+    # matplotlib loads only to draw a picture
     import matplotlib
 
     matplotlib.use("Agg")
+    # matplotlib loads only to draw a picture
     import matplotlib.pyplot as plt
 
     columns, rows = picture_panels(result, shifts_m)

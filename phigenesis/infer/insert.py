@@ -343,6 +343,7 @@ def _read_meshes(path: Path) -> list[Any]:
     the file checked first (:func:`~phigenesis.infer.asset_files.check_mesh_file`), the files it
     refers to read from its own folder only, its textures checked before they are decoded."""
     check_mesh_file(path, MAX_FACES)
+    # optional heavy dependency: only for mesh assets
     import trimesh
 
     folder = AssetFolder(path)
@@ -413,6 +414,7 @@ def _surface_samples(mesh: Any, tri: np.ndarray, counts: np.ndarray) -> tuple[np
 
 def _sample_colors(mesh: Any, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
     """(N, 3) RGB in [0, 1] of the mesh at the samples (face ``face``, barycentric ``bary``)."""
+    # optional heavy dependency: only for mesh assets
     import trimesh
 
     visual = mesh.visual

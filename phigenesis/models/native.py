@@ -110,6 +110,7 @@ def load_rasterizer() -> ModuleType | None:
             return None
         build_dir = build_directory()
         try:
+            # PyTorch's extension builder loads only when the kernel is built
             from torch.utils import cpp_extension
 
             with build_lock(build_dir) as held:

@@ -189,6 +189,7 @@ class MetricsLog:
         self._tb = None
         if tensorboard:
             try:
+                # optional dependency: only when TensorBoard logging is on
                 from torch.utils.tensorboard import SummaryWriter
 
                 tb_dir = Path(out_dir) / "tb"

@@ -247,6 +247,7 @@ def export_waymo(
     v1: one ``segment-<scene id>_with_camera_labels.tfrecord`` per scene; v2: one
     ``<component>/<scene id>.parquet`` per component and scene. Returns the files written.
     """
+    # the Waymo readers (protobuf, Parquet) load only to check an export
     from phigenesis.data.sources.waymo import tfrecord, v1, v2
 
     out = Path(out)
