@@ -56,7 +56,7 @@ class Stage2DataConfig:
 
 @dataclass(frozen=True)
 class Stage2TrainConfig:
-    """Options of :func:`train_stage2` (configs/stage2/tiny.yaml, paper.yaml)."""
+    """Options of :func:`phigenesis.train.stage2.train_stage2` (configs/stage2/tiny.yaml, paper.yaml)."""
 
     model: str = option(
         "stage2_tiny", help="registered denoiser variant (phigenesis.models.list_models('dit'))"
