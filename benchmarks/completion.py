@@ -34,14 +34,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
 from _report import Report, add_update_flag, output_path
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.pipeline import load_pipeline
 from phigenesis.data.records import DENSE_ORIGINS, CameraDepth, Frame, LazyFrames, Scene
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene
 from phigenesis.data.stages import get_stage
 from phigenesis.data.stages.complete import CompletionParams, segment_image
 from phigenesis.data.stages.densify import camera_focal_px
-from phigenesis.train.metrics import depth_errors
+from phigenesis.models.metrics import depth_errors
 
 FIGURE = "docs/images/depth_completion.png"
 STAGES = [stage for stage in load_pipeline("synthetic").stages if stage.name != "range_view"]

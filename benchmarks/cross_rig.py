@@ -46,10 +46,10 @@ from _report import Report, add_update_flag
 from phigenesis import prep
 from phigenesis.data.shards import CacheReader
 from phigenesis.eval.depth_protocol import DepthAccumulator
+from phigenesis.eval.stage1 import SyntheticTruth
 from phigenesis.infer.rig_render import render
 from phigenesis.infer.rigs import RandomRigRanges
 from phigenesis.models.segformer import segformer_tiny
-from phigenesis.train.evaluate_stage1 import SyntheticTruth
 
 SIZE_HW = (96, 144)
 TEST_SIZES = {"nuscenes6": (90, 160), "waymo5": SIZE_HW}

@@ -49,7 +49,7 @@ from phigenesis.data.stages import get_stage
 from phigenesis.data.stages.aggregate import AggregateParams, LidarMap, aggregate_scene
 from phigenesis.data.stages.densify import DEFAULT_DENSIFIER, DENSIFIERS, densify, needs_rgb
 from phigenesis.data.stages.project import ProjectParams, _Projector
-from phigenesis.train.metrics import depth_errors, see_through_share
+from phigenesis.models.metrics import depth_errors, see_through_share
 
 FIGURE = "docs/images/depth_benchmark.png"
 VOXELS_M = (0.02, 0.05, 0.1)

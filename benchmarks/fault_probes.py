@@ -370,7 +370,7 @@ def rewrite_safetensors(
     if tensors is not None:
         tensors(state)
         if "checksum" in metadata:
-            from phigenesis.train.checkpoint import tensor_checksum
+            from phigenesis.models.checkpoint import tensor_checksum
 
             metadata["checksum"] = json.dumps(tensor_checksum(state))
     if header is not None:

@@ -41,9 +41,9 @@ from phigenesis import geometry, prep
 from phigenesis._open3d import open3d
 from phigenesis.data.shards import CacheReader
 from phigenesis.data.stages.project import pixel_rays
+from phigenesis.eval.stage1 import SyntheticTruth
 from phigenesis.infer.insert import InsertSpec, load_asset, parse_keyframe, placed_gaussians
 from phigenesis.infer.rig_render import render, render_camera
-from phigenesis.train.evaluate_stage1 import SyntheticTruth
 
 PICTURE = "docs/images/insert_asset.png"
 BOX_LWH = (4.5, 1.9, 1.6)

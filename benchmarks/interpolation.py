@@ -51,7 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, a
 from _report import Report, add_update_flag
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import Boxes, KeyframeBoxes
 from phigenesis.data.sources.synthetic.nuscenes_export import LIDAR_MICROS, camera_trigger_micros
 from phigenesis.data.sources.synthetic.rigs import NUSCENES6

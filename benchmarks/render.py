@@ -32,12 +32,12 @@ from _report import Report, add_update_flag, output_path
 
 from phigenesis import prep
 from phigenesis.data.shards import CacheReader
-from phigenesis.data.taxonomy import NUM_CLASSES
 from phigenesis.eval.depth_protocol import DepthAccumulator
+from phigenesis.eval.stage1 import SyntheticTruth
 from phigenesis.infer.rig_render import render
 from phigenesis.models.losses import psnr
-from phigenesis.train.evaluate_stage1 import SyntheticTruth
-from phigenesis.train.metrics import confusion_matrix, segmentation_scores
+from phigenesis.models.metrics import confusion_matrix, segmentation_scores
+from phigenesis.taxonomy import NUM_CLASSES
 
 RIGS = ("waymo5", "nuscenes6")
 

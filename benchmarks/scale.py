@@ -185,7 +185,7 @@ def synth_dataset(
 
 def truth_errors(cache: Path) -> dict[str, float]:
     """Depth and label errors of a cache made by the synthetic source (camera truth stored)."""
-    from phigenesis.data import taxonomy as tx
+    from phigenesis import taxonomy as tx
     from phigenesis.data.schema import row_to_frame
     from phigenesis.data.shards import CacheReader
 

@@ -42,15 +42,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, a
 from _report import Report, add_update_flag
 
 from phigenesis import prep
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.pipeline import PipelineSpec
 from phigenesis.data.records import Frame, Scene
 from phigenesis.data.schema import CacheContents
+from phigenesis.data.segmenter import Segmenter
 from phigenesis.data.sources.synthetic import SyntheticConfig, synthetic_scene
 from phigenesis.data.stages import get_stage
-from phigenesis.data.stages.semantics import PseudoSemanticsParams, RayCache, Segmenter, label_frame
-from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
-from phigenesis.train.metrics import confusion_matrix, segmentation_scores
+from phigenesis.data.stages.semantics import PseudoSemanticsParams, RayCache, label_frame
+from phigenesis.models.checkpoint import load_checkpoint
+from phigenesis.models.metrics import confusion_matrix, segmentation_scores
+from phigenesis.train.checkpoint import save_checkpoint
 from phigenesis.train.segmenter import train_segmenter
 
 DEPTH_STAGES = ("aggregate_lidar", "project_depth", "densify_depth")

@@ -57,8 +57,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, a
 from _report import REPO_ROOT, Report, add_update_flag, output_path
 
 from phigenesis import prep
+from phigenesis.models.checkpoint import read_safetensors_metadata
 from phigenesis.models.rasterizer import native_available
-from phigenesis.train.checkpoint import read_safetensors_metadata
 from phigenesis.train.runner import read_metrics
 
 BIN = Path(sys.executable).parent
@@ -433,7 +433,7 @@ def _eval_table(
     baseline_path: Path | None = None,
     baseline_note: str = "",
 ) -> tuple[str, list[str], list[list[object]], str]:
-    """The held-out table from the evaluation JSON (keys of :mod:`phigenesis.train.evaluate_stage1`):
+    """The held-out table from the evaluation JSON (keys of :mod:`phigenesis.eval.stage1`):
     per section a row for the new model, the baseline (when given) and the oracle."""
     headers = ["views", "images", "renderer", *EVAL_COLUMNS.values()]
     rows = []

@@ -54,7 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, a
 from _report import REPO_ROOT, Report, add_update_flag, output_path
 
 from phigenesis import prep
-from phigenesis.infer.generate import GenerateOptions
+from phigenesis.rollout.runner import GenerateOptions
 from phigenesis.train.runner import read_metrics
 
 BIN = Path(sys.executable).parent
@@ -258,8 +258,8 @@ def main() -> None:
     base |= {"stage1_checkpoint": str(stage1 / "model.safetensors"), "steps": args.stage2_steps, "threads": 1}
     rows = [r for r in ROWS if not args.rows or r[1] in args.rows or r[0] in args.rows]
     # The latent caches, one per geometry, before any training run reads them.
-    from phigenesis.train.stage1 import load_stage1
-    from phigenesis.train.stage2 import Stage2TrainConfig
+    from phigenesis.models.loading import load_stage1
+    from phigenesis.rollout.config import Stage2TrainConfig
     from phigenesis.train.stage2_data import precompute_stage2
 
     model = load_stage1(stage1 / "model.safetensors")

@@ -20,6 +20,7 @@ def open3d() -> ModuleType:
     global _module
     if _module is None:
         with contextlib.suppress(ImportError):  # without the wheel, a system libusb-1.0 may serve
+            # optional wheel: only where pip installed it
             import libusb_package
 
             path = libusb_package.get_library_path()

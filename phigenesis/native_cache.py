@@ -10,13 +10,16 @@ one machine another's build. ``PHIGENESIS_NATIVE=0`` turns every native part off
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import os
 import platform
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-from phigenesis.data.cache_lock import NO_FLOCK
+#: errno values of a file system that cannot flock (NFS without lockd, some FUSE mounts).
+NO_FLOCK = frozenset({errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL})
 
 
 def cache_root() -> Path:
@@ -63,3 +66,21 @@ def build_lock(build_dir: Path) -> Iterator[bool]:
         yield held
     finally:
         os.close(fd)  # closing the descriptor releases the flock
+
+
+def write_source_copy(path: Path, data: bytes) -> None:
+    """Writes ``data`` (a source file staged for a build) to ``path`` under a unique temporary name,
+    flushed and renamed, so a reader (another process staging the same sources without flock) sees
+    the old file or the whole new one; on failure the temporary file is removed and the OSError
+    raised."""
+    tmp = path.with_name(f"{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise

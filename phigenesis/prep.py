@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from phigenesis.data.executors import ExecutorName
 from phigenesis.data.pipeline import OnError, PipelineSpec, PrepSummary, prepare
+from phigenesis.data.records import InvalidRecord
 from phigenesis.data.shards import CacheReader, VerifyReport, verify_cache
 from phigenesis.errors import CacheError
 
@@ -55,6 +56,7 @@ def synthetic(
     """
     overrides: dict[str, Any] = {}
     if preset is not None:
+        # the synthetic source (Open3D, trimesh) loads only for a synthetic preset
         from phigenesis.data.sources.synthetic.presets import preset_values
 
         overrides.update(preset_values(preset))
@@ -192,8 +194,8 @@ def preview(
 
     A value of the frame that is invalid (an image that does not decode, ...) raises a
     :class:`~phigenesis.errors.CacheError` naming the shard, the row and the field."""
+    # the preview's drawing (OpenCV fonts, colour maps) loads only for previews
     from phigenesis.data.preview import draw_frame
-    from phigenesis.data.records import InvalidRecord
 
     reader = CacheReader(cache_dir)
     try:

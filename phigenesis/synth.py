@@ -70,6 +70,7 @@ def synth(
         **params,
     }
     if preset is not None:
+        # each exporter and the presets load only for the format asked for
         from phigenesis.data.sources.synthetic.presets import PRESETS
 
         if preset in PRESETS and PRESETS[preset]["rig"] != FORMAT_RIGS[format]:
@@ -82,9 +83,11 @@ def synth(
     else:
         config = SyntheticConfig.from_dict({"height": 160, "width": 240, **values})
     if format == "nuscenes":
+        # each exporter and the presets load only for the format asked for
         from phigenesis.data.sources.synthetic.nuscenes_export import export_nuscenes
 
         return export_nuscenes(config, out, keyframes=keyframes, version=version, dropped=dropped)
+    # each exporter and the presets load only for the format asked for
     from phigenesis.data.sources.synthetic.waymo_export import export_waymo
 
     return export_waymo(config, out, "v1" if format == "waymo-v1" else "v2")

@@ -4,8 +4,8 @@
 multi-gigabyte file is refused before anything is read, and a FIFO is refused without blocking (it is
 opened with ``O_NONBLOCK`` and checked with ``fstat``, so a path swapped for a FIFO after the first
 check does not hang either). :func:`read_small_file` is the same for the small text files of the
-command line (rig, path and trajectory files, 1 MiB). Refusals are the caller's own error class,
-naming the file.
+command line (rig, path and trajectory files, 1 MiB); :func:`read_config_file` reads a YAML config
+file with it. Refusals are the caller's own error class, naming the file.
 """
 
 from __future__ import annotations
@@ -17,7 +17,10 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from phigenesis.errors import PhiGenesisError
+from phigenesis.options import ConfigError
 
 #: Largest file :func:`read_small_file` reads by default, bytes (rig, path and trajectory files).
 MAX_SMALL_FILE_BYTES = 1 << 20
@@ -114,3 +117,22 @@ def matrix_problem(value: Any, rows: int, cols: int) -> str | None:
             if not is_number(x):
                 return f"[{i}][{j}] is {x!r}, not a finite number"
     return None
+
+
+def read_config_file(path: Path) -> dict[str, Any]:
+    """The mapping of options in a YAML config file (an empty file: none). A missing file, one that
+    is not a regular file or is over 1 MiB (:func:`~phigenesis.user_files.read_small_file`), invalid
+    YAML and a YAML value other than a mapping raise :class:`~phigenesis.options.ConfigError`
+    naming the file."""
+    text = read_small_file(path, "config", ConfigError)
+    try:
+        values = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: cannot read the config ({' '.join(str(e).split())})") from None
+    if values is None:
+        return {}
+    if not isinstance(values, dict):
+        raise ConfigError(
+            f"{path}: a config is a mapping of options (key: value), not a YAML {type(values).__name__}"
+        )
+    return values

@@ -104,8 +104,9 @@ def two_step_stage1(cache: Path, tmp_path_factory: pytest.TempPathFactory) -> Pa
 def stage2_latents(cache: Path, stage1: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The Stage 2 latent cache of ``cache`` (windows every 3 frames) under the Stage 1 checkpoint
     ``stage1``."""
-    from phigenesis.train.stage1 import load_stage1
-    from phigenesis.train.stage2_data import Stage2DataConfig, precompute_stage2
+    from phigenesis.models.loading import load_stage1
+    from phigenesis.rollout.config import Stage2DataConfig
+    from phigenesis.train.stage2_data import precompute_stage2
 
     out = tmp_path_factory.mktemp("lat") / "latents"
     model = load_stage1(stage1)

@@ -22,11 +22,13 @@ from safetensors.torch import load_file, save_file
 from phigenesis.cli.train import main as train_main
 from phigenesis.errors import CheckpointError, PhiGenesisError
 from phigenesis.models import create_model, list_models
+from phigenesis.models.checkpoint import load_checkpoint
+from phigenesis.models.loading import load_stage1, load_stage2
+from phigenesis.rollout.config import Stage2TrainConfig
 from phigenesis.train import runner, segmenter, stage1, stage2, vae
-from phigenesis.train.checkpoint import load_checkpoint, read_trainer_state, save_checkpoint
+from phigenesis.train.checkpoint import read_trainer_state, save_checkpoint
 from phigenesis.train.runner import latest_checkpoint
-from phigenesis.train.stage1 import Stage1TrainConfig, load_stage1, train_stage1
-from phigenesis.train.stage2 import Stage2TrainConfig, load_stage2
+from phigenesis.train.stage1 import Stage1TrainConfig, train_stage1
 from phigenesis.train.vae import train_vae
 from tests.conftest import one_scene_cache, stage2_latents, two_step_stage1
 
@@ -118,7 +120,7 @@ def _load_stage2(path: Path) -> object:
 
 
 def _stage2_for_generate(path: Path) -> object:
-    from phigenesis.infer.generate import trained_uncertainty
+    from phigenesis.rollout.runner import trained_uncertainty
 
     return trained_uncertainty(path)
 
@@ -213,7 +215,7 @@ def _peak_of_loading(paths: list[Path]) -> tuple[list[str], int]:
         import torch
         torch.set_num_threads(1)
         from phigenesis.errors import PhiGenesisError
-        from phigenesis.train.checkpoint import load_checkpoint
+        from phigenesis.models.checkpoint import load_checkpoint
         for path in {[str(p) for p in paths]!r}:
             try:
                 load_checkpoint(path)
@@ -479,7 +481,7 @@ def test_a_nan_stage2_loss_is_a_clear_error_not_a_bug_and_keeps_the_last_checkpo
 def test_a_stage2_checkpoint_whose_training_config_says_window_frames_0_is_refused(
     saved: dict[str, Path], tmp_path: Path
 ) -> None:
-    from phigenesis.infer.generate import trained_uncertainty
+    from phigenesis.rollout.runner import trained_uncertainty
 
     train = Stage2TrainConfig().to_dict() | {"window_frames": 0}
     bad = save_checkpoint(tmp_path / "w0.safetensors", load_stage2(saved["dit"]), {"train": train})

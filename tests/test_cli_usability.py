@@ -17,9 +17,9 @@ from pathlib import Path
 
 import pytest
 
+import phigenesis.eval.stage1
 import phigenesis.export.stage1
 import phigenesis.prep
-import phigenesis.train.evaluate_stage1
 import phigenesis.train.segmenter
 import phigenesis.train.stage1
 import phigenesis.train.vae
@@ -257,7 +257,7 @@ CTRL_C_CASES = [
     pytest.param(
         eval_cli.main,
         ["stage1", "--ckpt", "{tmp}/m", "--shards", "{tmp}"],
-        (phigenesis.train.evaluate_stage1, "evaluate_stage1"),
+        (phigenesis.eval.stage1, "evaluate_stage1"),
         "interrupted before every clip was scored; no results were written (rerun the same command)",
         id="eval",
     ),
@@ -352,7 +352,7 @@ ERROR_CASES = [
     pytest.param(
         eval_cli.main,
         ["stage1", "--ckpt", "{tmp}/m", "--shards", "{tmp}"],
-        (phigenesis.train.evaluate_stage1, "evaluate_stage1"),
+        (phigenesis.eval.stage1, "evaluate_stage1"),
         id="eval",
     ),
     pytest.param(

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import DENSE_ORIGINS, CameraDepth, InvalidRecord, Scene
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene
 from phigenesis.data.sources.synthetic.rigs import LidarSpec

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 
 from phigenesis import geometry
+from phigenesis import taxonomy as tx
 from phigenesis.data import camera_tables, native
-from phigenesis.data import taxonomy as tx
 from phigenesis.data.ego_body import WAYMO_PACIFICA_BOXES
 from phigenesis.data.records import Boxes, Frame
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene

@@ -119,7 +119,7 @@ def test_x0_skip_starts_as_the_velocity_towards_the_condition() -> None:
 def test_x0_skip_untrained_euler_sampling_lands_on_the_render_latent() -> None:
     """Euler steps of at least t_min end exactly at the predicted clean latent: with u = 1 the
     untrained model returns z_ren from pure noise, and a trained one corrects it from there."""
-    from phigenesis.infer.flow import euler_sample
+    from phigenesis.models.flow import euler_sample
 
     model = _tiny(prediction="x0_skip")
     z, _, _, rays = _inputs(v=3)

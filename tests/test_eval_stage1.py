@@ -1,4 +1,4 @@
-"""Evaluating a Stage 1 model (phigenesis.train.evaluate_stage1, ``phigenesis-eval stage1``).
+"""Evaluating a Stage 1 model (phigenesis.eval.stage1, ``phigenesis-eval stage1``).
 
 One tiny synthetic cache (1 scene x 12 frames of the 5-camera rig at the model's 48 x 72, so no
 resizing) and a 2-step Stage 1 run are shared by the module; the numbers in the report are checked
@@ -22,30 +22,29 @@ import torch
 from phigenesis import prep
 from phigenesis.cli.eval import main as eval_main
 from phigenesis.data import records
+from phigenesis.data.clips import Stage1Clips, clip_inputs
+from phigenesis.data.frame_truth import frame_truth, lidar_covered
 from phigenesis.data.loader import FrameDataset
 from phigenesis.data.pipeline import PipelineSpec, load_pipeline
 from phigenesis.data.records import CameraCalibration
 from phigenesis.data.shards import MANIFEST_NAME, CacheReader
 from phigenesis.data.sources.synthetic import SyntheticScene
-from phigenesis.infer.render import lift_views, render_views
-from phigenesis.models import create_model
-from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
-from phigenesis.train.evaluate_stage1 import (
+from phigenesis.data.views import resize_intrinsics
+from phigenesis.eval.stage1 import (
     METRICS,
     SyntheticTruth,
     clip_starts,
     evaluate_clip,
     evaluate_stage1,
-    frame_truth,
-    lidar_covered,
     picture_panels,
     shift_collision,
     shifted_views,
     target_views,
 )
-from phigenesis.train.stage1 import clip_inputs, load_stage1
-from phigenesis.train.stage1_data import Stage1Clips
-from phigenesis.train.views import resize_intrinsics
+from phigenesis.models import create_model
+from phigenesis.models.loading import load_stage1
+from phigenesis.models.render import lift_views, render_views
+from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 from tests.conftest import TINY_PREP_ARGS, one_scene_cache, tiny_config, two_step_stage1
 
 SIZE = (48, 72)
@@ -450,8 +449,8 @@ def test_the_evaluation_skips_the_clips_whose_shifted_rig_would_collide(
 def test_depth_by_class_is_pooled_over_each_truth_classs_pixels() -> None:
     from types import SimpleNamespace
 
-    from phigenesis.data.taxonomy import CLASS_NAMES, IGNORE_ID
-    from phigenesis.train.evaluate_stage1 import SectionScores
+    from phigenesis.eval.stage1 import SectionScores
+    from phigenesis.taxonomy import CLASS_NAMES, IGNORE_ID
 
     # Six pixels of a 16 x 16 image (SSIM needs its size); the others have no truth and no class.
     truth, pred = torch.zeros(1, 16, 16), torch.zeros(1, 16, 16)

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch.testing import assert_close
 
-from phigenesis.infer.flow import (
+from phigenesis.models.flow import (
     Anchor,
     FixedFrames,
     as_frame_time,

@@ -11,7 +11,7 @@ import time
 import pytest
 import torch
 
-from phigenesis.infer.buffer import KEY_HALF, GaussianBuffer, rebase, voxel_keys
+from phigenesis.models.buffer import KEY_HALF, GaussianBuffer, rebase, voxel_keys
 from phigenesis.models.gaussians import GaussianScene
 
 K = 19  # unified classes

@@ -25,7 +25,6 @@ import trimesh
 
 from phigenesis.export.ply import REQUIRED, PlyError, read_ply, scene_from_ply
 from phigenesis.infer.asset_files import MAX_TEXTURE_PIXELS, check_mesh_file
-from phigenesis.infer.generate import TrajectoryError, TrajectoryFrame, load_trajectory_file
 from phigenesis.infer.insert import (
     MAX_ASSET_GAUSSIANS,
     AssetError,
@@ -36,6 +35,7 @@ from phigenesis.infer.insert import (
     parse_keyframe,
 )
 from phigenesis.infer.rigs import RigError, load_rig_file
+from phigenesis.rollout.runner import TrajectoryError, TrajectoryFrame, load_trajectory_file
 
 #: A crafted small input may make a reader allocate at most this much (tracemalloc peak, bytes).
 SMALL_PEAK = 32 << 20
@@ -554,7 +554,7 @@ _MEASURE = """
 import json, sys
 import numpy as np
 from phigenesis.errors import PhiGenesisError
-from phigenesis.infer.generate import TrajectoryFrame, load_trajectory_file
+from phigenesis.rollout.runner import TrajectoryFrame, load_trajectory_file
 from phigenesis.infer.insert import load_asset
 rig = TrajectoryFrame(1000, np.eye(4), np.stack([np.eye(4)] * 2), np.array([1000, 1010]))
 outcomes = {}

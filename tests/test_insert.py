@@ -15,8 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phigenesis import geometry
+from phigenesis import taxonomy as tx
 from phigenesis.cli.render import main as render_main
-from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import Boxes
 from phigenesis.data.shards import CacheReader, verify_cache
 from phigenesis.export.ply import scene_from_ply, write_ply

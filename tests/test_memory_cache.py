@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from phigenesis.train.memory_cache import BoundedCache, tensor_bytes
+from phigenesis.data.memory_cache import BoundedCache, tensor_bytes
 
 
 def test_tensor_bytes_counts_tensors_and_arrays_only() -> None:

@@ -21,6 +21,7 @@ import pyarrow as pa
 import pytest
 
 from phigenesis import prep
+from phigenesis.data.clips import Stage1Clips
 from phigenesis.data.ego_body import NUSCENES_ZOE_BOXES, WAYMO_PACIFICA_BOXES
 from phigenesis.data.pipeline import PipelineSpec, load_pipeline
 from phigenesis.data.records import DENSE_ORIGINS, TRUSTED_DEPTH_CONFIDENCE, Frame
@@ -29,7 +30,6 @@ from phigenesis.data.sources.synthetic import SyntheticScene
 from phigenesis.data.sources.synthetic.nuscenes_export import nuscenes_scene_config
 from phigenesis.synth import synth
 from phigenesis.train.stage1 import train_stage1
-from phigenesis.train.stage1_data import Stage1Clips
 from tests.conftest import NUSCENES_CONFIG, NUSCENES_KEYFRAMES, TINY_PREP_ARGS, tiny_config
 from tests.test_stage1 import SIZE, tiny_train_config
 

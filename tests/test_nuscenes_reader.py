@@ -14,8 +14,8 @@ import pyarrow as pa
 import pytest
 
 from phigenesis import geometry, prep
+from phigenesis import taxonomy as tx
 from phigenesis.cli import prep as prep_cli
-from phigenesis.data import taxonomy as tx
 from phigenesis.data.pipeline import PipelineSpec, PrepError, load_pipeline
 from phigenesis.data.sources.nuscenes import NuScenesConfig, NuScenesError, NuScenesSource
 from phigenesis.data.sources.synthetic import SyntheticScene

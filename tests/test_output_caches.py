@@ -34,11 +34,13 @@ from phigenesis.data.shards import (
     verify_cache,
 )
 from phigenesis.errors import PrepError
-from phigenesis.infer.generate import GENERATED_SUFFIX, GenerateOptions, generate
+from phigenesis.infer.generate import GENERATED_SUFFIX, generate
 from phigenesis.infer.rig_render import render
-from phigenesis.train.stage1 import load_stage1
-from phigenesis.train.stage2 import Stage2TrainConfig, train_stage2
-from phigenesis.train.stage2_data import Stage2DataConfig, precompute_stage2
+from phigenesis.models.loading import load_stage1
+from phigenesis.rollout.config import Stage2DataConfig, Stage2TrainConfig
+from phigenesis.rollout.runner import GenerateOptions
+from phigenesis.train.stage2 import train_stage2
+from phigenesis.train.stage2_data import precompute_stage2
 from tests.conftest import TINY_PREP_ARGS, two_step_stage1
 
 SCENES = ["synthetic-s7-0000", "synthetic-s7-0001"]
@@ -119,8 +121,9 @@ GENERATE_CLI = "import sys\nfrom phigenesis.cli.generate import main\nsys.exit(m
 PREP_CLI = "import sys\nfrom phigenesis.cli.prep import main\nsys.exit(main(sys.argv[1:]))\n"
 LATENTS = r"""
 import sys
-from phigenesis.train.stage1 import load_stage1
-from phigenesis.train.stage2_data import Stage2DataConfig, precompute_stage2
+from phigenesis.models.loading import load_stage1
+from phigenesis.train.stage2_data import precompute_stage2
+from phigenesis.rollout.config import Stage2DataConfig
 cache, out, ckpt = sys.argv[1:4]
 precompute_stage2(cache, out, load_stage1(ckpt), Stage2DataConfig(), stage1_checkpoint=ckpt)
 """

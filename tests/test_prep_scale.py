@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from phigenesis import prep
+from phigenesis import taxonomy as tx
 from phigenesis.data import camera_tables
-from phigenesis.data import taxonomy as tx
 from phigenesis.data.coverage import SceneCoverage
 from phigenesis.data.records import Boxes, CameraCalibration, CameraDepth, CameraImage, CameraSemantics, Frame
 from phigenesis.data.shards import CacheReader

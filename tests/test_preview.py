@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.colormap import DEPTH_FAR_M, DEPTH_NEAR_M, depth_color
 from phigenesis.data.preview import (
     EMPTY_RGB,
@@ -27,7 +27,7 @@ from phigenesis.data.preview import (
 from phigenesis.data.rangeview import RangeView, pack_range_view
 from phigenesis.data.records import CameraLabels, Frame
 from phigenesis.data.shards import CacheReader
-from phigenesis.train.evaluate_stage1 import ClipResult, Rendered, Views, save_picture
+from phigenesis.eval.stage1 import ClipResult, Rendered, Views, save_picture
 
 
 @pytest.fixture(scope="module")

@@ -14,15 +14,16 @@ import yaml
 
 from phigenesis.cli.render import main as render_main
 from phigenesis.data import records
+from phigenesis.data.clips import Stage1Clips
+from phigenesis.data.frame_truth import frame_truth
 from phigenesis.data.shards import CacheReader, verify_cache
 from phigenesis.errors import PrepError
-from phigenesis.infer.render import render_views
+from phigenesis.eval.stage1 import SyntheticTruth, target_views
 from phigenesis.infer.rig_render import PoseTrack, render, scene_pose_track, source_rig
 from phigenesis.infer.rigs import RigError, named_rig
+from phigenesis.models.loading import load_stage1
 from phigenesis.models.losses import psnr
-from phigenesis.train.evaluate_stage1 import SyntheticTruth, frame_truth, target_views
-from phigenesis.train.stage1 import load_stage1
-from phigenesis.train.stage1_data import Stage1Clips
+from phigenesis.models.render import render_views
 from tests.conftest import one_scene_cache, two_step_stage1
 
 SIZE = (48, 72)

@@ -22,8 +22,9 @@ from safetensors.torch import save_file
 import phigenesis
 from phigenesis.errors import CheckpointError
 from phigenesis.models import create_model
+from phigenesis.models.checkpoint import load_checkpoint
 from phigenesis.train import checkpoint, runner, vae
-from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
+from phigenesis.train.checkpoint import save_checkpoint
 from phigenesis.train.runner import latest_checkpoint, load_training_state, read_metrics
 from phigenesis.train.stage1 import Stage1TrainConfig, train_stage1
 from phigenesis.train.vae import VAETrainConfig, make_optimizer, train_vae

@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 import torch
 
+from phigenesis import taxonomy as tx
 from phigenesis.cli import train as train_cli
-from phigenesis.data import taxonomy as tx
 from phigenesis.models import create_model, list_models
+from phigenesis.models.checkpoint import load_checkpoint
+from phigenesis.models.metrics import confusion_matrix, segmentation_scores
 from phigenesis.models.segformer import SegFormerConfig
-from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from phigenesis.train.metrics import confusion_matrix, segmentation_scores
+from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 from phigenesis.train.segmenter import split_by_scene, train_segmenter
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.loader import FrameDataset
 from phigenesis.data.records import CameraDepth, CameraSemantics, Frame, Scene
 from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch, row_to_frame
@@ -154,7 +154,7 @@ def test_with_a_checkpoint_every_pixel_is_labelled_and_rules_override(depth_scen
 
 
 def _segmenter(path: Path):
-    from phigenesis.data.stages.semantics import Segmenter
+    from phigenesis.data.segmenter import Segmenter
 
     return Segmenter.load(str(path))
 
@@ -265,7 +265,7 @@ def test_box_regions_only_skip_pixels_that_cannot_be_in_a_box(depth_scene) -> No
 
 def _fake_segmentation(cam, seed: int):
     """A segmenter's output for ``cam``: random classes and confidences (both rule paths)."""
-    from phigenesis.data.stages.semantics import SegmenterOutput
+    from phigenesis.data.segmenter import SegmenterOutput
 
     rng = np.random.default_rng(seed)
     h, w = cam.calibration.height, cam.calibration.width

@@ -20,15 +20,16 @@ from hypothesis import strategies as st
 from torch import Tensor
 
 from phigenesis import geometry, prep
+from phigenesis.data.clips import Stage1Clips, clip_inputs
 from phigenesis.data.pipeline import PipelineSpec
 from phigenesis.data.schema import SCHEMA_VERSION
 from phigenesis.data.shards import Manifest
-from phigenesis.data.taxonomy import SKY
 from phigenesis.export.ply import scene_from_ply
 from phigenesis.export.stage1 import export_ply, predict_frame
 from phigenesis.models import create_model, list_models
 from phigenesis.models.adapter import GROUND_MIN_DOWN, AdapterConfig, column_base, ground_log_depth
 from phigenesis.models.gaussians import GaussianScene
+from phigenesis.models.loading import load_stage1
 from phigenesis.models.losses import edge_aware_smoothness
 from phigenesis.models.stage1 import (
     Stage1Model,
@@ -36,18 +37,16 @@ from phigenesis.models.stage1 import (
     quaternion_multiply,
     range_view_order,
 )
+from phigenesis.taxonomy import SKY
 from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 from phigenesis.train.runner import ProcessGroup, latest_checkpoint, read_metrics
 from phigenesis.train.stage1 import (
     Stage1TrainConfig,
     VaeFeatureCache,
     _draw_clips,
-    clip_inputs,
-    load_stage1,
     stage1_losses,
     train_stage1,
 )
-from phigenesis.train.stage1_data import Stage1Clips
 from tests.conftest import TINY_PREP_ARGS
 
 SIZE = (24, 36)  # divisible by vae_tiny's 4x compression; resized from the cache's 60 x 90

@@ -14,23 +14,17 @@ import pytest
 import torch
 
 from phigenesis.cli.train import main as train_main
+from phigenesis.data.clips import Stage1Clips
+from phigenesis.data.frame_truth import frame_truth
 from phigenesis.data.shards import CacheError, verify_cache
 from phigenesis.errors import PrepError
-from phigenesis.infer.conditions import context_cameras, future_cameras, history_scene, render_condition
+from phigenesis.models.loading import load_stage1, load_stage2
+from phigenesis.rollout.conditions import context_cameras, future_cameras, history_scene, render_condition
+from phigenesis.rollout.config import Stage2DataConfig, Stage2TrainConfig
 from phigenesis.train.checkpoint import CheckpointError
-from phigenesis.train.evaluate_stage1 import frame_truth
 from phigenesis.train.runner import read_metrics
-from phigenesis.train.stage1 import load_stage1
-from phigenesis.train.stage1_data import Stage1Clips
-from phigenesis.train.stage2 import (
-    Stage2TrainConfig,
-    load_stage2,
-    make_batch,
-    restarted_cosine_lr,
-    train_stage2,
-)
+from phigenesis.train.stage2 import make_batch, restarted_cosine_lr, train_stage2
 from phigenesis.train.stage2_data import (
-    Stage2DataConfig,
     Stage2Latents,
     precompute_stage2,
     window_clip,
@@ -198,7 +192,7 @@ def test_generation_uses_the_lp_trust_its_checkpoint_was_trained_with(
     stage2_checkpoint: Path, cache: Path
 ) -> None:
     from phigenesis.errors import CheckpointError
-    from phigenesis.infer.generate import GenerateOptions, Stage2Runner, trained_lp_trust
+    from phigenesis.rollout.runner import GenerateOptions, Stage2Runner, trained_lp_trust
 
     runner = Stage2Runner(stage2_checkpoint, cache)
     assert runner.lp_trust == "stable"
@@ -220,8 +214,8 @@ def test_generation_samples_on_the_geometry_its_checkpoint_was_trained_on(
     from safetensors.torch import load_file, save_file
 
     from phigenesis.errors import CheckpointError
-    from phigenesis.infer.generate import GenerateOptions, Stage2Runner, trained_geometry
-    from phigenesis.train.checkpoint import read_safetensors_metadata
+    from phigenesis.models.checkpoint import read_safetensors_metadata
+    from phigenesis.rollout.runner import GenerateOptions, Stage2Runner, trained_geometry
 
     runner = Stage2Runner(stage2_checkpoint, cache)
     assert runner.geometry == "stage1" and runner.resolve(None).geometry == "stage1"
@@ -328,7 +322,7 @@ def test_latent_norm_standardises_every_latent_of_a_batch_by_the_caches_statisti
     assert run.checkpoint is not None
     loaded = load_stage2(run.checkpoint)
     assert loaded.config.latent_mean == pytest.approx(mean) and loaded.config.latent_std == pytest.approx(std)
-    from phigenesis.infer.generate import GenerateOptions, Stage2Runner
+    from phigenesis.rollout.runner import GenerateOptions, Stage2Runner
 
     result, _ = Stage2Runner(run.checkpoint, cache).run(
         "synthetic-s7-0000", 2, 5, "recorded", GenerateOptions(steps=2, uncertainty="coverage")
@@ -456,7 +450,8 @@ def test_a_generated_cache_passes_verify_and_the_loader_reads_its_rendered_depth
 ) -> None:
     from phigenesis.data import records
     from phigenesis.data.loader import FrameDataset
-    from phigenesis.infer.generate import GenerateOptions, generate
+    from phigenesis.infer.generate import generate
+    from phigenesis.rollout.runner import GenerateOptions
 
     out = tmp_path / "gen"
     result = generate(
@@ -501,7 +496,8 @@ def test_a_generated_cache_passes_verify_and_the_loader_reads_its_rendered_depth
 def test_a_200_frame_rollout_keeps_its_buffer_bounded_and_finite(
     cache: Path, stage2_checkpoint: Path, tmp_path: Path
 ) -> None:
-    from phigenesis.infer.generate import GenerateOptions, generate
+    from phigenesis.infer.generate import generate
+    from phigenesis.rollout.runner import GenerateOptions
 
     path = _straight_trajectory(cache, 200, tmp_path / "straight.json")
     options = GenerateOptions(steps=1, uncertainty="coverage", max_gaussians=20_000)
@@ -527,10 +523,11 @@ def test_render_anchoring_pulls_the_targets_to_the_render_over_the_sky_where_u_t
     cache: Path, stage2_checkpoint: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from phigenesis.infer import generate as gen
+    from phigenesis.rollout import runner
 
     seen: list = []
     renders: list = []
-    real_sample, real_with_sky = gen.euler_sample, gen.with_sky
+    real_sample, real_with_sky = runner.euler_sample, runner.with_sky
 
     def spy_sample(*args, anchor=None, **kwargs):  # type: ignore[no-untyped-def]
         z = real_sample(*args, anchor=anchor, **kwargs)
@@ -542,8 +539,8 @@ def test_render_anchoring_pulls_the_targets_to_the_render_over_the_sky_where_u_t
         renders.append((out, stage1))
         return out
 
-    monkeypatch.setattr(gen, "euler_sample", spy_sample)
-    monkeypatch.setattr(gen, "with_sky", spy_with_sky)
+    monkeypatch.setattr(runner, "euler_sample", spy_sample)
+    monkeypatch.setattr(runner, "with_sky", spy_with_sky)
     options = gen.GenerateOptions(steps=3, uncertainty="coverage", anchor=1.0, anchor_until=0.0)
     result = gen.generate(
         stage2_checkpoint, cache, "synthetic-s7-0000", 2, 5, tmp_path / "a", options=options, progress=False
@@ -556,7 +553,7 @@ def test_render_anchoring_pulls_the_targets_to_the_render_over_the_sky_where_u_t
     t_h = 1  # one latent history frame
     assert float(anchor.weight[:, :, :, :t_h].abs().max()) == 0.0  # history is never anchored
     full, stage1 = renders[0]
-    denoiser, _ = gen._stage2_checkpoint(stage2_checkpoint)
+    denoiser, _ = runner._stage2_checkpoint(stage2_checkpoint)
     z_full = denoiser.normalize_latents(stage1.encode(full.permute(0, 1, 4, 2, 3)[None]))
     assert torch.allclose(anchor.z0[:, :, :, t_h:], z_full, atol=1e-5)
     trusted = (u[:, :, :, t_h:] == 1).expand_as(z_full)
@@ -572,16 +569,17 @@ def test_render_pasting_keeps_the_render_where_u_trusts_it_and_the_decoding_in_t
     cache: Path, stage2_checkpoint: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from phigenesis.infer import generate as gen
+    from phigenesis.rollout import runner
 
     renders: list = []
-    real_with_sky = gen.with_sky
+    real_with_sky = runner.with_sky
 
     def spy_with_sky(render, stage1, cams):  # type: ignore[no-untyped-def]
         out = real_with_sky(render, stage1, cams)
         renders.append(out)
         return out
 
-    monkeypatch.setattr(gen, "with_sky", spy_with_sky)
+    monkeypatch.setattr(runner, "with_sky", spy_with_sky)
     results = {}
     for paste in (0.0, 1.0):
         options = gen.GenerateOptions(steps=2, uncertainty="coverage", paste=paste)
@@ -716,10 +714,10 @@ def test_generation_refuses_bad_inputs_naming_what_is_wrong(
 def test_the_stage2_evaluation_scores_rollouts_against_the_truth(
     cache: Path, stage2_checkpoint: Path, tmp_path: Path
 ) -> None:
+    from phigenesis.data.views import resize_images
     from phigenesis.eval.stage2 import evaluate_stage2
-    from phigenesis.infer.generate import GenerateOptions, Stage2Runner
     from phigenesis.models.losses import psnr
-    from phigenesis.train.views import resize_images
+    from phigenesis.rollout.runner import GenerateOptions, Stage2Runner
 
     class Tiny(torch.nn.Module):
         def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -7,8 +7,8 @@ import pytest
 import torch
 from torch.testing import assert_close
 
-from phigenesis.infer.flow import euler_sample
-from phigenesis.infer.stereo_forcing import (
+from phigenesis.models.flow import euler_sample
+from phigenesis.models.stereo_forcing import (
     drop_condition,
     guided_velocity,
     latent_frame_count,

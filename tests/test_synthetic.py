@@ -16,7 +16,7 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from phigenesis import geometry as g
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import CameraCalibration, CameraImage, Frame
 from phigenesis.data.sources.synthetic import LIDAR_SPIN_PERIOD_S, SyntheticScene
 from phigenesis.data.sources.synthetic.rigs import LidarSpec, camera_calibrations

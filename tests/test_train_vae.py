@@ -20,7 +20,8 @@ from phigenesis.data.records import Frame, Scene
 from phigenesis.data.shards import CacheReader
 from phigenesis.data.stages import STAGES, register_stage
 from phigenesis.models import create_model
-from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from phigenesis.models.checkpoint import load_checkpoint
+from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 from phigenesis.train.runner import read_metrics, step_generator
 from phigenesis.train.vae import ClipImages, VAETrainConfig, list_clips, split_clips, train_step, train_vae
 from tests.conftest import TINY_PREP_ARGS

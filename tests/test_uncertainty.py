@@ -13,7 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phigenesis import geometry
-from phigenesis.infer.uncertainty import (
+from phigenesis.models.depth_bins import DepthBins, entropy, entropy_from_log_probs
+from phigenesis.models.uncertainty import (
     DEFAULT_LOG_DEPTH_STEP,
     HistoryViews,
     UncertaintyConfig,
@@ -25,7 +26,6 @@ from phigenesis.infer.uncertainty import (
     random_map,
     uncertainty_map,
 )
-from phigenesis.models.depth_bins import DepthBins, entropy, entropy_from_log_probs
 
 H, W = 7, 9  # target images; the optical axis passes through pixel (CX, CY)
 CX, CY = 3, 2

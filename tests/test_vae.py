@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from phigenesis.models import create_model
-from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from phigenesis.models.checkpoint import load_checkpoint
+from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 
 if TYPE_CHECKING:
     from phigenesis.models.vae import VideoVAE

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import CameraCalibration, CameraImage
 from phigenesis.data.sources.waymo import convert, protos
 from phigenesis.data.sources.waymo.raw import (

@@ -120,7 +120,7 @@ def test_boxes_project_onto_the_datasets_own_2d_boxes() -> None:
 
 
 def test_panoptic_labels_map_into_the_unified_taxonomy() -> None:
-    from phigenesis.data import taxonomy as tx
+    from phigenesis import taxonomy as tx
 
     _, frame = _frame(PANOPTIC)
     for cam in frame.cameras:

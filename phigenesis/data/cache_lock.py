@@ -24,6 +24,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from phigenesis.errors import PrepError
+from phigenesis.native_cache import NO_FLOCK
 
 LOCK_NAME = ".phigenesis.lock"
 log = logging.getLogger("phigenesis.prep")
@@ -32,8 +33,6 @@ log = logging.getLogger("phigenesis.prep")
 _HOLDER_WRITE_WAIT_S = 1.0
 #: How often to re-open a lock file that its releasing holder removed while we locked it.
 _REOPEN_ATTEMPTS = 100
-#: errno values of a file system that cannot flock (NFS without lockd, some FUSE mounts).
-NO_FLOCK = frozenset({errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL})
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
+from phigenesis.data import native
 from phigenesis.data.records import CameraCalibration
 
 #: How many calibrations' tables are kept (least recently used dropped first).
@@ -100,9 +101,7 @@ def undistorted_pixel_rays(cal: CameraCalibration) -> NDArray[np.float64]:
     radius: a ray, not a solution. Without a C compiler: the reference. Computed anew
     on every call; stages use :func:`pixel_rays_cam`.
     """
-    from phigenesis.data.native import load_camera_rays
-
-    kernel = load_camera_rays() if cal.distortion.any() else None
+    kernel = native.load_camera_rays() if cal.distortion.any() else None
     if kernel is None:
         return undistorted_pixel_rays_reference(cal)
     rays = np.empty((cal.width * cal.height, 3), np.float64)
@@ -185,9 +184,7 @@ def ray_components_from_rays(cal: CameraCalibration, rays_cam: NDArray[np.float6
     """:class:`RayComponents` of (H * W, 3) z = 1 camera-frame rays (computed in float64, then
     rounded to float32): :func:`ray_components_reference`, in one pass with the native kernel
     (``csrc/camera_rays.c``: 0.06 -> 0.01 CPU-s at 1920 x 1280) where it builds."""
-    from phigenesis.data.native import load_camera_rays
-
-    kernel = load_camera_rays()
+    kernel = native.load_camera_rays()
     if kernel is None or not rays_cam.flags.c_contiguous:
         return ray_components_reference(cal, rays_cam)
     out = RayComponents(*kernel.ray_components(rays_cam, cal.width, cal.height))
@@ -221,9 +218,7 @@ def ego_body_depth_native(
     in one vectorised pass, about 0.02 CPU-s per box at 1920 x 1280, instead of numpy's ~15
     passes over (H * W, 3) float64 temporaries, 0.8 s per box); None where the kernel cannot be
     built here. Equal to the reference to float32 rounding."""
-    from phigenesis.data.native import load_camera_rays
-
-    kernel = load_camera_rays()
+    kernel = native.load_camera_rays()
     if kernel is None or not rays_cam.flags.c_contiguous:
         return None
     camera_from_ego = geometry.invert_transform(cal.ego_from_camera)

@@ -4,7 +4,7 @@
 - Depth: turbo over log depth, near red and far blue, from :data:`DEPTH_NEAR_M` (and nearer) to
   :data:`DEPTH_FAR_M` (and farther); unknown depth (0, negative or not finite) is black.
   :func:`depth_color_bar` draws the scale with its ticks in metres.
-- Classes: the taxonomy's palette (:data:`phigenesis.data.taxonomy.PALETTE_RGB`);
+- Classes: the taxonomy's palette (:data:`phigenesis.taxonomy.PALETTE_RGB`);
   :func:`class_legend` draws the swatches and names of the classes a picture shows.
 """
 
@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 
 #: Depths at or nearer than this take the nearest colour (metres).
 DEPTH_NEAR_M = 1.0

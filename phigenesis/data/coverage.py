@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import Frame
 
 log = logging.getLogger("phigenesis.prep")

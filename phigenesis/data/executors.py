@@ -138,6 +138,7 @@ def _run_ray(
     on_progress: Callable[[ProgressMessage], None] | None,
 ) -> Iterator[R]:
     try:
+        # optional dependency: only for --executor ray
         import ray
         from ray.util.queue import Queue
     except ImportError as e:  # pragma: no cover - depends on the environment

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
+from tqdm import tqdm
 
 from phigenesis.data.cache.checksums import ShardInfo
 from phigenesis.data.cache.files import DEFAULT_SHARD_MAX_BYTES, CacheWriteError
@@ -689,7 +690,6 @@ class _ProgressBars:
     def update(self, msg: ProgressMessage) -> None:
         if not self.enabled:
             return
-        from tqdm import tqdm
 
         key, done, total, phase = msg
         bar = self.bars.get(key)

@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.colormap import class_legend, classes_present, depth_color, depth_color_bar
 from phigenesis.data.rangeview import (
     DepthSource,

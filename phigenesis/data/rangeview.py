@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.camera_tables import pixel_rays_cam
 from phigenesis.data.camera_tables import undistorted_pixel_rays as undistorted_pixel_rays  # re-exported
 from phigenesis.data.native import load_camera_rays

@@ -1,2 +1,3 @@
-"""Evaluation: the metrics the toolkit's evaluators share (the depth protocol, FID/KID from a local
-TorchScript Inception) and the Stage 2 evaluator (``phigenesis-eval stage2``)."""
+"""Evaluation: every evaluator (Stage 1, ``phigenesis-eval stage1``: :mod:`.stage1`; Stage 2,
+``phigenesis-eval stage2``: :mod:`.stage2`) and the metrics they share (the depth protocol, scene
+flow, FID/KID from a local TorchScript Inception)."""

@@ -37,6 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from phigenesis.models.metrics import truth_pixels
+
 #: Depth range of the protocol (metres): prediction and truth are clamped into it.
 MIN_DEPTH_M = 1e-3
 MAX_DEPTH_M = 80.0
@@ -77,24 +79,6 @@ class DepthScores:
 DEPTH_METRICS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(DepthScores) if f.name != "pixels")
 #: Sums kept per image and subset: |d| / t, d^2 / t, d^2, (log p - log t)^2, the 3 delta counts, pixels.
 _SUMS = 8
-
-
-def truth_pixels(
-    pred_m: ArrayLike, truth_m: ArrayLike, mask: ArrayLike | None = None
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
-    """(prediction, truth) as float64 and the bool map of the pixels to score: truth > 0 and in
-    ``mask`` (boolean, the maps' shape). Raises ValueError when the shapes or the mask disagree."""
-    pred = np.asarray(pred_m, np.float64)
-    truth = np.asarray(truth_m, np.float64)
-    if pred.shape != truth.shape:
-        raise ValueError(f"prediction {pred.shape} and truth {truth.shape} differ in shape")
-    valid = truth > 0
-    if mask is not None:
-        m = np.asarray(mask)
-        if m.shape != truth.shape or m.dtype != np.bool_:
-            raise ValueError(f"mask must be boolean of shape {truth.shape}, got {m.dtype} {m.shape}")
-        valid &= m
-    return pred, truth, valid
 
 
 def _pixel_sums(

@@ -37,7 +37,7 @@ import torch
 from numpy.typing import NDArray
 from torch import Tensor
 
-from phigenesis.data.taxonomy import GROUND_IDS
+from phigenesis.taxonomy import GROUND_IDS
 
 #: A surface is moving (dynamic) when its truth speed exceeds this, m/s (STORM's threshold).
 MOVING_MPS = 1.0

@@ -9,7 +9,7 @@ the history, the rollout from ``T + 1`` on), sections:
 - ``shift_1m``, ``shift_2m``, ``shift_4m`` (``shifts_m``): the first window of a rollout along the
   recorded trajectory moved d metres to the ego's left, against the synthetic renderer's exact
   images of those cameras (the NVS table). Frames where the shifted rig would collide with a
-  labelled road user (:func:`~phigenesis.train.evaluate_stage1.shift_collision`) are not scored
+  labelled road user (:func:`~phigenesis.eval.stage1.shift_collision`) are not scored
   (``skipped_frames``): their truth is the inside of that road user;
 - ``rollout_50`` .. ``rollout_200`` (``rollout_frames``): one long rollout per scene from its first
   frame with a history; the generated frame ``start + k - 1`` against the true one (PSNR, SSIM),
@@ -41,14 +41,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
+from phigenesis.data.frame_truth import frame_truth
+from phigenesis.data.views import resize_images
 from phigenesis.eval.depth_protocol import DepthAccumulator
-from phigenesis.infer.conditions import TargetCameras, history_scene, render_condition, with_sky
-from phigenesis.infer.generate import GenerateOptions, Rollout, Stage2Runner
+from phigenesis.eval.fid import fid, image_features, kid, load_feature_extractor
+from phigenesis.eval.stage1 import SyntheticTruth, shift_collision, shifted_views
 from phigenesis.models.losses import psnr, ssim
+from phigenesis.rollout.conditions import TargetCameras, history_scene, render_condition, with_sky
+from phigenesis.rollout.runner import GenerateOptions, Rollout, Stage2Runner
 
 log = logging.getLogger(__name__)
 
@@ -92,9 +97,6 @@ def _section_name(kind: str, value: float) -> str:
 
 def _truth_frame(runner: Stage2Runner, scene: str, index: int) -> tuple[Tensor, Tensor]:
     """(images [V, H, W, 3], truth depth [V, H, W]) of a cache frame at the model's size."""
-    from phigenesis.train.evaluate_stage1 import frame_truth
-    from phigenesis.train.views import resize_images
-
     sample = runner.data._frame(scene, index)
     size = tuple(runner.stage1.config.image_size)
     images = resize_images(sample["images"], size).permute(0, 2, 3, 1)
@@ -154,8 +156,6 @@ def evaluate_stage2(
     their sample counts) in the rollout sections when ``fid_model`` is given. Writes it as JSON to
     ``out_json``. Raises ValueError when no scene is long enough for any section, CheckpointError for a
     checkpoint that is not Stage 2's."""
-    from phigenesis.train.evaluate_stage1 import SyntheticTruth, shift_collision, shifted_views
-
     if threads:
         torch.set_num_threads(int(threads))
     if fid_frames is not None and fid_frames < 1:
@@ -278,8 +278,6 @@ def evaluate_stage2(
         )
     sections = {name: {r: sc.summary() for r, sc in by.items()} for name, by in scores.items()}
     if fid_model is not None and long_frames:
-        from phigenesis.eval.fid import fid, image_features, kid, load_feature_extractor
-
         extractor = load_feature_extractor(fid_model)
         for k, bucket in long_frames.items():
             tru = torch.cat(bucket["truth"]).permute(0, 3, 1, 2)
@@ -324,8 +322,6 @@ def _rollout_cameras(result: Rollout, clip: Any) -> TargetCameras:
 def _save_picture(picture: dict[str, Tensor], path: Path) -> Path:
     """One row per panel (the last history frame, the condition render at the scored frame, its u, the
     generated frame, the truth), the views side by side, each row labelled."""
-    import cv2
-
     rows = []
     for name, views in picture.items():
         row = (torch.cat(list(views), dim=1).clamp(0, 1).numpy() * 255).round().astype(np.uint8)

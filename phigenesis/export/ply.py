@@ -43,7 +43,7 @@ from typing import BinaryIO
 import numpy as np
 import torch
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import MAX_USER_MICROS
 from phigenesis.errors import PhiGenesisError
 from phigenesis.models.gaussians import GaussianScene

@@ -6,10 +6,10 @@ import logging
 import os
 from pathlib import Path
 
+from phigenesis.data.clips import Stage1Clips, clip_inputs
 from phigenesis.export.ply import write_ply
 from phigenesis.models.gaussians import GaussianScene
-from phigenesis.train.stage1 import clip_inputs, load_stage1
-from phigenesis.train.stage1_data import Stage1Clips
+from phigenesis.models.loading import load_stage1
 
 log = logging.getLogger(__name__)
 

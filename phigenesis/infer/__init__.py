@@ -1,7 +1,5 @@
-"""Inference that export, evaluation, generation and rendering share.
-
-Stage 2 lives here: rectified flow and its sampler (:mod:`.flow`), Stereo Forcing's condition
-(:mod:`.stereo_forcing`), the uncertainty maps it weighs the rendered condition by
-(:mod:`.uncertainty`) and the Gaussian buffer that carries a scene across rollout windows
-(:mod:`.buffer`).
+"""Generation and rendering from trained models: ``phigenesis-generate`` writes Stage 2 rollouts
+(:class:`phigenesis.rollout.runner.Stage2Runner`) as a cache (:mod:`.generate`); ``phigenesis-render``
+renders a cache for another rig (:mod:`.rig_render`, :mod:`.rigs`) with inserted assets
+(:mod:`.insert`, :mod:`.asset_files`).
 """

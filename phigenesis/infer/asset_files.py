@@ -46,7 +46,10 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
+from PIL import Image
+
 from phigenesis.errors import PhiGenesisError
+from phigenesis.export.ply import PlyError, check_ply_size
 from phigenesis.user_files import read_regular_file
 
 #: The formats an asset file may have (by suffix).
@@ -108,8 +111,6 @@ def check_mesh_file(path: Path, max_faces: int) -> None:
     if suffix == ".stl":
         _check_stl(path, head, size, max_faces)
     elif suffix == ".ply":
-        from phigenesis.export.ply import PlyError, check_ply_size
-
         try:
             check_ply_size(path)
         except PlyError as e:
@@ -168,8 +169,6 @@ def read_referenced(asset: Path, name: str, what: str) -> bytes:
 def check_image(data: bytes, where: str) -> None:
     """Raises :class:`AssetError` starting with ``where`` unless ``data`` is an image Pillow reads
     of at most :data:`MAX_TEXTURE_PIXELS` pixels (only its header is read: nothing is decoded)."""
-    from PIL import Image
-
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
@@ -214,8 +213,6 @@ def check_textures(asset: Path, geometries: Iterable[Any]) -> None:
 
 def _images_of(material: Any) -> Iterator[Any]:
     """The PIL images a trimesh material (or a MultiMaterial's materials) holds."""
-    from PIL import Image
-
     if material is None:
         return
     for value in vars(material).values():
@@ -228,8 +225,6 @@ def _images_of(material: Any) -> Iterator[Any]:
 
 
 def _image_suffixes() -> set[str]:
-    from PIL import Image
-
     return set(Image.registered_extensions())
 
 

@@ -66,9 +66,10 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
+import yaml
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import (
     BOX_STATUSES,
     MAX_BOX_SIZE_M,
@@ -77,6 +78,7 @@ from phigenesis.data.records import (
     InvalidRecord,
     check_transform,
 )
+from phigenesis.export.ply import PlyError, scene_from_ply
 from phigenesis.infer.asset_files import AssetError, AssetFolder, check_mesh_file, check_textures
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.user_files import check_keys, is_number, matrix_problem, read_small_file
@@ -175,7 +177,7 @@ def load_asset(
 
     Args:
         path: a 3DGS PLY, or a mesh: .obj, .glb, .gltf, .ply, .stl or .off (not compressed).
-        class_name: the asset's class, one of :data:`phigenesis.data.taxonomy.CLASS_NAMES`.
+        class_name: the asset's class, one of :data:`phigenesis.taxonomy.CLASS_NAMES`.
         spacing_m: distance between neighbouring surface Gaussians of a mesh, metres after
             ``scale`` (default: the mesh's bounding-box diagonal / 100); it widens so that at most
             :data:`MAX_MESH_GAUSSIANS` are made (logged). Unused for a Gaussian asset.
@@ -267,8 +269,6 @@ def _fmt(v: np.ndarray) -> str:
 
 
 def _gaussian_asset(path: Path, class_id: int, scale: float, rotation: np.ndarray, k: int) -> Asset:
-    from phigenesis.export.ply import PlyError, scene_from_ply
-
     try:
         scene = scene_from_ply(path, max_vertices=MAX_ASSET_GAUSSIANS)
     except PlyError as e:
@@ -343,6 +343,7 @@ def _read_meshes(path: Path) -> list[Any]:
     the file checked first (:func:`~phigenesis.infer.asset_files.check_mesh_file`), the files it
     refers to read from its own folder only, its textures checked before they are decoded."""
     check_mesh_file(path, MAX_FACES)
+    # optional heavy dependency: only for mesh assets
     import trimesh
 
     folder = AssetFolder(path)
@@ -413,6 +414,7 @@ def _surface_samples(mesh: Any, tri: np.ndarray, counts: np.ndarray) -> tuple[np
 
 def _sample_colors(mesh: Any, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
     """(N, 3) RGB in [0, 1] of the mesh at the samples (face ``face``, barycentric ``bary``)."""
+    # optional heavy dependency: only for mesh assets
     import trimesh
 
     visual = mesh.visual
@@ -630,8 +632,6 @@ def load_path_file(path: str | os.PathLike[str]) -> list[Keyframe]:
     +-:data:`MAX_PATH_SECONDS`, or ``timestamp_micros`` in [0, 2^62); the same kind throughout,
     increasing), and ``xyz`` (with an optional ``yaw_deg``) or ``world_from_asset``, plain finite
     numbers (not strings), rigid. Refusals are AssetErrors naming the file and the keyframe."""
-    import yaml
-
     path = Path(path)
     text = read_small_file(path, "path file", AssetError, MAX_PATH_FILE_BYTES)
     try:

@@ -7,7 +7,7 @@ drawn per scene), and written as a new cache in the same frame schema:
 - **Gaussians** (``geometry``): ``stage1``, the Stage 1 model of ``ckpt`` on the frame's clip
   (the frame and the ``history_frames - 1`` before it, default none; the first frames of a scene
   use the scene's first clip); or ``cache``, the cache's own dense depth lifted to one Gaussian per
-  pixel at its full size (:func:`phigenesis.infer.conditions.cache_scene`; no checkpoint needed); or
+  pixel at its full size (:func:`phigenesis.rollout.conditions.cache_scene`; no checkpoint needed); or
   ``truth``,
   a synthetic cache's exact truth depth, classes and flow lifted the same way (the oracle). A Stage 2
   rollout is re-rendered through its generated cache, whose dense depth is the rollout's rendered
@@ -63,10 +63,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from tqdm import tqdm
 
 from phigenesis import geometry
 from phigenesis.data import records
 from phigenesis.data.cache_run import writing_cache
+from phigenesis.data.clips import Clip, Stage1Clips
 from phigenesis.data.records import (
     Boxes,
     CameraCalibration,
@@ -78,14 +80,9 @@ from phigenesis.data.records import (
 )
 from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
 from phigenesis.data.shards import MANIFEST_NAME, CacheReader, SceneEntry, ShardInfo, ShardWriter
-from phigenesis.infer.conditions import (
-    TargetCameras,
-    cache_scene,
-    lifted_scene,
-    render_condition,
-    stage1_scene,
-    truth_maps,
-)
+from phigenesis.data.stages.aggregate import DEFAULT_EGO_BOXES
+from phigenesis.data.stages.project import ProjectParams, ego_body_depth, project_camera, sweep_points
+from phigenesis.export.ply import write_ply
 from phigenesis.infer.insert import (
     Asset,
     AssetError,
@@ -97,8 +94,17 @@ from phigenesis.infer.insert import (
 )
 from phigenesis.infer.rigs import RandomRigRanges, Rig, resolve_rig
 from phigenesis.models.gaussians import GaussianScene
+from phigenesis.models.loading import load_stage1
 from phigenesis.models.stage1 import Stage1Model
-from phigenesis.train.stage1_data import Clip, Stage1Clips
+from phigenesis.rollout.conditions import (
+    TargetCameras,
+    cache_scene,
+    lifted_scene,
+    render_condition,
+    stage1_scene,
+    truth_maps,
+)
+from phigenesis.taxonomy import SKY
 
 log = logging.getLogger(__name__)
 
@@ -244,8 +250,6 @@ def render_camera(
 
 def _sparse_depth(camera: CameraImage, frame: Frame, ego_boxes: list[dict]) -> CameraDepth:
     """The frame's own LiDAR sweep projected into ``camera`` (the ego body occludes)."""
-    from phigenesis.data.stages.project import ProjectParams, ego_body_depth, project_camera, sweep_points
-
     h, w = camera.calibration.height, camera.calibration.width
     if frame.lidar is None or len(frame.lidar.points_ego) == 0:
         return CameraDepth.empty(h, w)
@@ -338,8 +342,6 @@ def _scene_seed(seed: int, scene_index: int) -> int:
 
 def _sky_colour(clip: Clip) -> Tensor:
     """(3,) mean colour of the clip's context pixels labelled sky (black without any)."""
-    from phigenesis.data.taxonomy import SKY
-
     ctx = clip.context
     sky = ctx.semantic == SKY
     if not sky.any():
@@ -370,8 +372,6 @@ def _export(
     folder: Path, scene_id: str,
 ) -> Path:  # fmt: skip
     """Writes the (edited) Gaussians at ``t_micros`` to ``folder/<scene_id>.ply``."""
-    from phigenesis.export.ply import write_ply
-
     if assets:
         gaussians = GaussianScene.concatenate([gaussians, _placed(assets, placements, t_micros, gaussians)])
     folder.mkdir(parents=True, exist_ok=True)
@@ -425,8 +425,6 @@ def render(
     CacheWriteError naming the file when one cannot be written (a full disk: the finished scenes
     are kept and a rerun resumes).
     """
-    from phigenesis.train.stage1 import load_stage1
-
     t0 = time.perf_counter()
     if threads:
         torch.set_num_threads(int(threads))
@@ -565,8 +563,6 @@ def _plan_scene(job: _RenderJob, scene_id: str, scene_index: int) -> _ScenePlan:
     """The rig, metadata and asset placements of one scene; raises (ValueError, RigError,
     AssetError) naming what is wrong. ``scene_index``: the scene's position in the source cache
     (seeds a random rig)."""
-    from phigenesis.data.stages.aggregate import DEFAULT_EGO_BOXES
-
     indices = job.reader.frames_of(scene_id)
     if len(indices) < job.data.frames:
         raise ValueError(
@@ -594,8 +590,6 @@ def _render_scene(
 ) -> tuple[SceneEntry, list[ShardInfo]]:
     """Renders one scene of the source cache as ``plan`` says into complete shards in ``target``:
     (its manifest entry, its shards), which the caller commits."""
-    from tqdm import tqdm
-
     reader, data, model, geometry = job.reader, job.data, job.model, job.geometry
     inserts, assets, max_frames = job.inserts, job.assets, job.max_frames
     scene_rig, ego_boxes, placements = plan.rig, plan.ego_boxes, plan.placements

@@ -3,6 +3,11 @@
 One model family per module; each registers its variants (a factory per named config) with
 :func:`register_model`. Every model is an ``nn.Module`` with ``name`` (its registered variant),
 ``config`` (a frozen dataclass with ``to_dict``), ``forward`` and ``predict``.
+
+Beside the networks: reading their checkpoints (:mod:`.checkpoint`) and loading trained ones
+(:mod:`.loading`), and the math on their outputs that training, generation and evaluation share
+(rendering views, flow matching, Stereo Forcing, uncertainty maps, the Gaussian buffer, metrics).
+This package imports nothing of the toolkit but its core (docs/ARCHITECTURE.md, "Layers").
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from phigenesis.data.taxonomy import IGNORE_ID
+from phigenesis.taxonomy import IGNORE_ID
 
 
 def _gaussian_window(size: int, sigma: float, dtype: torch.dtype) -> Tensor:

@@ -34,8 +34,7 @@ from types import ModuleType
 
 import torch
 
-from phigenesis.data.shards import atomic_write_bytes
-from phigenesis.native_cache import build_lock, cache_root, cpu_flags, native_enabled
+from phigenesis.native_cache import build_lock, cache_root, cpu_flags, native_enabled, write_source_copy
 
 logger = logging.getLogger(__name__)
 
@@ -71,7 +70,7 @@ def stage_sources(build_dir: Path) -> list[Path]:
     for source in SOURCES:
         data, copy = source.read_bytes(), staged / source.name
         if not copy.is_file() or copy.read_bytes() != data:
-            atomic_write_bytes(copy, data)  # a unique temporary name: without flock others may stage too
+            write_source_copy(copy, data)  # a unique temporary name: without flock others may stage too
         paths.append(copy)
     return paths
 
@@ -111,6 +110,7 @@ def load_rasterizer() -> ModuleType | None:
             return None
         build_dir = build_directory()
         try:
+            # PyTorch's extension builder loads only when the kernel is built
             from torch.utils import cpp_extension
 
             with build_lock(build_dir) as held:

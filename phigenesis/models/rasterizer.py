@@ -743,6 +743,7 @@ def _rasterize_gsplat(
     in as gsplat's batch dimension: one call, camera c of batch c."""
     if not gsplat_available() or not means.is_cuda:
         raise RuntimeError("backend='gsplat' needs gsplat installed, CUDA and CUDA tensors")
+    # optional CUDA backend
     import gsplat
 
     num_cams = world_from_camera.shape[0]

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.models import register_model
 from phigenesis.options import check_options, option
 from phigenesis.torch_files import read_torch_file

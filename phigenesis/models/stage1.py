@@ -28,7 +28,6 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from phigenesis import geometry
-from phigenesis.data.taxonomy import NUM_CLASSES, SKY
 from phigenesis.models import register_model
 from phigenesis.models.adapter import AdapterConfig, PixelGaussians, RangeViewAdapter
 from phigenesis.models.gaussians import GaussianScene
@@ -36,6 +35,7 @@ from phigenesis.models.rasterizer import ALPHA_THRESHOLD
 from phigenesis.models.vae import CONFIGS as VAE_CONFIGS
 from phigenesis.models.vae import VideoVAE, VideoVAEConfig
 from phigenesis.options import check_options, from_mapping, option
+from phigenesis.taxonomy import NUM_CLASSES, SKY
 
 
 @dataclass(frozen=True)

@@ -55,20 +55,17 @@ from torch import Tensor, nn
 
 from phigenesis.data.shards import os_reason
 from phigenesis.errors import CheckpointError, TrainingDivergedError
-from phigenesis.options import ConfigError
+from phigenesis.models.checkpoint import FORMAT, read_safetensors_metadata
 from phigenesis.train.checkpoint import (
-    FORMAT,
     CheckpointWriteError,
     TrainingState,
     atomic_path,
-    read_safetensors_metadata,
     read_trainer_state,
     restore_optimizer,
     save_checkpoint,
     trainer_state_step,
     write_trainer_state,
 )
-from phigenesis.user_files import read_small_file
 
 __all__ = [
     "CHECKPOINTS",
@@ -121,56 +118,6 @@ def cosine_lr(
     span = max(total_steps - warmup_steps, 1)
     progress = min(max(step - warmup_steps, 0) / span, 1.0)
     return peak * (final_ratio + (1.0 - final_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress)))
-
-
-def check_model_name(name: str, family: str, label: str) -> None:
-    """Raises :class:`~phigenesis.options.ConfigError` unless ``name`` is a registered model of
-    ``family`` (``"stage1"``, ``"dit"``, ``"vae"``, ``"segformer"``), naming the known ones."""
-    from phigenesis.models import list_models
-
-    known = list_models(family)
-    if name not in known:
-        raise ConfigError(f"{label}: model = {name!r}: must be one of {known}")
-
-
-def create_overridden(name: str, overrides: dict[str, Any], label: str) -> nn.Module:
-    """The registered model ``name`` with its config fields replaced by ``overrides`` (a training
-    config's ``model_overrides``); an unknown field or a value outside its range raises
-    :class:`~phigenesis.options.ConfigError` naming ``label``."""
-    from phigenesis.models import create_model
-
-    try:
-        return create_model(name, **overrides)
-    except (TypeError, ValueError) as e:
-        raise ConfigError(f"{label}: model_overrides {overrides}: {' '.join(str(e).split())}") from None
-
-
-def check_model_overrides(name: str, overrides: dict[str, Any], label: str) -> None:
-    """Raises :class:`~phigenesis.options.ConfigError` naming ``label`` unless the registered model
-    ``name`` takes ``overrides`` (every field known, every value within its declared range); the
-    model is built on PyTorch's ``meta`` device, so the check allocates no weights."""
-    if overrides:
-        with torch.device("meta"):
-            create_overridden(name, overrides, label)
-
-
-def read_config_file(path: Path) -> dict[str, Any]:
-    """The mapping of options in a YAML config file (an empty file: none). A missing file, one that
-    is not a regular file or is over 1 MiB (:func:`~phigenesis.user_files.read_small_file`), invalid
-    YAML and a YAML value other than a mapping raise :class:`~phigenesis.options.ConfigError`
-    naming the file."""
-    text = read_small_file(path, "config", ConfigError)
-    try:
-        values = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: cannot read the config ({' '.join(str(e).split())})") from None
-    if values is None:
-        return {}
-    if not isinstance(values, dict):
-        raise ConfigError(
-            f"{path}: a config is a mapping of options (key: value), not a YAML {type(values).__name__}"
-        )
-    return values
 
 
 def step_generator(seed: int, step: int, rank: int = 0) -> torch.Generator:
@@ -242,6 +189,7 @@ class MetricsLog:
         self._tb = None
         if tensorboard:
             try:
+                # optional dependency: only when TensorBoard logging is on
                 from torch.utils.tensorboard import SummaryWriter
 
                 tb_dir = Path(out_dir) / "tb"

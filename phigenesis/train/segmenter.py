@@ -37,22 +37,21 @@ import torch
 import torch.nn.functional as F
 from numpy.typing import NDArray
 
+from phigenesis import limits
+from phigenesis import taxonomy as tx
 from phigenesis.data import codec
-from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import decode_whole
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheReader
 from phigenesis.errors import CacheError
 from phigenesis.models import create_model
+from phigenesis.models.checkpoint import load_checkpoint
+from phigenesis.models.config_checks import check_model_name
+from phigenesis.models.metrics import confusion_matrix, segmentation_scores
+from phigenesis.models.segformer import load_hf_weights
 from phigenesis.options import check_options, option
-from phigenesis.train import limits
-from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
-from phigenesis.train.metrics import confusion_matrix, segmentation_scores
-from phigenesis.train.runner import (
-    DivergenceCheck,
-    check_model_name,
-    write_text_atomic,
-)
+from phigenesis.train.checkpoint import save_checkpoint
+from phigenesis.train.runner import DivergenceCheck, write_text_atomic
 
 log = logging.getLogger("phigenesis.train")
 
@@ -366,8 +365,6 @@ def train_segmenter(
     else:
         model = create_model(cfg.model)
     if cfg.pretrained is not None:
-        from phigenesis.models.segformer import load_hf_weights
-
         model = load_hf_weights(model, cfg.pretrained)
     model.to(cfg.device).train()
     optimizer = _optimizer(model, cfg)

@@ -1,6 +1,6 @@
 """``phigenesis-train stage1``: trains the range-view adapter of a Stage 1 model on a cache.
 
-Each step draws ``batch_size`` clips (context frames + targets, see :mod:`phigenesis.train.stage1_data`)
+Each step draws ``batch_size`` clips (context frames + targets, see :mod:`phigenesis.data.clips`)
 from a generator seeded by (seed, step, rank), predicts the clips' Gaussians with the frozen VAE and
 the adapter, renders them at every target view at its own capture time (the sky model fills what
 no Gaussian covers) and minimises:
@@ -48,28 +48,27 @@ import yaml
 from torch import Tensor
 from tqdm import tqdm
 
-from phigenesis.data.taxonomy import GROUND_IDS, IGNORE_ID, SKY
+from phigenesis import limits
+from phigenesis.data.clips import Clip, Stage1Clips, ViewSet, clip_inputs
+from phigenesis.data.memory_cache import BoundedCache, tensor_bytes
 from phigenesis.errors import argument
+from phigenesis.models.checkpoint import load_checkpoint
+from phigenesis.models.config_checks import check_model_name, check_model_overrides, create_overridden
 from phigenesis.models.depth_bins import DepthBins
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.losses import edge_aware_smoothness, log_depth_loss, photometric_loss, semantic_loss
 from phigenesis.models.stage1 import Stage1Model, Stage1Prediction
 from phigenesis.options import ConfigError, check_options, from_mapping, option
-from phigenesis.train import limits
-from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from phigenesis.train.memory_cache import BoundedCache, tensor_bytes
+from phigenesis.taxonomy import GROUND_IDS, IGNORE_ID, SKY
+from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 from phigenesis.train.runner import (
     DivergenceCheck,
     MetricsLog,
     ProcessGroup,
-    check_model_name,
-    check_model_overrides,
     checkpoint_to_resume,
     cosine_lr,
-    create_overridden,
     load_training_state,
     process_group,
-    read_config_file,
     read_run_config,
     restore_optimizer,
     run_evidence,
@@ -77,7 +76,7 @@ from phigenesis.train.runner import (
     step_generator,
     write_text_atomic,
 )
-from phigenesis.train.stage1_data import Clip, Stage1Clips, ViewSet
+from phigenesis.user_files import read_config_file
 
 log = logging.getLogger(__name__)
 
@@ -233,17 +232,6 @@ def build_model(config: Stage1TrainConfig) -> Stage1Model:
     return model
 
 
-def load_stage1(path: str | os.PathLike[str]) -> Stage1Model:
-    """A trained Stage 1 model from its checkpoint (a run's ``model.safetensors`` or a checkpoint
-    folder); raises :class:`CheckpointError` for files that are not Stage 1 checkpoints."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / "model.safetensors"
-    model = load_checkpoint(path, kind="stage1").model
-    assert isinstance(model, Stage1Model), type(model)  # every "stage1" variant is one
-    return model
-
-
 def config_differences(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
     """Dotted names of the (nested) config fields whose values differ between ``a`` and ``b``."""
     out = []
@@ -254,16 +242,6 @@ def config_differences(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -
         elif x != y:
             out.append(f"{prefix}{key}")
     return out
-
-
-def clip_inputs(clips: list[Clip]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """(images, intrinsics, world_from_camera, time_s) of a batch of clips, as the model takes them."""
-    return (
-        torch.stack([c.context.images for c in clips]),
-        torch.stack([c.intrinsics for c in clips]),
-        torch.stack([c.context.world_from_camera for c in clips]),
-        torch.stack([c.context.time_s for c in clips]).float(),
-    )
 
 
 def training_scene(pred: Stage1Prediction, b: int, clip: Clip, model: Stage1Model) -> GaussianScene:

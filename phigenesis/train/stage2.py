@@ -9,12 +9,12 @@ Each step draws ``batch_size`` windows from a generator seeded by (seed, step, r
 sequence ``[history latent frames, target latent frames]`` of each ([B, V, C, T_h + T, h, w]):
 
 - **rectified flow** ``z_t = (1 - t) z_0 + t eps``, the network predicting the velocity
-  ``z_0 - eps`` (:mod:`phigenesis.infer.flow`); target frames share one logit-normal ``t`` per
+  ``z_0 - eps`` (:mod:`phigenesis.models.flow`); target frames share one logit-normal ``t`` per
   window, shifted by ``time_shift``; history frames carry a small level drawn uniformly in
   ``[0, history_noise]`` (diffusion forcing: at sampling time the generated history is held at
   such a level, DFoT's stabilisation), and the loss counts the target frames only;
 - **Stereo Forcing** condition ``SF(u, z_ren) = u * z_ren`` with ``u`` the chosen ``uncertainty``
-  map, and ``u`` itself as a channel (:func:`~phigenesis.infer.stereo_forcing.stereo_forcing`), on
+  map, and ``u`` itself as a channel (:func:`~phigenesis.models.stereo_forcing.stereo_forcing`), on
   the target frames (the history frames' condition is zero: they are themselves the history);
   ``uncertainty: none`` trains the diffusion model without geometry (the ablation's "no geometry"
   row); the whole condition is dropped with probability ``condition_dropout``, so one network gives
@@ -38,128 +38,37 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import torch
 import yaml
 from torch import Tensor
 from tqdm import tqdm
 
-from phigenesis.infer.conditions import ConditionKind, GeometrySource, TargetCameras, sequence_plucker
-from phigenesis.infer.flow import flow_loss, interpolate, sample_time
-from phigenesis.infer.stereo_forcing import drop_condition, stereo_forcing
-from phigenesis.infer.uncertainty import LpTrust
+from phigenesis.models.config_checks import create_overridden
 from phigenesis.models.dit import MultiViewDiT
-from phigenesis.options import ConfigError, check_options, from_mapping, option, same_as
-from phigenesis.train import limits
-from phigenesis.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from phigenesis.models.flow import flow_loss, interpolate, sample_time
+from phigenesis.models.loading import load_stage1, load_stage2
+from phigenesis.models.stereo_forcing import drop_condition, stereo_forcing
+from phigenesis.rollout.conditions import TargetCameras, sequence_plucker
+from phigenesis.rollout.config import Stage2TrainConfig
+from phigenesis.train.checkpoint import CheckpointError, save_checkpoint
 from phigenesis.train.runner import (
     DivergenceCheck,
     MetricsLog,
     ProcessGroup,
-    check_model_name,
-    check_model_overrides,
-    create_overridden,
     load_training_state,
     process_group,
-    read_config_file,
     restore_optimizer,
     save_training_state,
     step_generator,
     write_text_atomic,
 )
-from phigenesis.train.stage1 import check_run_folder, load_stage1
-from phigenesis.train.stage2_data import (
-    UNCERTAINTY_KINDS,
-    Stage2DataConfig,
-    Stage2Latents,
-    Stage2Sample,
-    precompute_stage2,
-)
+from phigenesis.train.stage1 import check_run_folder
+from phigenesis.train.stage2_data import Stage2Latents, Stage2Sample, precompute_stage2
 
 log = logging.getLogger(__name__)
 
-CONDITION_KINDS: tuple[str, ...] = (*UNCERTAINTY_KINDS, "none")
 LOG_COLUMNS = ("loss", "lr", "grad_norm", "t_mean", "dropped", "seconds")
-
-
-@dataclass(frozen=True)
-class Stage2TrainConfig:
-    """Options of :func:`train_stage2` (configs/stage2/tiny.yaml, paper.yaml)."""
-
-    model: str = option(
-        "stage2_tiny", help="registered denoiser variant (phigenesis.models.list_models('dit'))"
-    )
-    model_overrides: dict[str, Any] = option(factory=dict, help="fields of the variant's config replaced")
-    stage1_checkpoint: str = option(
-        "runs/stage1-tiny/model.safetensors", help="the Stage 1 model whose VAE encodes; --stage1 overrides"
-    )
-    history_frames: int = same_as(Stage2DataConfig, "history_frames")
-    window_frames: int = same_as(Stage2DataConfig, "window_frames")
-    stride: int = same_as(Stage2DataConfig, "stride")
-    geometry: GeometrySource = same_as(Stage2DataConfig, "geometry")
-    uncertainty: ConditionKind = option(
-        "localization_potential", help="Stereo Forcing's map; none: no geometric condition"
-    )
-    lp_trust: LpTrust = same_as(Stage2DataConfig, "lp_trust")
-    condition_dropout: float = option(
-        0.1, ge=0, le=1, help="probability of dropping the whole condition (guidance)"
-    )
-    history_noise: float = option(0.1, ge=0, lt=1, help="history frames' flow time is uniform in [0, this]")
-    time_shift: float = option(
-        1.0, gt=0, le=100, help="resolution shift of the logit-normal training times (1: none)"
-    )
-    latent_norm: bool = option(
-        False, help="flow on per-channel standardised latents (stats of the latent cache)"
-    )
-    steps: int = option(2000, ge=1, le=limits.MAX_STEPS)
-    batch_size: int = option(4, ge=1, le=limits.MAX_BATCH, help="windows per step, over all processes")
-    lr: float = option(1e-3, gt=0, le=limits.MAX_LR)
-    weight_decay: float = option(5e-5, ge=0, le=limits.MAX_WEIGHT_DECAY)
-    warmup_steps: int = option(50, ge=0, le=limits.MAX_STEPS)
-    restart_steps: int = option(
-        0, ge=0, le=limits.MAX_STEPS, help="cosine annealing restarts every this many steps (0: one cosine)"
-    )
-    final_lr_ratio: float = option(0.1, ge=0, le=1)
-    grad_clip: float = option(1.0, gt=0, le=limits.MAX_GRAD_CLIP)
-    checkpoint_every: int = option(250, ge=1, le=limits.MAX_STEPS)
-    log_every: int = option(10, ge=1, le=limits.MAX_STEPS)
-    seed: int = option(0, ge=0, le=limits.MAX_SEED, help="seeds the initialisation and every step's draws")
-    data_seed: int = option(
-        0,
-        ge=0,
-        le=limits.MAX_SEED,
-        help="seeds the latent cache's random maps (runs of several seeds share one cache)",
-    )
-    threads: int | None = option(None, ge=1, le=limits.MAX_THREADS)
-
-    def __post_init__(self) -> None:
-        check_options(self, "Stage2TrainConfig")
-        check_model_name(self.model, "dit", "Stage2TrainConfig")
-        check_model_overrides(self.model, self.model_overrides, "Stage2TrainConfig")
-        self.data_config()  # checks the data fields
-
-    def data_config(self) -> Stage2DataConfig:
-        return Stage2DataConfig(
-            history_frames=self.history_frames,
-            window_frames=self.window_frames,
-            stride=self.stride,
-            geometry=self.geometry,
-            seed=self.data_seed,
-            lp_trust=self.lp_trust,
-        )
-
-    @classmethod
-    def load(cls, path: str | os.PathLike[str], **overrides: Any) -> Stage2TrainConfig:
-        """The config in a YAML file with ``overrides`` (the command line's; None: not given)
-        applied; unknown keys and values outside their type or range raise
-        :class:`~phigenesis.options.ConfigError` naming the file, the key and the range."""
-        path = Path(path)
-        given = {k: v for k, v in overrides.items() if v is not None}
-        return from_mapping(cls, read_config_file(path), str(path), **given)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
 
 
 @dataclass
@@ -203,7 +112,7 @@ class Stage2Batch:
 
 def window_plucker(sample: Stage2Sample, temporal_compression: int) -> Tensor:
     """[V, 6, T_h + T, h, w] Plücker rays of every latent token of a window
-    (:func:`~phigenesis.infer.conditions.sequence_plucker`)."""
+    (:func:`~phigenesis.rollout.conditions.sequence_plucker`)."""
     hist = TargetCameras(
         sample.history_world_from_camera, sample.intrinsics, sample.history_time_s, sample.image_hw
     )
@@ -316,33 +225,6 @@ def build_denoiser(
     if not isinstance(model, MultiViewDiT):
         raise ValueError(f"Stage2TrainConfig.model {cfg.model!r} is not a Stage 2 denoiser (stage2_*)")
     return model
-
-
-def load_stage2(path: str | os.PathLike[str]) -> MultiViewDiT:
-    """A trained Stage 2 denoiser from its checkpoint; raises :class:`CheckpointError` for files that
-    are not Stage 2 checkpoints (a Stage 1 checkpoint, a VAE)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / "model.safetensors"
-    model = load_checkpoint(path, kind="dit").model
-    assert isinstance(model, MultiViewDiT), type(model)  # every "dit" variant is one
-    return model
-
-
-def trained_config(path: str | os.PathLike[str], train: Any) -> Stage2TrainConfig:
-    """The training config a Stage 2 checkpoint's ``meta`` records (``train``), built by
-    :class:`Stage2TrainConfig` so that its checks apply: a checkpoint saying ``window_frames: 0``
-    is refused here, naming the file and the key, rather than dividing by zero in a rollout. Keys
-    the config no longer has (fields since removed) are left out; fields a checkpoint predates take
-    their defaults. Raises :class:`CheckpointError`."""
-    if not isinstance(train, dict) or "window_frames" not in train:
-        raise CheckpointError(f"{path}: has no Stage 2 training config in its metadata (window_frames)")
-    known = {f.name for f in dataclasses.fields(Stage2TrainConfig)}
-    values = {k: v for k, v in train.items() if k in known}
-    try:
-        return from_mapping(Stage2TrainConfig, values, f"{path}: its training config")
-    except ConfigError as e:
-        raise CheckpointError(str(e)) from None
 
 
 def train_stage2(

@@ -8,12 +8,12 @@ cache, :func:`precompute_stage2` writes one row holding:
 - ``z_history`` [V, C, T_h, h, w] and ``z_target`` [V, C, T, h, w]: the frozen VAE's latents
   (posterior mode) of the history's and the targets' images at the Stage 1 model's size;
 - ``z_render`` [V, C, T, h, w]: the latents of the history's Gaussians (``geometry``: ``stage1``,
-  ``cache`` or ``truth``, :mod:`phigenesis.infer.conditions`) rendered at every target camera at
+  ``cache`` or ``truth``, :mod:`phigenesis.rollout.conditions`) rendered at every target camera at
   its own capture time, holes black;
-- ``u_<kind>`` [V, T, h, w]: each uncertainty map of :mod:`phigenesis.infer.uncertainty`
+- ``u_<kind>`` [V, T, h, w]: each uncertainty map of :mod:`phigenesis.models.uncertainty`
   (``coverage``, ``random``, ``entropy``, ``localization_potential``; ``entropy`` only where the
   Gaussians carry a depth entropy) at image resolution, pooled to the latent grid
-  (:func:`~phigenesis.infer.stereo_forcing.pool_to_latent`), so that training picks the kind;
+  (:func:`~phigenesis.models.stereo_forcing.pool_to_latent`), so that training picks the kind;
 - the target and history cameras (``world_from_camera`` [F, V, 4, 4] float64, ``intrinsics``
   [V, 3, 3] at the model's size, capture times [F, V] in seconds after the window's first history
   frame).
@@ -41,8 +41,10 @@ import numpy as np
 import pyarrow as pa
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from phigenesis.data.cache_run import writing_cache
+from phigenesis.data.clips import Clip, Stage1Clips
 from phigenesis.data.schema import SCHEMA_VERSION
 from phigenesis.data.shards import (
     MANIFEST_NAME,
@@ -53,9 +55,10 @@ from phigenesis.data.shards import (
     ShardInfo,
     ShardWriter,
 )
-from phigenesis.infer.conditions import (
+from phigenesis.models.stage1 import Stage1Model
+from phigenesis.models.stereo_forcing import pool_to_latent
+from phigenesis.rollout.conditions import (
     UNCERTAINTY_KINDS,
-    GeometrySource,
     context_cameras,
     future_cameras,
     history_scene,
@@ -63,48 +66,12 @@ from phigenesis.infer.conditions import (
     truth_maps,
     uncertainty_maps,
 )
-from phigenesis.infer.stereo_forcing import pool_to_latent
-from phigenesis.infer.uncertainty import DEFAULT_LP_TRUST, LpTrust
-from phigenesis.models.stage1 import Stage1Model
-from phigenesis.options import check_options, option
-from phigenesis.train.stage1_data import Clip, Stage1Clips
+from phigenesis.rollout.config import Stage2DataConfig
 
 log = logging.getLogger(__name__)
 
 #: The manifest ``source`` of a Stage 2 latent cache.
 LATENT_SOURCE = "stage2-latents"
-
-
-#: The most frames a window (history or generated) or a stride may span.
-MAX_WINDOW_FRAMES = 1024
-
-
-@dataclass(frozen=True)
-class Stage2DataConfig:
-    """What a latent cache holds (every field is part of its fingerprint)."""
-
-    history_frames: int = option(
-        1,
-        ge=1,
-        le=MAX_WINDOW_FRAMES,
-        help="frames of history per window (a multiple of the Stage 1 model's frames)",
-    )
-    window_frames: int = option(
-        5,
-        ge=1,
-        le=MAX_WINDOW_FRAMES,
-        help="frames to generate per window: 1 + k x the VAE's temporal compression",
-    )
-    stride: int = option(
-        5, ge=1, le=MAX_WINDOW_FRAMES, help="frames between the starts of consecutive windows"
-    )
-    geometry: GeometrySource = option("stage1", help="where the history's Gaussians come from")
-    random_patch_px: int = option(8, ge=1, le=4096, help="side of the random map's patches, pixels")
-    seed: int = option(0, ge=0, le=2**32 - 1, help="seeds the random maps (per window: seed, scene, start)")
-    lp_trust: LpTrust = option(DEFAULT_LP_TRUST, help="which points the localization potential's u trusts")
-
-    def __post_init__(self) -> None:
-        check_options(self, "Stage2DataConfig")
 
 
 @dataclass
@@ -445,8 +412,6 @@ def precompute_stage2(
     inputs resumes after a kill or a full disk, skipping the scenes already finished; a folder
     holding a cache made from other inputs, or anything else, is refused (PrepError). Returns
     ``out``."""
-    from tqdm import tqdm
-
     out = Path(out)
     data = Stage1Clips(shards, model.config.image_size, config.history_frames, "auto")
     if config.history_frames % int(model.config.frames):

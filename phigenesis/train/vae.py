@@ -4,7 +4,7 @@ Entry point: :func:`train_vae`. Stage 1 of the paper runs a *frozen* video VAE o
 video; this trains the toolkit's own (:mod:`phigenesis.models.vae`) on the cache it will serve.
 
 - **Clips.** A clip is ``frames`` consecutive frames of one camera (matched by name) within one
-  scene: every window of :func:`~phigenesis.train.views.scene_windows` (stride 1), every camera
+  scene: every window of :func:`~phigenesis.data.views.scene_windows` (stride 1), every camera
   with an image in all of its frames. Images are area-resized to ``size`` = (H, W) pixels and
   scaled to [-1, 1]; ``frames - 1`` must divide by the VAE's temporal compression and H, W by its
   spatial one.
@@ -45,20 +45,22 @@ import torch
 import yaml
 from torch import nn
 
+from phigenesis import limits
 from phigenesis.data.records import InvalidRecord, decode_whole
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheReader
+from phigenesis.data.views import resize_images, scene_windows
 from phigenesis.errors import CacheError
 from phigenesis.models import create_model
+from phigenesis.models.checkpoint import load_checkpoint
+from phigenesis.models.config_checks import check_model_name
 from phigenesis.models.vae import VideoVAE, vae_loss
 from phigenesis.options import check_options, option
-from phigenesis.train import limits
-from phigenesis.train.checkpoint import load_checkpoint, save_checkpoint
+from phigenesis.train.checkpoint import save_checkpoint
 from phigenesis.train.runner import (
     DivergenceCheck,
     MetricsLog,
     ProcessGroup,
-    check_model_name,
     checkpoint_to_resume,
     cosine_lr,
     latest_checkpoint,
@@ -72,7 +74,6 @@ from phigenesis.train.runner import (
     step_generator,
     write_text_atomic,
 )
-from phigenesis.train.views import resize_images, scene_windows
 
 log = logging.getLogger("phigenesis.train")
 

@@ -29,14 +29,17 @@ def source_config(name: str) -> type:
     """The config class of the source called ``name`` (a dataclass of options,
     :mod:`phigenesis.options`, with ``from_dict(values, where)``)."""
     if name == "synthetic":
+        # each source's dependencies load only when that source is chosen
         from phigenesis.data.sources.synthetic import SyntheticConfig
 
         return SyntheticConfig
     if name == "waymo":
+        # each source's dependencies load only when that source is chosen
         from phigenesis.data.sources.waymo import WaymoConfig
 
         return WaymoConfig
     if name == "nuscenes":
+        # each source's dependencies load only when that source is chosen
         from phigenesis.data.sources.nuscenes import NuScenesConfig
 
         return NuScenesConfig
@@ -54,13 +57,16 @@ def make_source(name: str, params: dict[str, Any]) -> Source:
     :class:`~phigenesis.options.ConfigError` naming the source's parameters, the key and the value."""
     config = source_config(name).from_dict(params)
     if name == "synthetic":
+        # each source's dependencies load only when that source is chosen
         from phigenesis.data.sources.synthetic import SyntheticSource
 
         return SyntheticSource(config)
     if name == "waymo":
+        # each source's dependencies load only when that source is chosen
         from phigenesis.data.sources.waymo import WaymoSource
 
         return WaymoSource(config)
+    # each source's dependencies load only when that source is chosen
     from phigenesis.data.sources.nuscenes import NuScenesSource
 
     return NuScenesSource(config)

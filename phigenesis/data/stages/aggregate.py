@@ -41,8 +41,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
+from phigenesis import taxonomy as tx
 from phigenesis._open3d import open3d
-from phigenesis.data import taxonomy as tx
 from phigenesis.data.ego_body import camera_centres, check_sensors_outside, lidar_name, lidar_origins
 from phigenesis.data.records import Boxes, LidarSweep, Scene, frame_geometry
 from phigenesis.data.stages import register_stage

@@ -26,8 +26,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
+from phigenesis import taxonomy as tx
 from phigenesis.data import image_headers
-from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import (
     INVALID_POINTS,
     Boxes,

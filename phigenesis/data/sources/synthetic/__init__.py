@@ -116,6 +116,7 @@ class SyntheticConfig:
     def from_preset(cls, name: str, **overrides: Any) -> SyntheticConfig:
         """The config of preset ``name`` (see :mod:`.presets`: ``waymo``, ``nuscenes``), with
         ``overrides`` (further fields, or fields that replace the preset's)."""
+        # presets imports this package
         from phigenesis.data.sources.synthetic.presets import PRESETS
 
         if name not in PRESETS:

@@ -15,7 +15,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.sources.synthetic.materials import MATERIAL_IDS
 
 

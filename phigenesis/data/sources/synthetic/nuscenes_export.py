@@ -44,7 +44,7 @@ import cv2
 import numpy as np
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import encode_rgb
 from phigenesis.data.sources.nuscenes.tables import TABLE_NAMES
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene

@@ -123,6 +123,7 @@ def preset_values(name: str) -> dict[str, Any]:
     """Preset ``name``'s fields as plain values (LiDARs as mappings), as a pipeline spec or a
     command line's overrides hold them; a :class:`~phigenesis.options.ConfigError` names the
     presets for an unknown name."""
+    # the package imports this module: a top-level import would be circular
     from phigenesis.data.sources.synthetic import SyntheticConfig
 
     full = SyntheticConfig.from_preset(name).to_dict()

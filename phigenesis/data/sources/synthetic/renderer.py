@@ -18,8 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
+from phigenesis import taxonomy as tx
 from phigenesis._open3d import open3d
-from phigenesis.data import taxonomy as tx
 from phigenesis.data.records import CameraCalibration, CameraTruth
 from phigenesis.data.sources.synthetic import materials as mt
 from phigenesis.data.sources.synthetic.meshes import LabelledMesh

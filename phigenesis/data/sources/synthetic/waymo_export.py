@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import CameraImage, Frame
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene
 from phigenesis.data.sources.synthetic.rigs import LidarSpec
@@ -247,6 +247,7 @@ def export_waymo(
     v1: one ``segment-<scene id>_with_camera_labels.tfrecord`` per scene; v2: one
     ``<component>/<scene id>.parquet`` per component and scene. Returns the files written.
     """
+    # the Waymo readers (protobuf, Parquet) load only to check an export
     from phigenesis.data.sources.waymo import tfrecord, v1, v2
 
     out = Path(out)

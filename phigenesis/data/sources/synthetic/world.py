@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import Boxes
 from phigenesis.data.sources.synthetic import meshes
 from phigenesis.data.sources.synthetic.meshes import LabelledMesh

@@ -123,6 +123,7 @@ class WaymoSource:
     def format(self) -> str:
         if self.config.format != "auto":
             return self.config.format
+        # each format's reader (TFRecord protobufs, Parquet) loads only for that format
         from phigenesis.data.sources.waymo import v2
 
         return "v2" if self.root.is_dir() and v2.is_v2_root(self.root) else "v1"
@@ -146,6 +147,7 @@ class WaymoSource:
     @cached_property
     def _all_segments(self) -> list[str]:
         if self.format == "v2":
+            # each format's reader (TFRecord protobufs, Parquet) loads only for that format
             from phigenesis.data.sources.waymo import v2
 
             return v2.list_segments(self.root)
@@ -169,11 +171,13 @@ class WaymoSource:
         problems = Problems(self.config.on_error)
         dropped = DroppedValues()
         if self.format == "v2":
+            # each format's reader (TFRecord protobufs, Parquet) loads only for that format
             from phigenesis.data.sources.waymo import v2
 
             segment = v2.V2Segment(self.root, scene_id)
             frames = _Frames.index(segment.frame_keys(), segment.frame, problems, dropped)
             return _scene(scene_id, frames, {"format": "v2", "path": str(self.root)}, problems, dropped)
+        # each format's reader (TFRecord protobufs, Parquet) loads only for that format
         from phigenesis.data.sources.waymo.v1 import V1File
 
         path = self._v1_files[scene_id]

@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from phigenesis import geometry
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.native import load_range_points
 from phigenesis.data.records import (
     INT64_MAX,

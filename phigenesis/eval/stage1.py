@@ -80,31 +80,31 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
-from phigenesis.data import taxonomy
-from phigenesis.data.records import DENSE_ORIGINS, CameraCalibration, CameraTruth
+from phigenesis import taxonomy
+from phigenesis.data.clips import Clip, Stage1Clips, clip_inputs
+from phigenesis.data.colormap import class_legend, classes_present, depth_color, depth_color_bar
+from phigenesis.data.frame_truth import FrameTruth, frame_truth
+from phigenesis.data.records import CameraCalibration, CameraTruth
 from phigenesis.data.shards import MANIFEST_NAME
-from phigenesis.data.taxonomy import CLASS_NAMES, IGNORE_ID, NUM_CLASSES
+from phigenesis.data.views import resize_images, resize_intrinsics, resize_nearest
 from phigenesis.eval.depth_protocol import ALL, DEPTH_METRICS, DepthAccumulator
 from phigenesis.eval.scene_flow import FlowAccumulator, dynamic_mask, flow_pixels, masked_mean, masked_psnr
-from phigenesis.infer.render import Rendered, Views, lift_views, render_views, sky_background
+from phigenesis.models.loading import load_stage1
 from phigenesis.models.losses import psnr, ssim
+from phigenesis.models.metrics import confusion_matrix, segmentation_scores
+from phigenesis.models.render import Rendered, Views, lift_views, render_views, sky_background
 from phigenesis.models.stage1 import Stage1Model
-from phigenesis.train.metrics import confusion_matrix, segmentation_scores
-from phigenesis.train.stage1 import clip_inputs, load_stage1
-from phigenesis.train.stage1_data import Clip, Stage1Clips
-from phigenesis.train.views import resize_images, resize_intrinsics, resize_nearest
+from phigenesis.taxonomy import CLASS_NAMES, NUM_CLASSES
 
 log = logging.getLogger(__name__)
 
 #: The depth pixel subsets (see the module docstring); ``all`` is the protocol's own.
 DEPTH_SUBSETS = (ALL, "lidar", "no_lidar")
-#: Dense-depth origins (:data:`~phigenesis.data.records.DENSE_ORIGINS`) that count as covered by the
-#: LiDAR: a kept measurement or the densifier's fill between measurements (not a completion).
-LIDAR_ORIGINS = ("lidar", "densified")
 
 
 def depth_key(metric: str, subset: str) -> str:
@@ -272,6 +272,7 @@ class SyntheticTruth:
     """
 
     def __init__(self, arguments: dict[str, Any], source: str):
+        # the synthetic renderer (Open3D, trimesh) loads only for synthetic caches
         from phigenesis.data.sources.synthetic import SOURCE_NAME, SyntheticConfig, SyntheticScene
 
         if source != SOURCE_NAME:
@@ -302,57 +303,6 @@ class SyntheticTruth:
 
 # --------------------------------------------------------------------------------------------
 # Views of a clip
-
-
-@dataclass(frozen=True)
-class FrameTruth:
-    """The truth maps of one frame's V views at the model's size (see :class:`Views`)."""
-
-    depth: Tensor  # [V, H, W]
-    semantic: Tensor  # [V, H, W]
-    flow: Tensor | None  # [V, H, W, 3]
-    has_truth_depth: bool
-    lidar_covered: Tensor | None = None  # [V, H, W] bool
-
-
-def lidar_covered(sample: dict[str, Any]) -> Tensor:
-    """[V, H, W] bool at the cache's image size: the pixels of a loaded frame that its LiDAR-derived
-    dense depth covers.
-
-    Where the sample has the per-pixel origin of the dense depth (``depth_dense_origin``, codes
-    indexing :data:`~phigenesis.data.records.DENSE_ORIGINS`), the pixels whose origin is in
-    :data:`LIDAR_ORIGINS` (kept or densified LiDAR, not completed); otherwise the pixels with a
-    dense depth > 0."""
-    dense = sample["depth_dense"]
-    origin = sample.get("depth_dense_origin")
-    if origin is None:
-        return dense > 0
-    codes = torch.tensor([i for i, name in enumerate(DENSE_ORIGINS) if name in LIDAR_ORIGINS])
-    return torch.isin(origin.long(), codes) & (dense > 0)
-
-
-def frame_truth(sample: dict[str, Any], size_hw: tuple[int, int]) -> FrameTruth:
-    """Truth depth / semantics / flow and the LiDAR-covered pixels (:func:`lidar_covered`) of a
-    loaded frame (synthetic truth, else dense depth and pseudo labels), resized to ``size_hw`` by
-    nearest sampling."""
-    has_depth = "truth_depth" in sample
-    depth = sample["truth_depth"] if has_depth else sample["depth_dense"]
-    if "truth_semantic" in sample:
-        sem = sample["truth_semantic"]
-    elif "pseudo_semantic" in sample:
-        sem = sample["pseudo_semantic"]
-    else:
-        sem = torch.full(depth.shape, IGNORE_ID, dtype=torch.uint8)
-    flow = None
-    if "truth_flow" in sample:
-        flow = resize_nearest(sample["truth_flow"], size_hw).permute(0, 2, 3, 1).contiguous().float()
-    return FrameTruth(
-        depth=resize_nearest(depth, size_hw).float(),
-        semantic=resize_nearest(sem, size_hw),
-        flow=flow,
-        has_truth_depth=has_depth,
-        lidar_covered=resize_nearest(lidar_covered(sample), size_hw),
-    )
 
 
 def target_views(clip: Clip, index: int, truth: FrameTruth) -> Views:
@@ -687,7 +637,6 @@ def picture_panels(
     rendered depth entropy when the render has one (:func:`entropy_color`, scaled to the largest
     shown, which the title gives in nats), rendered semantics, and the shifted render beside its
     truth for the shift nearest 2 m when there is one."""
-    from phigenesis.data.colormap import depth_color
 
     def u8(rgb: np.ndarray) -> np.ndarray:
         return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
@@ -729,8 +678,6 @@ def picture_panels(
 def entropy_color(entropy_nats: np.ndarray, high_nats: float) -> np.ndarray:
     """(..., 3) uint8 RGB of entropies (..., nats) on the stretch of the turbo map the depth panels
     use (its dark ends left out): 0 blue to ``high_nats`` (and above) red."""
-    import cv2
-
     u = np.clip(np.nan_to_num(np.asarray(entropy_nats, np.float64)) / high_nats, 0.0, 1.0)
     index = np.round(20 + u * 220).astype(np.uint8)
     turbo = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
@@ -740,13 +687,12 @@ def entropy_color(entropy_nats: np.ndarray, high_nats: float) -> np.ndarray:
 def save_picture(result: ClipResult, path: str | os.PathLike[str], shifts_m: tuple[float, ...] = ()) -> Path:
     """A PNG of one clip: the panels of :func:`picture_panels` in a grid, then the depth colour bar
     (metres) and the legend of the classes the rendered semantics show."""
-    import cv2
+    # matplotlib loads only to draw a picture
     import matplotlib
 
     matplotlib.use("Agg")
+    # matplotlib loads only to draw a picture
     import matplotlib.pyplot as plt
-
-    from phigenesis.data.colormap import class_legend, classes_present, depth_color_bar
 
     columns, rows = picture_panels(result, shifts_m)
     fig, axes = plt.subplots(

@@ -1,6 +1,6 @@
 """Rectified flow for Stage 2: the noising path, its velocity target, timesteps and an Euler sampler.
 
-Conventions (shared by :mod:`phigenesis.infer.stereo_forcing` and Stage 2's trainer):
+Conventions (shared by :mod:`phigenesis.models.stereo_forcing` and Stage 2's trainer):
 
 * **Latents** are ``[B, V, C, T, h, w]``: batch, camera views, latent channels, latent frames,
   latent height and width (the video VAE's output for each view).
@@ -27,8 +27,8 @@ from the image size and latent length (:func:`resolution_shift`); the sampling g
 
 Guidance (the seed's Stereo Forcing score, ``v(z) + omega [v(z | c) - v(z)]``) combines a
 conditional and an unconditional pass of the same network; the unconditional input is the
-*zero* condition, which is also what :func:`phigenesis.infer.stereo_forcing.stereo_forcing` gives
-for ``u = 0`` and what :func:`phigenesis.infer.stereo_forcing.drop_condition` trains on.
+*zero* condition, which is also what :func:`phigenesis.models.stereo_forcing.stereo_forcing` gives
+for ``u = 0`` and what :func:`phigenesis.models.stereo_forcing.drop_condition` trains on.
 """
 
 from __future__ import annotations

@@ -6,10 +6,10 @@ video VAE (``z_ren``) and conditions the diffusion model on it through the seed 
 
     v(z) + omega [v(z | SF(u, z_ren)) - v(z)]
 
-(:func:`guided_velocity`, the same as :func:`phigenesis.infer.flow.guided_velocity`; the sampler
-is :func:`phigenesis.infer.flow.euler_sample`).
+(:func:`guided_velocity`, the same as :func:`phigenesis.models.flow.guided_velocity`; the sampler
+is :func:`phigenesis.models.flow.euler_sample`).
 
-Conventions (those of :mod:`phigenesis.infer.flow`): latents are ``[B, V, C, T, h, w]`` (batch,
+Conventions (those of :mod:`phigenesis.models.flow`): latents are ``[B, V, C, T, h, w]`` (batch,
 views, latent channels, latent frames, latent height and width); maps at latent resolution are
 ``[B, V, T, h, w]``; maps at image resolution are ``[..., H, W]`` in pixels, with frames ``F`` at
 dim -3 when they have them.
@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from phigenesis.infer.flow import guided_velocity
+from phigenesis.models.flow import guided_velocity
 
 __all__ = ["drop_condition", "guided_velocity", "latent_frame_count", "pool_to_latent", "stereo_forcing"]
 

@@ -25,9 +25,14 @@ from typing import Any, Literal, get_args
 import torch
 from torch import Tensor
 
-from phigenesis.data.taxonomy import SKY
-from phigenesis.infer.render import SKY_ALPHA, Views, lift_views
-from phigenesis.infer.uncertainty import (
+from phigenesis.data.clips import Clip
+from phigenesis.data.frame_truth import frame_truth
+from phigenesis.data.views import resize_intrinsics
+from phigenesis.models.dit import plucker_rays
+from phigenesis.models.gaussians import GaussianScene
+from phigenesis.models.render import SKY_ALPHA, Views, lift_views
+from phigenesis.models.stage1 import Stage1Model
+from phigenesis.models.uncertainty import (
     DEFAULT_LP_TRUST,
     HistoryViews,
     LpTrust,
@@ -35,9 +40,7 @@ from phigenesis.infer.uncertainty import (
     UncertaintyKind,
     uncertainty_map,
 )
-from phigenesis.models.gaussians import GaussianScene
-from phigenesis.models.stage1 import Stage1Model
-from phigenesis.train.stage1_data import Clip
+from phigenesis.taxonomy import SKY
 
 GeometrySource = Literal["stage1", "cache", "truth"]
 GEOMETRY_SOURCES: tuple[str, ...] = get_args(GeometrySource)
@@ -169,8 +172,6 @@ def truth_maps(clip: Clip) -> tuple[Tensor, Tensor, Tensor | None]:
     """The synthetic truth (depth [F, V, H, W] metres, classes [F, V, H, W], flow [F, V, H, W, 3] m/s or
     None) of the clip's context frames at its image size: what ``geometry: truth`` lifts. The clip must
     carry its frames (``keep_frames``); a cache without truth depth is refused naming the scene."""
-    from phigenesis.train.evaluate_stage1 import frame_truth
-
     assert clip.frames is not None
     size = tuple(clip.context.images.shape[-2:])
     truths = [frame_truth(clip.frames[i], size) for i in clip.frame_indices]  # type: ignore[arg-type]
@@ -271,7 +272,7 @@ def uncertainty_maps(
 ) -> dict[str, Tensor]:
     """Stereo Forcing's maps u [F, V, H, W] (1 = trust the render, 0 in holes) of each of ``kinds``
     for a condition ``render`` at the ``targets`` cameras, at image resolution
-    (:func:`~phigenesis.infer.uncertainty.uncertainty_map`): the localization potential against the
+    (:func:`~phigenesis.models.uncertainty.uncertainty_map`): the localization potential against the
     ``history`` cameras with their rendered depth ``history_depth`` [F_h, V, H, W] (occlusion),
     the entropy of a depth distribution of ``num_bins`` bins (only where the render has one);
     ``lp_trust`` says which points the localization potential's u trusts (:data:`LpTrust`)."""
@@ -323,9 +324,6 @@ def sequence_plucker(
     latent token of a sequence of history then target latent frames (``latent_frames`` = (T_h, T)),
     in the frame of the first history camera of view 0 (so the moments stay small however far the
     scene has driven)."""
-    from phigenesis.models.dit import plucker_rays
-    from phigenesis.train.views import resize_intrinsics
-
     t_h, t = latent_frames
     h, w = latent_hw
     cams = torch.cat(

@@ -1,4 +1,5 @@
-"""Evaluation metrics against known truth.
+"""Metrics of predictions against known truth, shared by training (a segmenter's validation) and
+evaluation (:mod:`phigenesis.eval`).
 
 Depth metrics follow the usual definitions (Eigen et al. 2014; KITTI depth completion): errors in
 metres on the pixels where both the prediction and the truth have a depth (> 0).
@@ -9,9 +10,25 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
-from phigenesis.eval.depth_protocol import truth_pixels
+
+def truth_pixels(
+    pred_m: ArrayLike, truth_m: ArrayLike, mask: ArrayLike | None = None
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """(prediction, truth) as float64 and the bool map of the pixels to score: truth > 0 and in
+    ``mask`` (boolean, the maps' shape). Raises ValueError when the shapes or the mask disagree."""
+    pred = np.asarray(pred_m, np.float64)
+    truth = np.asarray(truth_m, np.float64)
+    if pred.shape != truth.shape:
+        raise ValueError(f"prediction {pred.shape} and truth {truth.shape} differ in shape")
+    valid = truth > 0
+    if mask is not None:
+        m = np.asarray(mask)
+        if m.shape != truth.shape or m.dtype != np.bool_:
+            raise ValueError(f"mask must be boolean of shape {truth.shape}, got {m.dtype} {m.shape}")
+        valid &= m
+    return pred, truth, valid
 
 
 @dataclass(frozen=True)

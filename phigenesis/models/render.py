@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from phigenesis.data.taxonomy import NUM_CLASSES, SKY
 from phigenesis.models.gaussians import GaussianScene
 from phigenesis.models.stage1 import pixel_rays
+from phigenesis.taxonomy import NUM_CLASSES, SKY
 
 #: Lifted Gaussians' opacity, logit of their true class (softmax ~ 1) and the speed above which
 #: they move (m/s).

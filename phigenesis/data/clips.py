@@ -24,11 +24,11 @@ from torch import Tensor
 
 from phigenesis import geometry
 from phigenesis.data.loader import FrameDataset
+from phigenesis.data.memory_cache import BoundedCache, tensor_bytes
 from phigenesis.data.schema import cameras_of
 from phigenesis.data.shards import CacheReader
-from phigenesis.data.taxonomy import IGNORE_ID
-from phigenesis.train.memory_cache import BoundedCache, tensor_bytes
-from phigenesis.train.views import resize_images, resize_intrinsics, resize_nearest
+from phigenesis.data.views import resize_images, resize_intrinsics, resize_nearest
+from phigenesis.taxonomy import IGNORE_ID
 
 #: A box moving faster than this (m/s) makes its pixels dynamic.
 MOVING_MPS = 0.5
@@ -76,6 +76,16 @@ class Clip:
     targets: ViewSet
     #: The loaded cache frames by scene frame index (loader dicts), when the caller asked to keep them.
     frames: dict[int, dict[str, Any]] | None = None
+
+
+def clip_inputs(clips: list[Clip]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(images, intrinsics, world_from_camera, time_s) of a batch of clips, as the model takes them."""
+    return (
+        torch.stack([c.context.images for c in clips]),
+        torch.stack([c.intrinsics for c in clips]),
+        torch.stack([c.context.world_from_camera for c in clips]),
+        torch.stack([c.context.time_s for c in clips]).float(),
+    )
 
 
 @dataclass(frozen=True)
