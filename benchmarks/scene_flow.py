@@ -39,8 +39,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _report beside it, as a script or with -m
 from _report import Report, add_update_flag
 
+from phigenesis import taxonomy as tx
 from phigenesis.data import codec
-from phigenesis.data import taxonomy as tx
 from phigenesis.data.pipeline import load_pipeline
 from phigenesis.data.records import CameraDepth, Frame
 from phigenesis.data.sources.synthetic import SyntheticConfig, SyntheticScene, synthetic_scene

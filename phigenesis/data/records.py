@@ -7,7 +7,7 @@ Frames and units (see ../geometry.py for the conventions):
 - ``camera``: OpenCV axes (x right, y down, z forward).
 - Time: int64 microseconds (``*_micros``). Transforms: 4x4 float64 ``target_from_source``.
 - Boxes: upright, centre/size/yaw in the world frame, size as (length, width, height).
-- Semantic ids: the unified taxonomy in :mod:`phigenesis.data.taxonomy` (uint8, 255 = ignore).
+- Semantic ids: the unified taxonomy in :mod:`phigenesis.taxonomy` (uint8, 255 = ignore).
 
 Validation: nothing invalid enters a scene
 ------------------------------------------

@@ -18,8 +18,8 @@ from typing import Any, Literal, get_args
 import numpy as np
 import pyarrow as pa
 
+from phigenesis import taxonomy as tx
 from phigenesis.data import codec
-from phigenesis.data import taxonomy as tx
 from phigenesis.data.lidar_range import LidarRangeImage, with_sweep_values
 from phigenesis.data.rangeview import RangeViewLayout, ViewPlacement
 from phigenesis.data.records import (

@@ -34,7 +34,7 @@ unknown, ``*_ref_px`` lengths are pixels at ``REFERENCE_FOCAL_PX`` scaled to the
    **Lines** (``line_planes``): a segment whose known pixels lie along one line (a single scan
    line across a lawn or up a wall's foot) fixes no plane by itself, only the planes through
    that line; its pseudo-semantic label says which: a segment labelled ground
-   (:data:`~phigenesis.data.taxonomy.GROUND_IDS`) takes the plane through the line that is closest
+   (:data:`~phigenesis.taxonomy.GROUND_IDS`) takes the plane through the line that is closest
    to level (two-point hypotheses with the line's horizontal normal, least squares along the
    inliers' main axis; the line within ``max_tilt_deg`` of level and ``min_line_m`` long; the
    same for a strip of a few scan lines too narrow across to fix its tilt, whose free fit tilts
@@ -156,7 +156,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import CameraImage, Frame, LazyFrames, Scene
 from phigenesis.data.stages import register_stage
 from phigenesis.data.stages.aggregate import ego_boxes_of

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.stages.completion.facades import _FacadeFills
 from phigenesis.data.stages.completion.params import (
     _SIN_GOOD_INCIDENCE,

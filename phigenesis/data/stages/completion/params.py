@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.records import DENSE_ORIGINS
 from phigenesis.options import ConfigError, check_options, from_mapping, option
 

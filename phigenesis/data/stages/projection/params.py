@@ -9,7 +9,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from phigenesis.data import taxonomy as tx
+from phigenesis import taxonomy as tx
 from phigenesis.data.camera_tables import ray_box_depths as ray_box_depths  # re-exported
 from phigenesis.data.records import (
     DEPTH_ORIGINS,
