@@ -37,7 +37,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from phigenesis import __version__
 from phigenesis.data.cache.checksums import ShardInfo
 from phigenesis.data.cache.files import (
     MANIFEST_NAME,
@@ -54,6 +53,7 @@ from phigenesis.data.cache.manifest import Manifest, SceneEntry
 from phigenesis.data.cache_lock import LOCK_NAME, CacheLock
 from phigenesis.data.schema import SCHEMA_VERSION
 from phigenesis.errors import CacheError, PrepError, argument
+from phigenesis.version import __version__
 
 #: The output folder and the overwrite switch, as a message names them (Python or command line).
 OUT = argument("out", "--out")

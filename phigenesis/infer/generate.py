@@ -26,7 +26,6 @@ import cv2
 import numpy as np
 import torch
 
-from phigenesis import __version__
 from phigenesis.data import records
 from phigenesis.data.cache_run import writing_cache
 from phigenesis.data.colormap import FONT, PANEL_RGB, TEXT_RGB
@@ -43,6 +42,7 @@ from phigenesis.data.schema import CacheContents, frame_schema, frame_to_batch
 from phigenesis.data.shards import MANIFEST_NAME, SceneEntry, ShardInfo, ShardWriter, atomic_write_bytes
 from phigenesis.export.ply import write_ply
 from phigenesis.rollout.runner import HOLE_ALPHA, GenerateOptions, Rollout, Stage2Runner
+from phigenesis.version import __version__
 
 log = logging.getLogger(__name__)
 
