@@ -26,6 +26,7 @@ from phigenesis.data.stages.project import (
     silhouette_pixels,
     static_points_per_camera,
     thinning_strides,
+    tiles_reaching,
     window_moments,
 )
 from tests.test_depth_stages import _camera, _wall
@@ -413,3 +414,74 @@ def test_thinned_static_points_take_a_uniform_prefix_of_each_far_flat_tile():
     far = thinned[(thinned[:, 0] > 72.0) & (thinned[:, 0] < 80.0)]
     counts = np.histogram(far[:, 1], bins=8, range=(-8.0, 8.0))[0]
     assert counts.min() > 0.7 * counts.mean()
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    tilt_deg=st.floats(0.0, 3.0),
+    yaw=st.floats(-3.1, 3.1),
+    limit_deg=st.floats(5.0, 9.0),
+    seed=st.integers(0, 1000),
+)
+def test_skipping_tiles_below_the_band_keeps_the_lidar_top_test_exact(
+    tilt_deg: float, yaw: float, limit_deg: float, seed: int
+):
+    """Points of tiles that cannot reach the band's bottom take no part in the test: the result on
+    the others equals the test over all points, the ego pitched and rolled."""
+    rng = np.random.default_rng(seed)
+    ground = rng.uniform([-120, -120, -0.3], [120, 120, 0.3], size=(20000, 3))
+    towers = rng.uniform([-120, -120, 0.0], [120, 120, 25.0], size=(60, 3))
+    pts = np.concatenate([ground, towers]).astype(np.float32)
+    sorted_pts, keys, start = _tile_sort(pts)
+    lidar_map = LidarMap(sorted_pts, keys, start, 0.05, frozenset(), frozenset(), {}, [])
+    tilt = np.radians(tilt_deg)
+    rotation = _yaw(yaw) @ np.array(
+        [[1, 0, 0], [0, np.cos(tilt), -np.sin(tilt)], [0, np.sin(tilt), np.cos(tilt)]]
+    )
+    world_from_ego = geometry.make_transform(rotation, [3.0, -2.0, 0.1])
+    sensor = geometry.transform_points(world_from_ego, np.array([[1.0, 0.0, 2.0]]))[0]
+    tiles = np.arange(len(keys))
+    limit, band = np.radians(limit_deg), np.radians(1.5)
+    high = tiles_reaching(
+        lidar_map.tile_centres(tiles), lidar_map.tile_heights(tiles)[1], sensor, world_from_ego, limit - band
+    )
+    assert 0 < high.sum() < len(tiles)
+    full = seen_past_lidar_top(sorted_pts, sensor, world_from_ego, limit, band, np.radians(0.5))
+    tested = np.repeat(high, lidar_map.tile_counts(tiles))
+    part = np.ones(len(sorted_pts), bool)
+    part[tested] = seen_past_lidar_top(
+        sorted_pts[tested], sensor, world_from_ego, limit, band, np.radians(0.5)
+    )
+    np.testing.assert_array_equal(part, full)
+
+
+def test_the_tile_skip_counts_the_egos_tilt():
+    """Nose down by 3 deg, a far facade top 5.5 deg up in the ego's axes (above a 5 deg field) is
+    only 2.5 deg up in the world's, and the nearer wall hiding it 1 deg: both tiles must be tested."""
+    pitch = np.radians(3.0)
+    pitch_down = np.array([[np.cos(pitch), 0, np.sin(pitch)], [0, 1, 0], [-np.sin(pitch), 0, np.cos(pitch)]])
+    world_from_ego = geometry.make_transform(pitch_down, [0.0, 0.0, 0.0])
+    sensor_ego = np.array([0.0, 0.0, 2.0])
+
+    def ahead(range_m: float, elevation_deg: float, lateral_m: float = 0.0) -> list[float]:
+        return [range_m, lateral_m, sensor_ego[2] + range_m * np.tan(np.radians(elevation_deg))]
+
+    ego_points = [ahead(100.0, 5.5)] + [ahead(30.0, 4.0, y) for y in np.linspace(-1, 1, 9)]
+    ego_points += [[x, y, 0.0] for x in np.arange(5.0, 120.0, 4.0) for y in (-6.0, 6.0)]
+    pts = geometry.transform_points(world_from_ego, np.array(ego_points)).astype(np.float32)
+    sorted_pts, keys, start = _tile_sort(pts)
+    lidar_map = LidarMap(sorted_pts, keys, start, 0.05, frozenset(), frozenset(), {}, [])
+    sensor = geometry.transform_points(world_from_ego, sensor_ego[None])[0]
+    limit, band, step = np.radians(5.0), np.radians(1.5), np.radians(0.5)
+    full = seen_past_lidar_top(sorted_pts, sensor, world_from_ego, limit, band, step)
+    far = np.flatnonzero(np.isclose(sorted_pts[:, 0], pts[0, 0]) & np.isclose(sorted_pts[:, 2], pts[0, 2]))
+    assert not full[far].any()  # hidden by the wall the top beams see
+    tiles = np.arange(len(keys))
+    high = tiles_reaching(
+        lidar_map.tile_centres(tiles), lidar_map.tile_heights(tiles)[1], sensor, world_from_ego, limit - band
+    )
+    tested = np.repeat(high, lidar_map.tile_counts(tiles))
+    part = np.ones(len(sorted_pts), bool)
+    part[tested] = seen_past_lidar_top(sorted_pts[tested], sensor, world_from_ego, limit, band, step)
+    np.testing.assert_array_equal(part, full)
+    assert not high.all()

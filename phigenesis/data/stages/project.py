@@ -92,6 +92,7 @@ from phigenesis.data.stages.projection.candidates import (  # noqa: F401 (re-exp
     sweep_points,
     thinning_strides,
     tiles_in_view,
+    tiles_reaching,
 )
 from phigenesis.data.stages.projection.edges import (  # noqa: F401 (re-exported)
     CameraPixels,

@@ -245,6 +245,28 @@ def footprint_budgets(
     return np.minimum(budget, np.iinfo(np.int64).max // 2).astype(np.int64)
 
 
+def tiles_reaching(
+    centres_xy: NDArray[np.float64],
+    z_high: NDArray[np.float32],
+    sensor_world: NDArray[np.float64],
+    world_from_ego: NDArray[np.float64],
+    elevation_rad: float,
+) -> NDArray[np.bool_]:
+    """(K,) False for map tiles (x-y centres, highest z; world frame, metres) none of whose points
+    can lie at or above ``elevation_rad`` seen from ``sensor_world`` in the ego's axes: the tile's
+    top over its nearest horizontal distance, plus the ego's tilt from the world's vertical (the
+    elevation of a point changes by at most that angle between the two frames)."""
+    if elevation_rad <= 0:
+        return np.ones(len(centres_xy), bool)
+    tilt = float(np.arccos(np.clip(world_from_ego[2, 2], -1.0, 1.0)))
+    near_m = np.hypot(*(centres_xy - sensor_world[:2]).T) - TILE_M / np.sqrt(2.0)
+    rise_m = z_high.astype(np.float64) - sensor_world[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        elevation = np.where(near_m > 0, np.arctan2(rise_m, near_m), np.pi / 2)
+    elevation = np.where(rise_m <= 0, 0.0, elevation)  # a tile below the sensor stays below it
+    return elevation + tilt >= elevation_rad
+
+
 def static_points_per_camera(
     frame: Frame, lidar_map: LidarMap, params: ProjectParams
 ) -> list[NDArray[np.float32]]:
@@ -294,7 +316,18 @@ def static_points_per_camera(
         sensor = position
     limit = lidar_map.max_elevation_rad + np.radians(params.elevation_margin_deg)
     band, bin_width = np.radians(params.top_band_deg), np.radians(params.top_bin_deg)
-    seen = seen_past_lidar_top(points, sensor, frame.world_from_ego, limit, band, bin_width)
+    # Only tiles that may hold a point at or above the band's bottom can change the test's outcome
+    # (its profile is built from band points, and it drops only points above the field): a tile's
+    # highest point seen from its nearest possible position bounds its points' elevations.
+    high = tiles_reaching(
+        centres[used], lidar_map.tile_heights(tiles[used])[1], sensor, frame.world_from_ego, limit - band
+    )
+    seen = np.ones(len(points), bool)
+    if high.any():
+        tested = np.repeat(high, counts)
+        seen[tested] = seen_past_lidar_top(
+            points[tested], sensor, frame.world_from_ego, limit, band, bin_width
+        )
     # The test applied once; each tile's kept points stay contiguous, so every image takes its
     # tiles' slices (the same points in the same order as a mask per image over all of them,
     # without five masks and gathers over tens of millions of points on a long segment).
