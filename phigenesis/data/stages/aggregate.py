@@ -755,18 +755,25 @@ def _tile_sort(
 ) -> tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.int64]]:
     """Points sorted by tile, the sorted occupied tile keys and their start offsets.
 
-    Within a tile the points come in a pseudo-random order (a hash of their position in
-    ``points``), so any prefix of a tile is a uniform subset of it: the projection takes a far
+    Within a tile the points come in a pseudo-random order (a hash of their position in the
+    tile-sorted array), so any prefix of a tile is a uniform subset of it: the projection takes a far
     tile's first points rather than every k-th, which on a saturated voxel grid sorted by key
     would keep whole rows and drop the rows between them."""
     tiles = np.floor(points[:, :2] / TILE_M).astype(np.int64)
     keys = _tile_key(tiles[:, 0], tiles[:, 1])
-    shuffle = (_mix64(np.arange(len(points), dtype=np.int64)) >> np.uint64(32)).astype(np.uint32)
-    order = np.lexsort((shuffle, keys))
-    del shuffle
+    del tiles
+    order = np.argsort(keys, kind="stable")
     keys = keys[order]
     unique, first = np.unique(keys, return_index=True)
-    return points[order], unique, np.append(first, len(keys)).astype(np.int64)
+    start = np.append(first, len(keys)).astype(np.int64)
+    del keys
+    points = points[order]
+    del order
+    # Tile by tile, so the shuffle's temporaries stay the size of a tile, not of the map.
+    for a, b in zip(start[:-1].tolist(), start[1:].tolist(), strict=True):
+        if b - a > 1:
+            points[a:b] = points[a:b][np.argsort(_mix64(np.arange(a, b, dtype=np.int64)))]
+    return points, unique, start
 
 
 def _mix64(x: NDArray[np.int64]) -> NDArray[np.uint64]:
