@@ -104,6 +104,7 @@ class _Planted:
         steps, batch: how long and how wide (one entry for two keys).
         mode: the mode; it goes on
             over two lines.
+        rate ... weights: a span of fields.
     """
 
     steps: int = option(1000, ge=1, le=10**9)
@@ -129,7 +130,10 @@ def test_configs_md_shows_each_option_type_default_range_and_help():
         in text
     )
     assert "| `mode` | str | `a` | - | the help wins over the docstring |" in text
-    assert "| `weights` | mapping of float | `{rgb: 1.0}` | [0, inf); keys: rgb, depth | - |" in text
+    assert (
+        "| `weights` | mapping of float | `{rgb: 1.0}` | [0, inf); keys: rgb, depth | a span of fields. |"
+        in text
+    )
     assert "| `inner` | [_Inner](#_inner) | its defaults ([_Inner](#_inner)) | - | - |" in text
     assert "## Nested configs" in text and "| `size` | int | `8` | [1, 64] | side in pixels. |" in text
 
@@ -138,6 +142,8 @@ def test_attribute_docs_read_multi_name_and_continued_entries():
     docs = reference.attribute_docs(_Planted)
     assert docs["steps"] == docs["batch"] == "how long and how wide (one entry for two keys)."
     assert docs["mode"] == "the mode; it goes on over two lines."
+    assert docs["rate"] == docs["weights"] == "a span of fields."
+    assert "inner" not in docs
     assert reference.attribute_docs(_Inner) == {"size": "side in pixels."}
 
 

@@ -258,9 +258,21 @@ def summary(obj: Any) -> str:
     return markdown_text(doc.split("\n\n", 1)[0]) if doc else ""
 
 
+def _field_span(cls: type, names: str) -> list[str]:
+    """The fields an entry names: ``a`` itself, or ``a ... b`` every field from a to b."""
+    if "..." not in names:
+        return [names]
+    first, last = (n.strip() for n in names.split("...", 1))
+    order = [f.name for f in dataclasses.fields(cls)] if dataclasses.is_dataclass(cls) else []
+    if first in order and last in order:
+        return order[order.index(first) : order.index(last) + 1]
+    return [first, last]
+
+
 def attribute_docs(cls: type) -> dict[str, str]:
     """Each field's text in the ``Attributes:`` section of ``cls``'s docstring (Google style; an
-    entry may name several fields: ``steps, batch_size: ...``)."""
+    entry may name several fields: ``steps, batch_size: ...``, or a
+    span of them in declaration order: ``max_depth_m ... keep_tau: ...``)."""
     lines = _own_docstring(cls).splitlines()
     start = next((i for i, line in enumerate(lines) if line.strip() == "Attributes:"), None)
     if start is None:
@@ -275,10 +287,10 @@ def attribute_docs(cls: type) -> dict[str, str]:
         if depth <= base:
             break
         indent = depth if indent is None else indent
-        match = re.match(r"([\w ,]+):(?:\s|$)(.*)", line.strip())
+        match = re.match(r"([\w ,.]+):(?:\s|$)(.*)", line.strip())
         if depth == indent and match:
             names = [n.strip() for n in match.group(1).split(",") if n.strip()]
-            entries.append((names, [match.group(2)]))
+            entries.append(([m for n in names for m in _field_span(cls, n)], [match.group(2)]))
         elif entries:
             entries[-1][1].append(line.strip())
     return {name: markdown_text(" ".join(text)) for names, text in entries for name in names}
