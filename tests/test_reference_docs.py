@@ -199,3 +199,46 @@ def test_the_command_line_writes_and_checks(tmp_path: Path, capsys: pytest.Captu
     (tmp_path / "README.md").write_text("stale\n")
     assert reference.main(["--out", str(tmp_path), "--check"]) == 1
     assert f"stale: {tmp_path / 'README.md'}" in capsys.readouterr().out
+
+
+#: Configs of options that configs.md leaves out: how a spec is held in memory, not what a YAML
+#: file holds (configs.md describes the spec's keys in words, from pipeline.SPEC_KEYS).
+NOT_IN_CONFIGS_MD = {"phigenesis.data.pipeline.PipelineSpec", "phigenesis.data.pipeline.StageSpec"}
+
+
+def _configs_in_the_package() -> set[str]:
+    """Every class of the package whose ``__post_init__`` calls ``check_options`` (a config)."""
+    import ast
+
+    found = set()
+    for path in sorted((ROOT / "phigenesis").rglob("*.py")):
+        module = ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.ClassDef):
+                continue
+            calls = [
+                n
+                for item in node.body
+                if isinstance(item, ast.FunctionDef) and item.name == "__post_init__"
+                for n in ast.walk(item)
+                if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "check_options"
+            ]
+            if calls:
+                found.add(f"{module}.{node.name}")
+    return found
+
+
+def test_configs_md_documents_every_config_of_the_package(generated: dict[str, str]):
+    configs = _configs_in_the_package()
+    assert len(configs) > 20 and configs >= NOT_IN_CONFIGS_MD
+    missing = sorted(c for c in configs - NOT_IN_CONFIGS_MD if f"`{c}`" not in generated["configs.md"])
+    assert missing == [], "add them to phigenesis.cli.reference.config_groups"
+
+
+def test_configs_md_documents_every_registered_stage(generated: dict[str, str]):
+    from phigenesis.data.stages import STAGES, get_stage
+
+    get_stage("aggregate_lidar")
+    assert len(STAGES) >= 10
+    for name in STAGES:
+        assert f"\n### {name}\n" in generated["configs.md"], name

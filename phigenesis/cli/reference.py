@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from phigenesis.cli.common import Parser, plain_text
+from phigenesis.options import BOUNDS_KEY, HELP_KEY, option_bounds
 
 #: Where the generated files live, relative to the repository root.
 REFERENCE_DIR = Path("docs") / "reference"
@@ -356,9 +357,6 @@ def _default(field: dataclasses.Field, hint: Any) -> str:
 
 
 def range_words(field: dataclasses.Field) -> str:
-    # a lazy import would do as well: options is core and imports nothing of the CLI
-    from phigenesis.options import option_bounds
-
     bounds = option_bounds(field)
     parts = [bounds.interval()] if bounds.is_bounded() else []
     if bounds.allow_inf:
@@ -371,9 +369,6 @@ def range_words(field: dataclasses.Field) -> str:
 def field_help(cls: type, field: dataclasses.Field, shared: dict[int, str]) -> str:
     """A field's help: its ``option(help=...)``, else its entry in the class's ``Attributes:``,
     else (a field declared ``same_as`` another config's) the help of the field it copies."""
-    # options is core: the CLI layer may import it anywhere
-    from phigenesis.options import BOUNDS_KEY, HELP_KEY
-
     text = field.metadata.get(HELP_KEY) or attribute_docs(cls).get(field.name, "")
     if not text and BOUNDS_KEY in field.metadata:
         text = shared.get(id(field.metadata[BOUNDS_KEY]), "")
@@ -383,9 +378,6 @@ def field_help(cls: type, field: dataclasses.Field, shared: dict[int, str]) -> s
 def _shared_helps(classes: Iterable[type]) -> dict[int, str]:
     """The help of every field of ``classes`` that has one, keyed by its Bounds object's id: a
     field declared with ``same_as`` holds the very Bounds of the field it copies."""
-    # options is core: the CLI layer may import it anywhere
-    from phigenesis.options import BOUNDS_KEY, HELP_KEY
-
     out: dict[int, str] = {}
     for cls in classes:
         docs = attribute_docs(cls)
