@@ -481,12 +481,14 @@ def main() -> None:
                 + " ".join(f"{c[k]:12d}" for k in (*ISSUE_KINDS, "docstring", "flag_default"))
                 + f"  {total:5d}"
             )
+        code = [sum(c[k] for k in ISSUE_KINDS if k != "prose") for c in options.values()]
         with_all = [sum(c.values()) for c in options.values()]
-        print(
-            f"per option (issue's kinds): mean {sum(totals) / len(totals):.2f}, max {max(totals)}; "
-            "with docstring and literal defaults: "
-            f"mean {sum(with_all) / len(with_all):.2f}, max {max(with_all)}"
-        )
+        for label, values in (
+            ("code (field, post_init, flag, flag_range, copy)", code),
+            ("+ prose (the issue's kinds)", totals),
+            ("+ docstring entries and literal flag defaults", with_all),
+        ):
+            print(f"  per option, {label}: mean {sum(values) / len(values):.2f}, max {max(values)}")
     mapped, allowed, unmapped = _flag_summary()
     print(f"\nflags: {mapped} map to one config field, {allowed} allow-listed, {len(unmapped)} unmapped:")
     for flag in unmapped:
