@@ -873,7 +873,7 @@ def test_folders_named_like_the_bundled_pipelines_do_not_shadow_them(
         "nuscenes",
         "synthetic",
     ]
-    # the README's try-it command: segments converted from a folder called waymo/
+    # the guide's try-it command (docs/guide/sources.md): segments converted from a folder called waymo/
     with pytest.raises(PrepError) as error:  # the empty input folder, not the pipeline, is the problem
         prep.waymo(tmp_path / "waymo-cache", input="waymo", progress=False)
     assert f"{tmp_path / 'waymo'}: " in str(error.value) and "pipeline spec" not in str(error.value)

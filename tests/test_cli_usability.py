@@ -1,6 +1,6 @@
 """The commands as a user meets them: Ctrl-C ends in one line saying what was kept (exit 130), errors
-read as their own message, help text has no Sphinx markup, and the README's promises about the
-checkout (ignored folders, where the real samples are looked for) hold."""
+read as their own message, help text has no Sphinx markup, and the README's and the guide's promises
+about the checkout (ignored folders, where the real samples are looked for) hold."""
 
 from __future__ import annotations
 
@@ -35,6 +35,8 @@ from phigenesis.train.runner import latest_checkpoint, read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
+#: The README and the guide's pages (docs/guide/), whose commands a user copies as well.
+DOCS = "\n".join([README, *(p.read_text() for p in sorted((ROOT / "docs" / "guide").glob("*.md")))])
 BIN = Path(sys.executable).parent
 TINY_CONFIG = ROOT / "configs" / "stage1" / "tiny.yaml"
 
@@ -495,17 +497,17 @@ def test_plain_text_keeps_what_sphinx_shows_of_each_role() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# The README's promises about the checkout
+# The README's and the guide's promises about the checkout
 
 
 def _readme_made_paths() -> set[str]:
-    """What the README's commands create in the working directory: their --out, --picture and
-    phigenesis-synth output paths."""
-    blocks = re.findall(r"```bash\n(.*?)```", README, re.S) + re.findall(r"`(\.venv/bin/[^`]+)`", README)
+    """What the README's and the guide's commands create in the working directory: their --out,
+    --picture and phigenesis-synth output paths (absolute paths are outside the checkout)."""
+    blocks = re.findall(r"```bash\n(.*?)```", DOCS, re.S) + re.findall(r"`(\.venv/bin/[^`]+)`", DOCS)
     made = set()
     for block in blocks:
         made |= set(re.findall(r"--(?:out|picture) (\S+)", block))
-    return {m for m in made if not m.startswith(("DIR", "runs/NAME", "x."))}
+    return {m for m in made if not m.startswith(("DIR", "runs/NAME", "x.", "/"))}
 
 
 def test_the_readme_commands_make_only_paths_git_ignores() -> None:
@@ -521,7 +523,7 @@ def test_the_readme_commands_make_only_paths_git_ignores() -> None:
     } <= made
     for path in sorted(made):
         ignored = subprocess.run(["git", "check-ignore", "-q", "--no-index", path], cwd=ROOT, check=False)
-        assert ignored.returncode == 0, f"{path} (made by a README command) is not in .gitignore"
+        assert ignored.returncode == 0, f"{path} (made by a README or guide command) is not in .gitignore"
 
 
 def test_the_readme_says_how_to_make_the_held_out_cache_as_the_benchmark_does() -> None:
@@ -544,7 +546,7 @@ def test_the_real_sample_skip_message_and_the_readme_name_every_place_the_tests_
     ]
     for place in places:
         assert place in reason, reason
-    flat = " ".join(README.split())
+    flat = " ".join((ROOT / "docs" / "guide" / "contributing.md").read_text().split())
     for place in ("$PHIGENESIS_WAYMO_SAMPLES", "../shared/data/waymo/", "/work/shared/data/waymo/"):
         assert place in flat
 

@@ -1,6 +1,6 @@
-"""A cache is readable by other tools the README names, as the README shows it: pandas, Polars,
-Hugging Face ``datasets`` and DuckDB, each run from the README's own snippet, without importing
-phigenesis."""
+"""A cache is readable by other tools the guide names, as the guide shows it (docs/guide/caches.md):
+pandas, Polars, Hugging Face ``datasets`` and DuckDB, each run from the guide's own snippet, without
+importing phigenesis."""
 
 from __future__ import annotations
 
@@ -10,13 +10,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-README = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+#: The guide's page on caches, which holds the snippets (the README links to it).
+README = (Path(__file__).resolve().parents[1] / "docs" / "guide" / "caches.md").read_text()
 
 
 def readme_snippet(marker: str, cache: Path) -> str:
-    """The README's Python block between ``<!-- marker -->`` and ``<!-- /marker -->``, reading ``cache``."""
+    """The guide's Python block between ``<!-- marker -->`` and ``<!-- /marker -->``, reading ``cache``."""
     found = re.search(rf"<!-- {marker} -->\n```python\n(.*?)```\n<!-- /{marker} -->", README, re.S)
-    assert found, f"the README has no {marker} example"
+    assert found, f"docs/guide/caches.md has no {marker} example"
     code = found.group(1)
     assert 'pathlib.Path("cache")' in code
     return code.replace('pathlib.Path("cache")', f"pathlib.Path({str(cache)!r})")
