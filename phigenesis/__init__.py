@@ -4,7 +4,7 @@ The public API, each name loaded on first use (``import phigenesis`` itself stay
 
 - Caches: :mod:`phigenesis.prep` (``prep.synthetic``, ``prep.waymo``, ``prep.nuscenes``,
   ``prep.verify``, ``prep.preview``: the functions behind ``phigenesis-prep``); :class:`FrameDataset`
-  reads a cache into torch, :class:`CacheReader` reads its rows.
+  (with :func:`collate_frames`) reads a cache into torch, :class:`CacheReader` reads its rows.
 - Training: :func:`train_vae`, :func:`train_segmenter`, :func:`train_stage1`, :func:`train_stage2`.
 - Evaluation: :func:`evaluate_stage1`, :func:`evaluate_stage2`.
 - Use: :func:`generate` (Stage 2 rollouts as a cache), :func:`render` (a cache as another rig sees
@@ -23,6 +23,7 @@ from phigenesis.version import __version__
 _API = {
     "prep": "phigenesis.prep",
     "FrameDataset": "phigenesis.data.loader",
+    "collate_frames": "phigenesis.data.loader",
     "CacheReader": "phigenesis.data.shards",
     "train_vae": "phigenesis.train.vae",
     "train_segmenter": "phigenesis.train.segmenter",
