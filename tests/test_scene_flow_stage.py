@@ -340,6 +340,7 @@ def test_camera_flow_records_refuse_maps_of_another_size():
 
 def test_stage1_takes_moving_pixels_from_the_flow_maps_leaving_unconfident_ones_unknown():
     import torch
+
     from phigenesis.data.clips import MIN_FLOW_CONFIDENCE, _stage_flow_pixels
 
     flow = torch.zeros(1, 3, 2, 3)

@@ -4,7 +4,7 @@ Entry points: :func:`range_view_layout` (where each view goes, and the overlap m
 :func:`pack_range_view` (a frame's RGB, depth, semantics and rays as one image each);
 :meth:`RangeViewLayout.pack` / :meth:`RangeViewLayout.unpack` move any per-view plane in and out.
 
-Layout rule (also in docs/ARCHITECTURE.md, "Range views"):
+Layout rule (also in docs/design/rangeview.md):
 
 - **Order.** Views go left to right by the azimuth of their optical axis in the ego frame, decreasing
   (as seen from the driver's seat: left side, front, right side), the panorama cut at the rear
