@@ -38,13 +38,14 @@ ray is, differentiating in ``d``::
     d(x/z)/dd = (a_x z - x a_z) / z^2        d(y/z)/dd = (a_y z - y a_z) / z^2
     du/dd = fx d(x/z)/dd + skew d(y/z)/dd    dv/dd = fy d(y/z)/dd
 
-and ``LP = |(du/dd, dv/dd)|`` in px/m (the reference note's formula, with the skew term added; it
-is the note's exactly when skew = 0). LP is 0 for that history view where ``z`` is below
+and ``LP = |(du/dd, dv/dd)|`` in px/m (the derivative of the source-view projection in depth that
+Park et al., "Time Will Tell", arXiv:2210.02443, call localization potential, with the skew term
+added; theirs when skew = 0). LP is 0 for that history view where ``z`` is below
 :data:`phigenesis.geometry.MIN_PROJECTION_DEPTH_M` (behind the history camera), where the projection
 leaves the history image, and, given the history views' own depth maps, where the point is occluded
 there; over several history views the largest counts. For a history camera displaced by a baseline
-``b`` perpendicular to the optical axis, a point on the axis at depth ``d`` has ``LP = f b / d^2``; a
-history camera at the target's position (any rotation) has LP = 0: a pixel's ray projects to one
+``b`` perpendicular to the optical axis, a point on the axis at depth ``d`` has ``LP = f b / d^2``;
+a history camera at the target's position (any rotation) has LP = 0: a pixel's ray projects to one
 point there, whatever its depth.
 
 From LP to u (a choice: the seed does not say)
