@@ -72,9 +72,9 @@ width. Two readings of ``m`` turn it into trust, :data:`LpTrust`:
 Why ``"stable"`` is the default: our Stage 1 predicts depth from each view alone (no stereo
 across the history), so how well the history *could* localise a point says little about how
 right its depth is, while how far a depth error moves the render says directly how wrong the
-render can be. On held-out scenes, pasting the render by u over the same generated frames scored
-0.1-0.2 dB above ``coverage`` with ``"stable"``, and with ``"localised"`` level at +5 frames and
-0.2-0.7 dB below at 1-4 m shifts (docs/ARCHITECTURE.md); trained, ``"stable"`` beats both.
+render can be. Scored on held-out scenes, untrained and trained, ``"stable"`` beats both
+``coverage`` and ``"localised"`` (BENCHMARKS.md, "Stage 2"; docs/design/stage2.md, "Which way LP
+becomes trust").
 Holes, unknown depth (0, NaN, inf) give 0 either way.
 
 Memory and speed: :func:`localization_potential` works in float64 one history camera at a time,
