@@ -2,7 +2,7 @@
 
 Stereo Forcing conditions Stage 2 on ``SF(u, z_ren) = u * z_ren``: the condition rendered from the
 history's 4D Gaussians at a target camera, scaled by a map ``u`` that is 1 where the render is to be
-trusted and 0 where the diffusion model is to fill in (the seed paper, "PhiGenesis with Stereo
+trusted and 0 where the diffusion model is to fill in (the PhiGenesis paper, "PhiGenesis with Stereo
 Forcing"). This module makes ``u`` for every target view, at the render's resolution (another
 module pools it to the latent grid), in one of four kinds, :data:`UncertaintyKind`:
 
@@ -48,7 +48,7 @@ there; over several history views the largest counts. For a history camera displ
 a history camera at the target's position (any rotation) has LP = 0: a pixel's ray projects to one
 point there, whatever its depth.
 
-From LP to u (a choice: the seed does not say)
+From LP to u (a choice: the paper does not say)
 -----------------------------------------------
 Stage 1 resolves depth in log-spaced bins (``DepthBins``), so a depth error of one bin at depth
 ``d`` spans ``delta_d = 2 d sinh(step / 2)`` metres (``step`` the bin's width in natural log
