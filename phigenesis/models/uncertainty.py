@@ -9,7 +9,7 @@ module pools it to the latent grid), in one of four kinds, :data:`UncertaintyKin
 - ``"coverage"`` (:func:`coverage_map`): 1 on every rendered pixel, 0 in holes: the "no Stereo
   Forcing" baseline, which trusts the render wherever it has something.
 - ``"random"`` (:func:`random_map`): one uniform level in [0, 1] per square patch, diffusion
-  forcing's per-token noise levels (the seed's "random noise").
+  forcing's per-token noise levels (the paper's "random noise").
 - ``"entropy"`` (:func:`entropy_map`): ``1 - H / log K`` of the rendered entropy of Stage 1's depth
   distribution over K bins (:mod:`phigenesis.models.depth_bins`).
 - ``"localization_potential"`` (:func:`localization_potential`, then
