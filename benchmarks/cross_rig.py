@@ -1,4 +1,4 @@
-"""The cross-rig experiment (the seed paper's domain-generalisation table, with exact truth instead of a
+"""The cross-rig experiment (the PhiGenesis paper's domain-generalisation table, with exact truth instead of a
 proxy): does training on a cache re-rendered for other cameras help a perception model on another car's
 rig?
 

@@ -14,9 +14,9 @@ counted it. Nothing happens on a C library other than glibc; ``PHIGENESIS_MALLOC
 :func:`avoid_huge_page_faults` turns transparent huge pages off for the process (and the processes
 it starts). NumPy advises the kernel to back every array of 4 MiB or more with 2 MiB pages, so one
 page fault zeroes 2 MiB, and on a virtual machine whose host takes free memory back (free page
-reporting) each such fault also waits for the host: on the Waymo benchmark's VM a v2 frame spent
-7-100 ms in the kernel, in a few such faults, against 2-8 ms with 4 KiB pages
-(``benchmarks/waymo.py``). A converter's arrays live for one frame, so huge pages buy it nothing.
+reporting) each such fault also waits for the host, which can make a frame's time bimodal
+(``benchmarks/waymo.py``; docs/design/waymo.md, "Huge pages off"). A converter's arrays live for
+one frame, so huge pages buy it nothing.
 """
 
 from __future__ import annotations

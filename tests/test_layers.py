@@ -1,4 +1,4 @@
-"""The package's layers (docs/ARCHITECTURE.md, "Layers"): every import between its parts, inside
+"""The package's layers (docs/design/layers.md): every import between its parts, inside
 functions and by ``importlib.import_module`` too, goes down the layers, never up or sideways; and an
 import inside a function says why it is there."""
 

@@ -1,7 +1,9 @@
 """Waymo raw records -> scene model: matrices, Euler poses, range images, cameras, boxes and frames.
 
-Every expected value is computed in the test from the formulas of the Waymo reference notes
-(shared/reference/waymo.md sections 2.1-2.3), written out independently of the library: the
+Every expected value is computed in the test from the formulas of the Waymo Open Dataset's own
+code (https://github.com/waymo-research/waymo-open-dataset: the camera model in
+``src/waymo_open_dataset/wdl_limited/camera/camera_model.cc``, range images to points in
+``utils/range_image_utils.py``, boxes in ``label.proto``), written out independently of the library: the
 elementary rotations, the range-image polar coordinates, the camera projection with distortion,
 the upright box corners.
 """

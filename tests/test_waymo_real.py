@@ -1,4 +1,9 @@
-"""The Waymo v1 reader on the two real frames (read in place, never copied; see SAMPLES_ENV below)."""
+"""The Waymo v1 reader on the two real frames (read in place, never copied; see SAMPLES_ENV below).
+
+The frames are optional data: two single frames of the Waymo Open Dataset's public test data
+(https://github.com/waymo-research/waymo-open-dataset, non-commercial licence), which the project
+does not redistribute. Point $PHIGENESIS_WAYMO_SAMPLES at a folder holding them; without them
+every test here is skipped, naming the places it looked."""
 
 from __future__ import annotations
 

@@ -110,7 +110,7 @@ def add_anchor_options(parser: argparse.ArgumentParser) -> None:
     and ``paste``), what a rollout trusts and keeps of its own output (``generated_trust``, ``spawn_max_u``,
     ``lift_frames``),
     the localization potential's mapping (``lp_trust``) and the history's geometry (``geometry``)."""
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.models.uncertainty import LP_TRUSTS
     from phigenesis.rollout.conditions import GEOMETRY_SOURCES
     from phigenesis.rollout.runner import GenerateOptions

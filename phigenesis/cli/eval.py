@@ -57,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--picture", help="write a PNG of the first clip here")
     s.add_argument("--threads", type=positive, help="torch CPU threads")
 
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.rollout.conditions import UNCERTAINTY_KINDS
 
     d = sub.add_parser("stage2", help="evaluate a Stage 2 model on held-out synthetic scenes")
@@ -119,7 +119,7 @@ def format_stage2_table(report: dict[str, Any]) -> str:
 
 
 def _stage2(args: argparse.Namespace) -> int:
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.eval.stage2 import evaluate_stage2
     from phigenesis.rollout.runner import GenerateOptions, trained_uncertainty
 
@@ -192,7 +192,7 @@ def format_table(report: dict[str, Any]) -> str:
 
 
 def _stage1(args: argparse.Namespace) -> int:
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.eval.stage1 import evaluate_stage1
 
     report = evaluate_stage1(

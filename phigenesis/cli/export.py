@@ -30,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _ply(args: argparse.Namespace) -> int:
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.export.stage1 import export_ply
 
     path = export_ply(

@@ -10,7 +10,7 @@ from phigenesis.cli.common import Parser, add_anchor_options, positive, run
 
 
 def build_parser() -> argparse.ArgumentParser:
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.rollout.conditions import UNCERTAINTY_KINDS
 
     parser = Parser(prog="phigenesis-generate", description=__doc__)
@@ -61,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _generate(args: argparse.Namespace) -> int:
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.infer.generate import generate
     from phigenesis.rollout.runner import GenerateOptions, trained_uncertainty
 

@@ -15,7 +15,7 @@ if TYPE_CHECKING:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.infer.rig_render import GEOMETRIES
     from phigenesis.infer.rigs import NAMED_RIGS
 
@@ -104,7 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _insert_specs(args: argparse.Namespace) -> list[InsertSpec]:
     """The --insert options as InsertSpecs (AssetError naming the option that is wrong)."""
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.infer.insert import AssetError, InsertSpec, load_path_file, parse_keyframe
 
     given = [name for name in ("insert_pose", "insert_path", "insert_class") if getattr(args, name)]
@@ -133,7 +133,7 @@ def _insert_specs(args: argparse.Namespace) -> list[InsertSpec]:
 
 
 def _render(args: argparse.Namespace) -> int:
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.infer.rig_render import render
 
     height, width = args.size if args.size else (None, None)

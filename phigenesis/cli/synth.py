@@ -6,8 +6,7 @@ import os
 
 # numpy's BLAS single-threaded unless the user says otherwise (set before numpy loads): the
 # renderer's matrix products are (N, 3) x (3, 3), where threads gain nothing and, on a busy
-# machine, cost much (measured on 2 cores at load 8-11: a 420k-point transform 0.22 s with two
-# OpenBLAS threads, 0.01 s with one; the waymo preset at render-scale 4, 4.9 against 3.1 s a frame).
+# machine, spinning BLAS threads slow every transform down.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse

@@ -18,7 +18,7 @@ from phigenesis.cli.common import Command, Parser, positive, positive_float, run
 
 
 def build_parser() -> argparse.ArgumentParser:
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.models import list_models
 
     parser = Parser(prog="phigenesis-train", description=__doc__)
@@ -102,7 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _train_stage2(args: argparse.Namespace) -> int:
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.rollout.config import Stage2TrainConfig
     from phigenesis.train.stage2 import train_stage2
 
@@ -133,7 +133,7 @@ def _train_stage2(args: argparse.Namespace) -> int:
 
 
 def _train_stage1(args: argparse.Namespace) -> int:
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.train.stage1 import Stage1TrainConfig, train_stage1
 
     config = Stage1TrainConfig.load(
@@ -166,7 +166,7 @@ def _train_stage1(args: argparse.Namespace) -> int:
 
 
 def _train_vae(args: argparse.Namespace) -> int:
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.train.vae import train_vae
 
     result = train_vae(
@@ -203,7 +203,7 @@ def _train_vae(args: argparse.Namespace) -> int:
 
 
 def _train_segmenter(args: argparse.Namespace) -> int:
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.train.segmenter import train_segmenter
 
     result = train_segmenter(
@@ -245,7 +245,7 @@ COMMANDS: dict[str, Command] = {
 
 def _steps_logged(out: Path) -> int | None:
     """The last step in the run's ``metrics.csv`` (one row per step done), None if there is none."""
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.train.runner import read_metrics
 
     try:
@@ -258,7 +258,7 @@ def _steps_logged(out: Path) -> int | None:
 def run_interrupted(out: str | os.PathLike[str]) -> str:
     """What Ctrl-C leaves of a resumable run (vae, stage1, stage2): the step it reached and the newest
     complete checkpoint, which ``--resume`` continues from."""
-    # imported when the command runs: the CLI imports in 0.1 s, the library in 3-5 s (torch)
+    # imported when the command runs: the library imports torch, which parsing arguments does not need
     from phigenesis.train.runner import kept_step
 
     out = Path(out)

@@ -4,8 +4,8 @@ A camera's pixel rays and the depth at which they meet the ego car's own body de
 calibration (and the body's boxes), not on the frame: the depth projection, the pseudo labels,
 the depth completion and the range view all need them for every image. They are computed here
 once per calibration and shared, read-only, by every stage of every frame of the scenes that use
-that calibration (at full Waymo resolution one camera's rays cost 59 MB, and about 0.03 CPU-s
-with the native kernel, 1.3 CPU-s without it).
+that calibration (at full Waymo resolution one camera's rays are tens of MB, and solving them
+is a per-calibration cost no frame should pay; figures in BENCHMARKS.md, "Prep at real size").
 
 Entry points: :func:`pixel_rays_cam`, :func:`ray_components_of`, :func:`ego_body_depth_of` and
 :func:`ray_extents_of` (per row and per column, the range of the rays' normalised coordinates:
@@ -56,7 +56,7 @@ def undistorted_pixel_rays_reference(cal: CameraCalibration) -> NDArray[np.float
     Equal to ``geometry.unproject_pixels`` of the pixel grid to ~1e-15, several times faster:
     OpenCV's C++ fixed-point undistortion first, then every pixel whose ray does not distort back
     to it within :data:`UNDISTORT_TOLERANCE` (strong distortion, where the fixed point stalls) is
-    solved again with the toolkit's Newton solver (about 1.3 CPU-s at 1920 x 1280).
+    solved again with the toolkit's Newton solver.
     """
     uv = geometry.pixel_grid(cal.width, cal.height)
     if not cal.distortion.any():
@@ -91,8 +91,8 @@ def undistorted_pixel_rays(cal: CameraCalibration) -> NDArray[np.float64]:
     With the native kernel (``csrc/camera_rays.c``) every pixel is solved by Newton's method
     from a prediction (the line through the solutions of the two rows above it) until it
     distorts back to the pixel within :data:`UNDISTORT_TOLERANCE`, then one step more, on the
-    image's own sheet of the distortion (Jacobian determinant > 0): 0.03 instead of 1.3 CPU-s at
-    1920 x 1280. On the real Waymo calibrations it equals :func:`undistorted_pixel_rays_reference`
+    image's own sheet of the distortion (Jacobian determinant > 0), four pixels a vector. On the
+    real Waymo calibrations it equals :func:`undistorted_pixel_rays_reference`
     to 2.8e-16 (normalised units); wherever a solution exists it is within 1e-13 of
     :func:`~phigenesis.geometry.unproject_pixels` and within 2e-12 of the reference (which takes
     OpenCV's points at a residual of 1e-12). Where none does (beyond the fold of a distortion
@@ -183,7 +183,7 @@ class RayComponents:
 def ray_components_from_rays(cal: CameraCalibration, rays_cam: NDArray[np.float64]) -> RayComponents:
     """:class:`RayComponents` of (H * W, 3) z = 1 camera-frame rays (computed in float64, then
     rounded to float32): :func:`ray_components_reference`, in one pass with the native kernel
-    (``csrc/camera_rays.c``: 0.06 -> 0.01 CPU-s at 1920 x 1280) where it builds."""
+    (``csrc/camera_rays.c``) where it builds."""
     kernel = native.load_camera_rays()
     if kernel is None or not rays_cam.flags.c_contiguous:
         return ray_components_reference(cal, rays_cam)
@@ -215,8 +215,8 @@ def ego_body_depth_native(
     cal: CameraCalibration, ego_boxes: Sequence[dict[str, Any]], rays_cam: NDArray[np.float64]
 ) -> NDArray[np.float32] | None:
     """:func:`ego_body_depth_from_rays` with the native kernel (``csrc/camera_rays.c``: every box
-    in one vectorised pass, about 0.02 CPU-s per box at 1920 x 1280, instead of numpy's ~15
-    passes over (H * W, 3) float64 temporaries, 0.8 s per box); None where the kernel cannot be
+    in one vectorised pass, instead of numpy's many passes over (H * W, 3) float64
+    temporaries); None where the kernel cannot be
     built here. Equal to the reference to float32 rounding."""
     kernel = native.load_camera_rays()
     if kernel is None or not rays_cam.flags.c_contiguous:
@@ -284,8 +284,7 @@ def ray_components_of(cal: CameraCalibration) -> RayComponents:
 def ego_body_depth_of(cal: CameraCalibration, ego_boxes: Sequence[dict[str, Any]]) -> NDArray[np.float32]:
     """(H, W) float32 z-depth (m) at which each pixel's ray enters the ego body boxes, inf where
     it misses, read-only: :func:`ego_body_depth_from_rays` (with the native kernel where it
-    builds, :func:`ego_body_depth_native`: 2.7 -> 0.03 CPU-s per 1920 x 1280 camera and three
-    boxes), computed once per calibration and body."""
+    builds, :func:`ego_body_depth_native`), computed once per calibration and body."""
     body = tuple(
         (tuple(float(x) for x in b["center_ego"]), tuple(float(x) for x in b["size_lwh"])) for b in ego_boxes
     )

@@ -10,7 +10,7 @@ What a map's integers mean (the quantisation; unchanged since the PNG encoding):
 - flow (3D velocity): 16-bit x, y, z as ``value = round(v_mps * 256) + 32768``: 3.9 mm/s steps within
   +-128 m/s.
 
-How they are stored (``docs/ARCHITECTURE.md``, "Maps as zstd-compressed arrays", says why): a
+How they are stored (``docs/design/cache.md``, "Maps as zstd-compressed arrays", says why): a
 :data:`HEADER_SIZE`-byte header (:data:`MAGIC`, format version, bytes per value, channels, filter bits,
 height, width, payload length; little-endian) then one zstd frame of the filtered array: rows
 delta-coded (each minus the row above) where that compresses smaller, and 16-bit values split into a

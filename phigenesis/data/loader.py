@@ -109,8 +109,8 @@ def _binary_views(arr: pa.Array) -> list[np.ndarray | None]:
 
 class _CameraFields(Mapping[str, pa.Array]):
     """The camera struct fields of a one-row batch, as :func:`~phigenesis.data.schema.cameras_of`
-    gives them, each taken out of the struct on first use (flattening all 31 fields cost 70 us a
-    frame: a tenth of what reading images costs beyond decoding them at 160x240)."""
+    gives them, each taken out of the struct on first use: a field group uses a few of the
+    struct's fields, and flattening them all would cost every frame for nothing."""
 
     def __init__(self, batch: pa.RecordBatch):
         struct = batch.column("cameras")[0].values
@@ -211,9 +211,8 @@ class _Arenas:
 
     malloc alone recycles one frame's allocation when frames come one at a time, but a worker
     collating a batch frees several at once, and glibc then hands the memory back to the kernel
-    and takes it again, page by page: images alone, batches of 4, the worker spent 22 % (160x240)
-    and 27 % (576x1024) of its time more. At most ``keep`` allocations are kept; beyond that they
-    are malloc's.
+    and takes it again, page by page, each page zeroed by the kernel (BENCHMARKS.md, "Image-only
+    loading"). At most ``keep`` allocations are kept; beyond that they are malloc's.
     """
 
     def __init__(self, keep: int = 8):
@@ -247,7 +246,8 @@ class _Arenas:
 
 #: Most threads a frame's maps are decoded on in one process (more gave nothing on 2-8 cores).
 MAX_DECODE_THREADS = 4
-#: Frames with fewer decoded pixels than this decode on one thread (a handoff costs ~20 us).
+#: Frames with fewer decoded pixels than this decode on one thread (below it, handing maps to
+#: another thread costs more than decoding them).
 MIN_THREADED_PIXELS = 50_000
 
 _pools: dict[tuple[int, int], ThreadPoolExecutor] = {}

@@ -15,11 +15,11 @@ Entry points: :func:`load_range_points`, :func:`load_crc32c_combine`, :func:`loa
 :func:`load_densify_finish`, :func:`load_camera_points`, :func:`load_plane_fits`,
 :func:`load_scene_flow_pixels`.
 
-Turning a Waymo frame's range images into points was a quarter of the v1 reader's time in numpy
-(16 ms of 65 ms a frame: a mask, a gather per channel, the ray arithmetic and the concatenation, each
-its own pass over 170k returns). The kernel does it in one pass over each image, writing every field
-of its returns. It is plain C, built with the system C compiler (``cc``, or ``$CC``) in about a
-second into the native cache folder (:mod:`phigenesis.native_cache`) and loaded with ctypes, so
+Turning a Waymo frame's range images into points in numpy takes a mask, a gather per channel, the
+ray arithmetic and the concatenation, each its own pass over every return. The kernel does it in one
+pass over each image, writing every field of its returns (docs/design/waymo.md, "Range images to
+points in one C pass"). It is plain C, built with the system C compiler (``cc``, or ``$CC``) into
+the native cache folder (:mod:`phigenesis.native_cache`) and loaded with ctypes, so
 reading data never needs torch. When it cannot be built (no compiler, a read-only cache) the reason
 is one warning line, :func:`load_range_points` returns ``None`` and the reader uses its numpy path,
 which the tests hold the kernel against; the shard writer reads its rows a second time to checksum
@@ -128,7 +128,7 @@ class RangePoints:
 
         The arrays are views of the first N rows of arrays of H * W rows (a pixel holds at most
         one return): one pass over the image instead of a count, then a gather, each of which read
-        all of it (3 ms of a Waymo frame's 11). They are meant to be copied into the sweep."""
+        all of it. They are meant to be copied into the sweep."""
         h, w, c = image.shape
         if (cos_incl.shape, sin_incl.shape, time_offsets.shape) != ((h,), (h,), (w,)) or any(
             a.shape != (3, w) for a in (along, up, origin)
@@ -245,7 +245,7 @@ class Crc32cCombine:
 
     def __call__(self, crc_a: int, crc_b: int, length_b: int) -> int:
         """The CRC-32C of bytes A then B from ``crc_a`` = CRC-32C(A), ``crc_b`` = CRC-32C(B) and
-        B's length in bytes (1-2 us, whatever the lengths)."""
+        B's length in bytes, in time independent of the lengths."""
         if length_b < 0:
             raise ValueError(f"crc32c combine: negative length {length_b}")
         return int(self._combine(crc_a, crc_b, length_b))

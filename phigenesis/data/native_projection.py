@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 def _address(a: NDArray) -> int:
     """The address of ``a``'s data (ctypes passes an int to a ``c_void_p`` argument as is; cheaper
-    than ``data_as``, which cost 0.7 ms a Waymo frame)."""
+    than ``data_as``, which builds a ctypes object per call)."""
     return a.__array_interface__["data"][0]
 
 

@@ -4,7 +4,7 @@ Entry points: :func:`range_view_layout` (where each view goes, and the overlap m
 :func:`pack_range_view` (a frame's RGB, depth, semantics and rays as one image each);
 :meth:`RangeViewLayout.pack` / :meth:`RangeViewLayout.unpack` move any per-view plane in and out.
 
-Layout rule (also in docs/ARCHITECTURE.md, "Range views"):
+Layout rule (also in docs/design/rangeview.md):
 
 - **Order.** Views go left to right by the azimuth of their optical axis in the ego frame, decreasing
   (as seen from the driver's seat: left side, front, right side), the panorama cut at the rear
@@ -101,8 +101,8 @@ def _rays(key: _Key) -> NDArray[np.float32]:
 
 
 def camera_rays_ego_reference(cal: CameraCalibration) -> NDArray[np.float32]:
-    """:func:`camera_rays_ego` in numpy ((H, W, 3) float32, about 0.8 CPU-s at 1920 x 1280: a
-    (H * W, 3) float64 matrix product, norm and division); the native kernel
+    """:func:`camera_rays_ego` in numpy ((H, W, 3) float32: a (H * W, 3) float64 matrix product, norm
+    and division over every pixel); the native kernel
     (``csrc/camera_rays.c``) equals it to one float32 rounding."""
     rays = pixel_rays_cam(cal) @ cal.ego_from_camera[:3, :3].T  # (H*W, 3) ego axes
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
@@ -231,8 +231,7 @@ def _overlap(
     in ego axes (:func:`camera_rays_ego`), or float64 camera-frame rays, z = 1
     (:func:`~phigenesis.data.camera_tables.pixel_rays_cam`, made into those directions on the
     way), among all views ``cals``: :func:`_overlap_reference`, with the native kernel
-    (``csrc/camera_rays.c``: one pass, the same arithmetic; 0.3 -> 0.06 CPU-s for a
-    1920 x 1280 view among five) where it builds."""
+    (``csrc/camera_rays.c``: one pass, the same arithmetic) where it builds."""
     kernel = load_camera_rays()
     if kernel is None or len(cals) > NO_VIEW:
         if rays.dtype != np.float32:

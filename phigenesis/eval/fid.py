@@ -39,8 +39,7 @@ TorchScript code and graph show:
 - the batch norms are hard-coded to inference (``training=False``, eps 1e-3), so the module's own
   ``training`` flag (True in the file) changes nothing; the loader sets eval mode anyway;
 - float64 input fails (the batch-norm buffers are float32), so the input is float32;
-- 21.8 M parameters; on 2 shared CPU cores a batch of 8 took 0.7 s to 5.6 s (0.1 to 0.7 s per
-  image, depending on the load of other jobs), loading 0.1 s.
+- 21.8 M parameters: on CPUs, scoring a few hundred images takes minutes, not hours.
 
 Resizing is bilinear (``align_corners=False``) with antialiasing by default
 (``"bilinear_antialias"``): for the usual case, camera images larger than 299 x 299, plain bilinear

@@ -58,8 +58,8 @@ pixels the render has a depth for.
 An ORACLE is scored the same way as a reference for what the representation can reach from the
 context views alone: one Gaussian per context pixel at the true depth with the pixel's colour,
 isotropic scale ``0.3 * depth / focal`` (0.3 pixel footprints: the rasterizer's 0.3 px^2 low-pass
-still closes the gaps between neighbours, and the image is sharper than at the adapter's initial 0.6,
-21.5 -> about 25 dB at 48 x 72), opacity 0.99, its true class
+still closes the gaps between neighbours, and the image is sharper than at the adapter's initial
+0.6), opacity 0.99, its true class
 and, where the truth flow exceeds 0.5 m/s, that velocity; a constant background (the mean colour of
 the context images' sky pixels). ``gap`` is oracle - model for PSNR/SSIM/mIoU/deltas and
 model - oracle for the depth errors (positive = the model is worse), per key of :data:`METRICS`.

@@ -7,7 +7,7 @@ One model family per module; each registers its variants (a factory per named co
 Beside the networks: reading their checkpoints (:mod:`.checkpoint`) and loading trained ones
 (:mod:`.loading`), and the math on their outputs that training, generation and evaluation share
 (rendering views, flow matching, Stereo Forcing, uncertainty maps, the Gaussian buffer, metrics).
-This package imports nothing of the toolkit but its core (docs/ARCHITECTURE.md, "Layers").
+This package imports nothing of the toolkit but its core (docs/design/layers.md).
 """
 
 from __future__ import annotations

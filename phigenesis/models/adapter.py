@@ -97,9 +97,8 @@ def column_base(prior: Tensor, gate: Tensor, floor: str = "far") -> Tensor:
     ``"bottom_row"``, the prior of the column's bottom pixel. Something that runs off the bottom of
     the image (a car beside the ego) stands on ground below the image, which is nearer than the
     bottom row's ground, so the bottom row's prior bounds its depth where "far" put it at 100 camera
-    heights: on the Stage 1 benchmark's held-out frames, with the truth's ground labels as the gate,
-    the carried prior's δ<1.25 on cars 0.43 -> 0.67, trucks 0.54 -> 0.66, AbsRel over all pixels
-    1.47 -> 0.23 (docs/ARCHITECTURE.md)."""
+    heights (docs/design/stage1.md, "The column's floor"; the measurements are in
+    docs/experiments.md)."""
     if floor not in COLUMN_FLOORS:
         raise ValueError(f"column_base: floor must be one of {COLUMN_FLOORS}, got {floor!r}")
     if floor == "far":
@@ -154,15 +153,15 @@ class AdapterConfig:
             (0 in checkpoints made before them).
         head_kernel: kernel size of the head's last convolution (odd): 3 in checkpoints made
             before the choice and in the registered configs; 1 reads only a pixel's own hidden
-            features and priors (the block before it keeps the 3x3 context): 14 % faster
-            ``stage1_tiny`` steps and slightly better depth, but 0.6-1.0 dB lower PSNR at
-            shifted views (docs/ARCHITECTURE.md).
+            features and priors (the block before it keeps the 3x3 context): faster steps,
+            but worse renders at shifted views, so the registered configs keep 3
+            (docs/experiments.md, "Stage 1").
         depth_head_kernel: kernel size of a last layer of the depth outputs' own (the residual,
             the bin logits and the prior gain), or None for one last layer of ``head_kernel``
             for every output (checkpoints made before the choice, and the registered configs).
             1 beside a 3x3 ``head_kernel`` reads depth per pixel and the splats' extent, opacity
-            and colour from their neighbourhood: 7-12 % faster ``stage1_tiny`` steps, depth level
-            with one 3x3 layer, input-view PSNR 0.1-0.8 dB lower (docs/ARCHITECTURE.md).
+            and colour from their neighbourhood: faster steps, depth level with one 3x3 layer,
+            slightly worse photometry (docs/experiments.md, "Stage 1").
     """
 
     feature_channels: tuple[int, ...] = option((64, 32, 16), ge=1, le=8192, help="decoder widths")

@@ -18,7 +18,7 @@ spatial patch size, N = (h / p) (w / p) tokens per view and latent frame, D the 
   condition); ``plucker`` [B, V, 6, T, h, w] the Plücker ray of every latent cell
   (:func:`plucker_rays`). Output: the velocity [B, V, C, T, h, w] in ``z_t``'s dtype. The sign of
   the velocity is the loss's business: the model regresses whatever target the trainer gives it
-  (``d z_t / d t = eps - z_0`` along the path; the seed paper writes ``z_0 - eps``).
+  (``d z_t / d t = eps - z_0`` along the path; the PhiGenesis paper writes ``z_0 - eps``).
 - **Tokens**: one per p x p latent patch of one view and one latent frame (time is not patched, so
   every token has one flow time). Three linear embeddings are summed: the noisy latent patch, the
   condition patch through a *zero-initialised* linear without bias (so the model starts as the

@@ -1,16 +1,18 @@
 """Rectified flow for Stage 2: the noising path, its velocity target, timesteps and an Euler sampler.
 
+The PhiGenesis paper is Lu, Ma et al., "4D Driving Scene Generation With Stereo Forcing".
+
 Conventions (shared by :mod:`phigenesis.models.stereo_forcing` and Stage 2's trainer):
 
 * **Latents** are ``[B, V, C, T, h, w]``: batch, camera views, latent channels, latent frames,
   latent height and width (the video VAE's output for each view).
 * **Flow time** ``t`` is in [0, 1], ``t = 0`` clean and ``t = 1`` pure noise, on the straight path
-  of the seed paper's Preliminary (rectified flow)::
+  of the PhiGenesis paper's Preliminary (rectified flow)::
 
       z_t = (1 - t) z_0 + t eps,        eps ~ N(0, I)
 
-* **Velocity sign**: the network predicts ``v = z_0 - eps``, the seed paper's ``L_RF`` target
-  (MagicDriveDiT, whose multi-view DiT the seed builds on, uses the same sign). It is the
+* **Velocity sign**: the network predicts ``v = z_0 - eps``, the PhiGenesis paper's ``L_RF`` target
+  (MagicDriveDiT, whose multi-view DiT the paper builds on, uses the same sign). It is the
   *denoising* direction, ``v = -dz_t/dt``: the sampler runs time from 1 down to 0 and steps
   *along* ``v``, ``z_{t'} = z_t + (t - t') v`` for ``t' < t``. We keep the paper's sign so that the
   loss reads as the paper writes it; Open-Sora 2 predicts the opposite sign
@@ -25,7 +27,7 @@ towards noise for larger signals by ``t' = r t / (1 + (r - 1) t)`` (:func:`shift
 from the image size and latent length (:func:`resolution_shift`); the sampling grid
 (:func:`time_grid`) takes the same shift.
 
-Guidance (the seed's Stereo Forcing score, ``v(z) + omega [v(z | c) - v(z)]``) combines a
+Guidance (the PhiGenesis paper's Stereo Forcing score, ``v(z) + omega [v(z | c) - v(z)]``) combines a
 conditional and an unconditional pass of the same network; the unconditional input is the
 *zero* condition, which is also what :func:`phigenesis.models.stereo_forcing.stereo_forcing` gives
 for ``u = 0`` and what :func:`phigenesis.models.stereo_forcing.drop_condition` trains on.
@@ -102,7 +104,7 @@ def interpolate(z0: Tensor, eps: Tensor, t: Tensor | float) -> Tensor:
 
 
 def velocity_target(z0: Tensor, eps: Tensor) -> Tensor:
-    """The velocity the network learns, ``v = z_0 - eps`` (the seed's sign: ``-dz_t/dt``, pointing
+    """The velocity the network learns, ``v = z_0 - eps`` (the PhiGenesis paper's sign: ``-dz_t/dt``, pointing
     from noise to data), [B, V, C, T, h, w]."""
     _check_latents(z0, "z0", "velocity_target")
     _check_same_shape(z0, eps, "z0 and eps", "velocity_target")
@@ -183,7 +185,7 @@ def time_grid(steps: int, shift: float = 1.0) -> Tensor:
 
 
 def guided_velocity(v_cond: Tensor, v_uncond: Tensor, omega: float) -> Tensor:
-    """``v_uncond + omega (v_cond - v_uncond)``: the guided velocity (the seed's Stereo Forcing
+    """``v_uncond + omega (v_cond - v_uncond)``: the guided velocity (the PhiGenesis paper's Stereo Forcing
     score with ``v_cond = v(z | SF(u, z_ren))`` and ``v_uncond = v(z)``).
 
     ``omega = 0`` returns ``v_uncond`` and ``omega = 1`` returns ``v_cond`` exactly (the same

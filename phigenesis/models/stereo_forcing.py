@@ -1,8 +1,8 @@
 """Stereo Forcing's condition: a rendered video's latents weighed by a per-pixel map ``u``.
 
 Stage 2 renders the history's 4D Gaussians along the future trajectory, encodes the render with the
-video VAE (``z_ren``) and conditions the diffusion model on it through the seed paper's
-``SF(u, z_ren) = u * z_ren``, guided at sampling time by the seed's score::
+video VAE (``z_ren``) and conditions the diffusion model on it through the PhiGenesis paper's
+``SF(u, z_ren) = u * z_ren``, guided at sampling time by the paper's score::
 
     v(z) + omega [v(z | SF(u, z_ren)) - v(z)]
 

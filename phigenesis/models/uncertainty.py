@@ -2,14 +2,14 @@
 
 Stereo Forcing conditions Stage 2 on ``SF(u, z_ren) = u * z_ren``: the condition rendered from the
 history's 4D Gaussians at a target camera, scaled by a map ``u`` that is 1 where the render is to be
-trusted and 0 where the diffusion model is to fill in (the seed paper, "PhiGenesis with Stereo
+trusted and 0 where the diffusion model is to fill in (the PhiGenesis paper, "PhiGenesis with Stereo
 Forcing"). This module makes ``u`` for every target view, at the render's resolution (another
 module pools it to the latent grid), in one of four kinds, :data:`UncertaintyKind`:
 
 - ``"coverage"`` (:func:`coverage_map`): 1 on every rendered pixel, 0 in holes: the "no Stereo
   Forcing" baseline, which trusts the render wherever it has something.
 - ``"random"`` (:func:`random_map`): one uniform level in [0, 1] per square patch, diffusion
-  forcing's per-token noise levels (the seed's "random noise").
+  forcing's per-token noise levels (the paper's "random noise").
 - ``"entropy"`` (:func:`entropy_map`): ``1 - H / log K`` of the rendered entropy of Stage 1's depth
   distribution over K bins (:mod:`phigenesis.models.depth_bins`).
 - ``"localization_potential"`` (:func:`localization_potential`, then
@@ -38,16 +38,17 @@ ray is, differentiating in ``d``::
     d(x/z)/dd = (a_x z - x a_z) / z^2        d(y/z)/dd = (a_y z - y a_z) / z^2
     du/dd = fx d(x/z)/dd + skew d(y/z)/dd    dv/dd = fy d(y/z)/dd
 
-and ``LP = |(du/dd, dv/dd)|`` in px/m (the reference note's formula, with the skew term added; it
-is the note's exactly when skew = 0). LP is 0 for that history view where ``z`` is below
+and ``LP = |(du/dd, dv/dd)|`` in px/m (the derivative of the source-view projection in depth that
+Park et al., "Time Will Tell", arXiv:2210.02443, call localization potential, with the skew term
+added; theirs when skew = 0). LP is 0 for that history view where ``z`` is below
 :data:`phigenesis.geometry.MIN_PROJECTION_DEPTH_M` (behind the history camera), where the projection
 leaves the history image, and, given the history views' own depth maps, where the point is occluded
 there; over several history views the largest counts. For a history camera displaced by a baseline
-``b`` perpendicular to the optical axis, a point on the axis at depth ``d`` has ``LP = f b / d^2``; a
-history camera at the target's position (any rotation) has LP = 0: a pixel's ray projects to one
+``b`` perpendicular to the optical axis, a point on the axis at depth ``d`` has ``LP = f b / d^2``;
+a history camera at the target's position (any rotation) has LP = 0: a pixel's ray projects to one
 point there, whatever its depth.
 
-From LP to u (a choice: the seed does not say)
+From LP to u (a choice: the paper does not say)
 -----------------------------------------------
 Stage 1 resolves depth in log-spaced bins (``DepthBins``), so a depth error of one bin at depth
 ``d`` spans ``delta_d = 2 d sinh(step / 2)`` metres (``step`` the bin's width in natural log
@@ -71,9 +72,9 @@ width. Two readings of ``m`` turn it into trust, :data:`LpTrust`:
 Why ``"stable"`` is the default: our Stage 1 predicts depth from each view alone (no stereo
 across the history), so how well the history *could* localise a point says little about how
 right its depth is, while how far a depth error moves the render says directly how wrong the
-render can be. On held-out scenes, pasting the render by u over the same generated frames scored
-0.1-0.2 dB above ``coverage`` with ``"stable"``, and with ``"localised"`` level at +5 frames and
-0.2-0.7 dB below at 1-4 m shifts (docs/ARCHITECTURE.md); trained, ``"stable"`` beats both.
+render can be. Scored on held-out scenes, untrained and trained, ``"stable"`` beats both
+``coverage`` and ``"localised"`` (BENCHMARKS.md, "Stage 2"; docs/design/stage2.md, "Which way LP
+becomes trust").
 Holes, unknown depth (0, NaN, inf) give 0 either way.
 
 Memory and speed: :func:`localization_potential` works in float64 one history camera at a time,

@@ -30,7 +30,7 @@ a trajectory, window by window (``window_frames`` frames each, the Stage 2 model
    ``lift_frames`` frames (by default as many as the history frames the model was trained with, the
    frames the next window takes as its history) join the buffer and condition the next window: each
    frame lifted adds its own copy of every surface it shows, at its own depth error, and five copies
-   render as streaks from the next window's cameras (docs/ARCHITECTURE.md). With
+   render as streaks from the next window's cameras (docs/design/stage2.md). With
    ``spawn_max_u < 1`` only pixels whose u is at most that (and moving things) add Gaussians: where
    the frame kept the render, the buffer keeps the Gaussians it came from rather than a copy of them
    lifted again through the VAE and Stage 1 (each such copy adds their errors).

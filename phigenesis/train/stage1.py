@@ -117,9 +117,9 @@ class Stage1TrainConfig:
         depth_confidence_floor: the depth terms (``depth``, ``pixel_depth``, ``depth_ce``) weigh a
             dense-depth target by ``floor + (1 - floor) * confidence`` (:func:`depth_target_weight`):
             0 weighs by the cache's confidence alone, 1 weighs every target alike. The cache's
-            confidence orders its targets' reliability but is not a probability: on the synthetic
-            caches targets below 0.05 confidence still lie within 1.25x of the truth 97.7 % of the
-            time (docs/ARCHITECTURE.md).
+            confidence orders its targets' reliability but is not a probability: even its
+            low-confidence targets are mostly right (docs/design/stage1.md, "Every depth target
+            weighed alike").
         checkpoint_every, log_every: in steps.
         seed: seed of the initialisation and of every step's draws.
         threads: torch CPU threads per process (None: torch's default).

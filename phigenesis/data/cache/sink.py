@@ -54,11 +54,12 @@ class _BackgroundFlush:
     """One ``fdatasync`` of a file at a time on a thread of its own; :meth:`wait` returns when it
     is done and raises the error it met.
 
-    Why: on a virtual disk an fsync costs about 1.4 ms per MB written since the last one, even
-    after the kernel has written the data out (the host flushes its own cache then). Left to the
-    end of a shard, that is one wait of 200-250 ms for a 160 MB shard (10 ms a Waymo frame).
-    Flushed a few rows at a time behind the writer, the flushes overlap the next frames' work
-    (a thread waiting on the disk takes no CPU), and the closing fsync finds little left to do."""
+    Why: on a virtual disk an fsync costs time in proportion to the bytes written since the last
+    one, even after the kernel has written the data out (the host flushes its own cache then), so
+    one fsync at the end of a shard is one long wait. Flushed a few rows at a time behind the
+    writer, the flushes overlap the next frames' work (a thread waiting on the disk takes no CPU),
+    and the closing fsync finds little left to do (docs/design/cache.md, "Shards are flushed
+    behind the writer")."""
 
     def __init__(self, fd: int):
         self._fd = fd

@@ -1,5 +1,5 @@
 """The synthetic source's rig and preset names, for command lines that list them as choices
-without importing the renderer (its meshes' trimesh and scipy cost about 0.7 CPU-s a process)."""
+without importing the renderer (its meshes need trimesh and scipy, which a ``--help`` should not load)."""
 
 from __future__ import annotations
 

@@ -86,12 +86,12 @@ class AggregateParams:
         box_scale: moving boxes are scaled by this for removing points from the static map ...
         box_margin_m: ... and grown by this on every side.
         ground_clearance_m: object models keep points this far above their box's bottom face.
-        voxel_backend: "numpy" (sorted voxel keys, 12x faster) or "open3d" (its
-            ``voxel_down_sample``).
+        voxel_backend: "numpy" (sorted voxel keys; the faster, see BENCHMARKS.md, "Dense depth
+            ground truth") or "open3d" (its ``voxel_down_sample``).
         outlier_neighbors, outlier_std_ratio: Open3D statistical outlier removal (0 neighbours
             turns it off). It is for real LiDAR's spurious returns (dust, rain, multipath); on
-            synthetic scenes, which have none, it only removes sparse far surfaces (pipelines/
-            synthetic.yaml turns it off: -10 % MAE, 2.2x faster aggregation).
+            synthetic scenes, which have none, it only removes sparse far surfaces, so
+            pipelines/synthetic.yaml turns it off (docs/design/depth.md).
         ego_margin_m: points within this of the ego body boxes are dropped.
         chunk_sweeps: sweeps gathered before each intermediate voxel down-sampling.
     """
@@ -144,10 +144,8 @@ class LidarMap:
     object model point; it is all a scene keeps between frames (the frames stream). While it is
     built, ``chunk_sweeps`` sweeps' points wait for their down-sampling (about 60 bytes per raw
     point at its peak: one float64 column, sort keys and order) and at most
-    :data:`MERGE_CHUNKS` down-sampled chunks wait beside the merged map. Measured at 2 cm
-    voxels: a 200-frame synthetic 64 x 1024 scene, 8.7 million
-    points, 100 MiB (BENCHMARKS.md, depth-stage); 4 frames of a 128 x 2650 LiDAR (294k points a
-    frame, about a real Waymo frame's count), 624k points, 7.5 MB.
+    :data:`MERGE_CHUNKS` down-sampled chunks wait beside the merged map. Sizes of real scenes:
+    BENCHMARKS.md, "Dense depth ground truth: the whole stage on a long scene".
 
     Attributes:
         points_world: (N, 3) float32 static points, world frame, sorted by :data:`TILE_M` tile.
@@ -372,8 +370,9 @@ def box_points_at_times(
     half = 0.5 * boxes.size_lwh * scale + margin_m
     reach = np.linalg.norm(half, axis=1) + speed * max_dt + 1e-6
     # Points sorted once by a grid of BOX_CELL_M cells (x-major): each box tests only the cells
-    # its reach overlaps (a real Waymo frame has ~200k points and ~100 boxes; every box against
-    # every point took 0.71 s, this 0.065 s; box_points_at_times_reference is that reference).
+    # its reach overlaps, instead of every box against every point of a sweep (a real frame has
+    # hundreds of thousands of points and about a hundred boxes); box_points_at_times_reference
+    # is that plain version, the reference the tests hold this to.
     cells = np.floor(points_world[:, :2] / BOX_CELL_M).astype(np.int64)
     low = cells.min(axis=0)
     cells -= low
@@ -499,8 +498,9 @@ def voxel_downsample(
     """(K, 3) float32 centroids of the points in each occupied voxel (a grid anchored at the
     origin for ``numpy``, at the points' minimum for ``open3d``); all points if ``voxel_m`` is 0.
 
-    ``numpy`` sorts voxel keys and sums each run: 1.8 s for 10 million points against Open3D's
-    22 s on the 2-core machine, with the same centroids up to the grid's anchor."""
+    ``numpy`` sorts 64-bit voxel keys and sums each run, much faster than Open3D's
+    ``voxel_down_sample`` and with the same centroids up to the grid's anchor (this grid is
+    anchored at the origin, Open3D's at the points' minimum)."""
     if voxel_m <= 0 or len(points) == 0:
         return np.asarray(points, np.float32)
     if backend == "open3d":

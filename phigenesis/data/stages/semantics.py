@@ -4,7 +4,8 @@ Entry points: :func:`label_camera` (one image) and the stage ``pseudo_semantics`
 for every camera of every frame, lazily, and stores a :class:`CameraSemantics` on each image
 (class, confidence and source per pixel; sources in :data:`records.PSEUDO_SOURCES`).
 :func:`label_camera_reference` is the plain whole-image version :func:`label_camera` is tested
-against (same labels; at 1920 x 1280 about 2 CPU-s a camera against 0.07 s).
+against (same labels; the plain version works on whole-image float64 points, this one on
+per-calibration ray planes and box footprints: docs/design/semantics.md).
 
 As in the paper, a SegFormer fine-tuned on labelled frames (``phigenesis-train segmenter``) is run
 over every image. Its labels are then refined where the scene's geometry knows better:

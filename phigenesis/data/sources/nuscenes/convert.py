@@ -1,11 +1,12 @@
 """nuScenes records -> the scene model: poses, calibrations, LiDAR sweeps, annotated boxes.
 
-nuScenes terms (see shared/reference/nuscenes.md): ``global`` frame (map, z up), ego poses
-``global <- ego`` and sensor extrinsics ``ego <- sensor`` as translation + quaternion (w, x, y, z);
-LIDAR_TOP's frame is x right, y forward, z up; camera frames are OpenCV's (x right, y down, z
-forward) and images are undistorted; box ``size`` is (width, length, height); time is
-microseconds. The toolkit's ``world`` is the global frame shifted by ``origin_global`` (the first
-frame's ego position; no rotation, so it stays gravity-aligned, as for Waymo).
+nuScenes terms (the schema of https://github.com/nutonomy/nuscenes-devkit,
+``docs/schema_nuscenes.md``): ``global`` frame (map, z up), ego poses ``global <- ego`` and sensor
+extrinsics ``ego <- sensor`` as translation + quaternion (w, x, y, z); LIDAR_TOP's frame is x right,
+y forward, z up; camera frames are OpenCV's (x right, y down, z forward) and images are undistorted;
+box ``size`` is (width, length, height); time is microseconds. The toolkit's ``world`` is the global
+frame shifted by ``origin_global`` (the first frame's ego position; no rotation, so it stays
+gravity-aligned, as for Waymo).
 
 Every field is read typed through :meth:`NuScenesTables.field`, so a bad value is an error naming
 the table's file, the record and the field; what the scene model refuses on top

@@ -1,9 +1,19 @@
 """Named presets of the synthetic source: the real datasets' sensor sizes, in one place.
 
 A preset is a mapping of :class:`~phigenesis.data.sources.synthetic.SyntheticConfig` fields;
-``SyntheticConfig.from_preset(name, **overrides)`` builds it (explicit fields win). The sizes are
-those collected, with their sources, in the project's sensor reference (``shared/reference/
-sensors.md``): each value below cites the section it comes from.
+``SyntheticConfig.from_preset(name, **overrides)`` builds it (explicit fields win). Each value
+below cites its public source:
+
+- WOD paper: Sun et al., "Scalability in Perception for Autonomous Driving: Waymo Open Dataset",
+  arXiv:1912.04838 (segments of 20 s at 10 Hz; the LiDARs' fields of view, Table 1).
+- WOD repo: https://github.com/waymo-research/waymo-open-dataset (range-image shapes in
+  ``src/waymo_open_dataset/v2/perception/compat_v1/lidar_test.py``; image sizes in the
+  calibrations of its sample frames).
+- Waymo site: https://waymo.com/open/data/perception/ (LiDAR ranges, "truncated to 75 meters",
+  "20 meters").
+- nuScenes paper: Caesar et al., "nuScenes: A multimodal dataset for autonomous driving",
+  arXiv:1903.11027, sensor table (cameras, LIDAR_TOP).
+- nuScenes devkit: https://github.com/nutonomy/nuscenes-devkit (issue #133: points per sweep).
 
 - ``waymo``: Waymo Open Dataset Perception (v1.4 TFRecord / v2 Parquet). Five cameras, FRONT,
   FRONT_LEFT and FRONT_RIGHT at 1920 x 1280 and SIDE_LEFT, SIDE_RIGHT at 1920 x 886; five LiDARs
@@ -17,7 +27,7 @@ The short-range LiDARs' mounts are plausible places on a Pacifica (front bumper,
 wings, rear bumper, 0.55 m above the ground), 5 cm outside the faces of the body boxes the Waymo
 source assumes for every segment (:data:`phigenesis.data.ego_body.WAYMO_PACIFICA_BOXES`, whose
 lower box the real perimeter LiDARs sit just outside), not Waymo's measured extrinsics, which the
-reference does not give. The synthetic car is shorter than a Pacifica, so they stand a little
+public sources do not give. The synthetic car is shorter than a Pacifica, so they stand a little
 clear of its rendered body. They are cast as one snapshot at the
 frame time (``sectors`` 1): Waymo stores no per-pixel poses for them, so a reader puts their
 points in the frame's vehicle frame, which is where a snapshot's points are exactly. They do not
@@ -31,8 +41,8 @@ from typing import Any
 from phigenesis.data.sources import synthetic_names
 from phigenesis.data.sources.synthetic.rigs import LidarSpec
 
-#: Waymo TOP (mid-range) LiDAR: 64 beams x 2650 columns, 75 m, -17.6 .. +2.4 deg (sensors.md
-#: 1.2: shape from WOD v2/perception/compat_v1/lidar_test.py, range from the Waymo site text, FOV
+#: Waymo TOP (mid-range) LiDAR: 64 beams x 2650 columns, 75 m, -17.6 .. +2.4 deg (shape from
+#: the WOD repo's v2/perception/compat_v1/lidar_test.py, range from the Waymo site text, FOV
 #: from the WOD paper's Table 1). Explicit (warped) beam inclinations, as Waymo stores TOP's.
 WAYMO_TOP = LidarSpec(
     beams=64,
@@ -46,8 +56,8 @@ WAYMO_TOP = LidarSpec(
 
 
 def waymo_short_range(name: str, position_m: tuple[float, float, float], yaw_deg: float) -> LidarSpec:
-    """A Waymo short-range LiDAR: 200 beams x 600 columns, 20 m, -90 .. +30 deg (sensors.md 1.2:
-    shape from WOD compat_v1/lidar_test.py, range "20 meters" from the Waymo site text, FOV from
+    """A Waymo short-range LiDAR: 200 beams x 600 columns, 20 m, -90 .. +30 deg (shape
+    from the WOD repo's compat_v1/lidar_test.py, range "20 meters" from the Waymo site text, FOV from
     the WOD paper), uniform inclinations stored as min/max, two returns, cast as a snapshot."""
     return LidarSpec(
         beams=200,
@@ -77,8 +87,8 @@ WAYMO_SHORT_RANGE: tuple[LidarSpec, ...] = (
 )
 
 #: nuScenes LIDAR_TOP, a Velodyne HDL-32E: 32 beams, +10 .. -30 deg, 20 Hz (the nuscenes6 rig's
-#: spin), 70 m (sensors.md 2.1: nuScenes paper sensor table), mounted at nuScenes' roof position.
-#: The real sweep holds about 34-35k points (sensors.md 2.1: devkit issue #133, NVIDIA NCore doc)
+#: spin), 70 m (nuScenes paper, sensor table), mounted at nuScenes' roof position.
+#: The real sweep holds about 34-35k points (nuScenes devkit issue #133)
 #: out of ~2170 firings per beam (1.39 M points/s at 20 Hz). The synthetic streets return ~85 % of
 #: the rays (real ones about half), so the columns are chosen for the valid count instead: 1084
 #: columns gave 26.7-31.0k valid points (9 sweeps, seeds 0-2; 26.5 per column), so 1300 columns
@@ -97,20 +107,20 @@ NUSCENES_LIDAR_TOP = LidarSpec(
 #: Named presets: SyntheticConfig fields per preset name.
 PRESETS: dict[str, dict[str, Any]] = {
     "waymo": {
-        "rig": "waymo5",  # sensors.md 1.1: five cameras
-        "height": 1280,  # sensors.md 1.1: FRONT, FRONT_LEFT, FRONT_RIGHT 1920 x 1280
+        "rig": "waymo5",  # WOD repo: five cameras
+        "height": 1280,  # WOD repo: FRONT, FRONT_LEFT, FRONT_RIGHT 1920 x 1280
         "width": 1920,
-        "uniform_image_size": False,  # sensors.md 1.1: SIDE_LEFT, SIDE_RIGHT 1920 x 886
-        "frame_rate_hz": 10.0,  # sensors.md 1.3: 10 Hz
+        "uniform_image_size": False,  # WOD repo: SIDE_LEFT, SIDE_RIGHT 1920 x 886
+        "frame_rate_hz": 10.0,  # WOD paper: 10 Hz
         "lidar": WAYMO_TOP,
         "extra_lidars": WAYMO_SHORT_RANGE,
     },
     "nuscenes": {
-        "rig": "nuscenes6",  # sensors.md 2.1: six cameras
-        "height": 900,  # sensors.md 2.1: 1600 x 900
+        "rig": "nuscenes6",  # nuScenes paper: six cameras
+        "height": 900,  # nuScenes paper: 1600 x 900
         "width": 1600,
         "uniform_image_size": True,
-        "frame_rate_hz": 12.0,  # sensors.md 2.1: cameras at 12 Hz
+        "frame_rate_hz": 12.0,  # nuScenes paper: cameras at 12 Hz
         "lidar": NUSCENES_LIDAR_TOP,
     },
 }

@@ -232,8 +232,7 @@ def camera_labels(image: RawCameraImage, height: int, width: int, where: str) ->
         raise WaymoFormatError(f"{where}: panoptic label has divisor {divisor}")
     # A 16-bit label holds at most 65536 codes and an image millions of pixels: the class and
     # instance of each code the image uses are found once, then looked up per pixel (one uint16
-    # gather each instead of int64 divisions over the image: 27 -> 13 ms at 1920x1280, decoding
-    # not included).
+    # gather each instead of int64 divisions over the whole image).
     codes = np.flatnonzero(np.bincount(panoptic.ravel()))
     semantic_of = _SEGMENTATION_LUT[np.minimum(codes // divisor, 65535)]
     instance_of = _instance_ids(codes % divisor, image.instance_to_global, where)
@@ -358,7 +357,7 @@ class _RayGeometry:
     """The rays of a range image in the frame's vehicle frame, factored per row and column: the
     unit direction of pixel (h, w) is ``cos_incl[h] * along[:, w] + sin_incl[h] * up[:, w]`` and its
     origin ``origin[:, w]``. Per column as (3, W), so that the arithmetic over a return's N pixels
-    runs along N (on (N, 3) arrays numpy's loops run along the 3 and took 4x as long)."""
+    runs along N (on (N, 3) arrays numpy's inner loops would run along the 3)."""
 
     cos_incl: NDArray[np.float32]  # (H,)
     sin_incl: NDArray[np.float32]  # (H,)
@@ -464,8 +463,8 @@ def _concatenate(parts: list[_Part]) -> dict[str, NDArray]:
 def _one_block(layout: dict[str, tuple[tuple[int, ...], np.dtype]]) -> dict[str, NDArray]:
     """Empty C-order arrays of the given shapes and dtypes, carved out of one allocation (each
     64-byte aligned). A sweep's fields are 6-7 MB together but 0.2-2 MB each: as one block numpy
-    asks the kernel for huge pages, and the first write faults in a few of them instead of 1,700 4 KiB
-    pages (measured: 2.6 against 0.9 ms to gather Waymo's TOP return into fresh against warm arrays)."""
+    asks the kernel for huge pages, and the first write faults in a few of them instead of
+    thousands of 4 KiB pages."""
     sizes = {k: int(np.prod(shape)) * np.dtype(dtype).itemsize for k, (shape, dtype) in layout.items()}
     offsets, end = {}, 0
     for k, size in sizes.items():
@@ -806,8 +805,8 @@ def frame(
     (once per frame however often it is converted).
 
     ``images=False`` gives the frame's geometry (poses, LiDAR, boxes; cameras with their times
-    and poses): no image bytes or labels, and no JPEG decoded to check it (~4 ms per
-    1920x1280 image), for scene-wide stages (:meth:`LazyFrames.geometry`).
+    and poses): no image bytes or labels, and no JPEG decoded to check it, for scene-wide
+    stages (:meth:`LazyFrames.geometry`).
     """
     problems = problems or Problems()
     left_out: dict[str, int] = {}

@@ -1,10 +1,12 @@
 """Waymo Open Dataset v2 (Parquet) reader, with pyarrow only (the writer: :mod:`.v2_writer`).
 
 Layout: ``{root}/{component_tag}/{segment_context_name}.parquet``. Key columns are ``key.<field>``,
-data columns ``[ComponentClass].<path>`` (see ``shared/reference/waymo.md`` section 4). Frames read
+data columns ``[ComponentClass].<path>`` (the components of
+https://github.com/waymo-research/waymo-open-dataset, ``src/waymo_open_dataset/v2/``). Frames read
 into and write from the records of :mod:`.raw`, which keep Waymo's own frames and units: 4x4 float64
-``target_from_source`` transforms, ``global`` = Waymo's world frame, ``vehicle`` = Waymo's ego frame,
-metres, radians, seconds since the epoch for camera times and microseconds for frame timestamps.
+``target_from_source`` transforms, ``global`` = Waymo's world frame, ``vehicle`` = Waymo's ego
+frame, metres, radians, seconds since the epoch for camera times and microseconds for frame
+timestamps.
 
 Reading is frame by frame: :class:`V2Segment` indexes the timestamp column of each component once
 (which file rows hold each frame), then decodes each component a frame's rows at a time

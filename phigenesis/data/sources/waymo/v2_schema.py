@@ -1,6 +1,7 @@
 """Waymo Open Dataset v2 (Parquet): the declared schema of every component this toolkit reads and
-writes, its column names (``key.<field>``, ``[ComponentClass].<path>``; ``shared/reference/waymo.md``
-section 4), and which columns the reader requires and which it takes if present.
+writes, its column names (``key.<field>``, ``[ComponentClass].<path>``; the components of
+https://github.com/waymo-research/waymo-open-dataset, ``src/waymo_open_dataset/v2/``), and which
+columns the reader requires and which it takes if present.
 
 Shared by the reader (:mod:`.v2`) and the writer (:mod:`.v2_writer`).
 """

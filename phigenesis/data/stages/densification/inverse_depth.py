@@ -174,8 +174,8 @@ def guided_mean(
 
     ``edge_filter``: "dtf", OpenCV's domain transform filter (recursive, one iteration), or
     "fgs", its fast global smoother (one iteration: measured as accurate as three). Both are
-    linear-time; on the benchmark "fgs" is 2-4 % more accurate (RMSE) at about twice the cost
-    (~1.1 ms against ~0.3 ms for a 240x160 image).
+    linear-time; "fgs" is a little more accurate (RMSE) at a higher cost (BENCHMARKS.md,
+    "Dense depth ground truth").
 
     ``F(w)`` is the sample density over the pixel's edge-bounded neighbourhood. Where it is
     below ``min_support`` times the plain density around the pixel (a box of radius
@@ -191,7 +191,7 @@ def guided_mean(
         ).filter(src)
     else:
         raise ValueError(f"edge_filter must be one of {sorted(EDGE_FILTERS)}, got {edge_filter!r}")
-    num, den = out[..., 0], out[..., 1]  # views: cv2.split copied both (~30 ms at 1920x1280)
+    num, den = out[..., 0], out[..., 1]  # views: cv2.split would copy both
     estimate = num / np.maximum(den, np.float32(1e-4)) * (den > 1e-4)
     if min_support > 0:
         k = 2 * max(1, round(smooth_px)) + 1

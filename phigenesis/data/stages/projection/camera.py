@@ -99,10 +99,9 @@ def camera_pixels(
 
     One pass of the native kernel (:func:`~phigenesis.data.native.load_camera_points`) over the
     points, where the numpy path (:func:`camera_pixels_reference`) makes a dozen over millions
-    of map points: 0.09 CPU-s against 0.94 for the FRONT camera (1920 x 1280) of the 50-frame
-    Waymo segment's first frame, 3.1 million candidate points (1.9 million kept). The
-    same arithmetic in the same precision, except the float32 rotation's last bit (BLAS may sum
-    in another order): a point on a pixel's border or on a limit may fall the other way."""
+    of map points (figures: BENCHMARKS.md, "Prep at real size"). The same arithmetic in the
+    same precision, except the float32 rotation's last bit (BLAS may sum in another order): a
+    point on a pixel's border or on a limit may fall the other way."""
     kernel = load_camera_points()
     world = points.points_world
     if kernel is None or len(world) == 0:

@@ -199,8 +199,7 @@ def fit_pixels(
 
     The moments and fits are computed for the occupied pixels only, by the native kernel
     (:func:`~phigenesis.data.native.load_plane_fits`: the same arithmetic in the same order, so
-    the same doubles, in a few passes: 0.36 CPU-s against 5.6 for the 1.9 million points of the
-    camera above) where it is built, else with numpy
+    the same doubles, in a few passes) where it is built, else with numpy
     (:func:`fit_occupied_numpy`); :func:`fit_pixels_reference` is the same on whole-image maps
     (equal to rounding: the sums are taken in another order)."""
     h, w = shape
