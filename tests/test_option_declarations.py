@@ -34,7 +34,12 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 CLI = ROOT / "phigenesis" / "cli"
 #: Prose that may restate an option (docs/reference/ is generated, not a declaration).
-PROSE = ("README.md", "docs/ARCHITECTURE.md", "docs/experiments.md")
+PROSE = (
+    "README.md",
+    *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("guide/*.md")),
+    *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("design/*.md")),
+    "docs/experiments.md",
+)
 #: argparse types (phigenesis.cli.common and the commands) that check a range of their own.
 RANGE_TYPES = frozenset(
     {"positive", "positive_float", "unit_interval", "time_after_frame_s", "size_hw", "_shift", "_camera_step"}
