@@ -68,12 +68,11 @@ def build_lock(build_dir: Path) -> Iterator[bool]:
         os.close(fd)  # closing the descriptor releases the flock
 
 
-def write_source_copy(path: Path, data: bytes) -> None:
-    """Writes ``data`` (a source file staged for a build) to ``path`` under a unique temporary name,
-    flushed and renamed, so a reader (another process staging the same sources without flock) sees
-    the old file or the whole new one; on failure the temporary file is removed and the OSError
-    raised."""
-    tmp = path.with_name(f"{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+def write_replacing(path: Path, data: bytes, marker: str = ".tmp-") -> None:
+    """Writes ``data`` to ``path`` under a unique temporary name (``path`` + ``marker`` + 8 hex
+    digits), flushed, fsynced and renamed over ``path``, so a reader sees the old file or the whole
+    new one; on failure the temporary file is removed and the error raised as it came."""
+    tmp = path.with_name(f"{path.name}{marker}{uuid.uuid4().hex[:8]}")
     try:
         with open(tmp, "wb") as fh:
             fh.write(data)
@@ -84,3 +83,9 @@ def write_source_copy(path: Path, data: bytes) -> None:
         with contextlib.suppress(OSError):
             tmp.unlink(missing_ok=True)
         raise
+
+
+def write_source_copy(path: Path, data: bytes) -> None:
+    """Writes ``data`` (a source file staged for a build) to ``path`` (:func:`write_replacing`),
+    so a process staging the same sources sees the old file or the whole new one."""
+    write_replacing(path, data)

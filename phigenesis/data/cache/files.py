@@ -12,12 +12,12 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
-import uuid
 from pathlib import Path
 
 import google_crc32c
 
 from phigenesis.errors import PrepError
+from phigenesis.native_cache import write_replacing
 
 MANIFEST_NAME = "manifest.json"
 SHARDS_DIR = "shards"
@@ -69,19 +69,10 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
     On failure the temporary file is removed and ``path`` is left as it was; an OSError becomes a
     :class:`CacheWriteError` naming ``path``."""
     path = Path(path)
-    tmp = path.with_name(f"{path.name}{TMP_MARKER}{uuid.uuid4().hex[:8]}")
     try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException as e:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        if isinstance(e, OSError):
-            raise CacheWriteError(f"{path}: cannot write ({os_reason(e)})") from e
-        raise
+        write_replacing(path, data, TMP_MARKER)
+    except OSError as e:
+        raise CacheWriteError(f"{path}: cannot write ({os_reason(e)})") from e
     fsync_dir(path.parent)
 
 
