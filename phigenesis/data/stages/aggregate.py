@@ -182,6 +182,17 @@ class LidarMap:
     _tile_z: tuple[NDArray[np.float32], NDArray[np.float32]] | None = field(
         default=None, repr=False, compare=False
     )
+    _tile_levels: NDArray[np.int64] | None = field(default=None, repr=False, compare=False)
+
+    def uniform_takes(self, tiles: NDArray[np.int64], wanted: NDArray[np.int64]) -> NDArray[np.int64]:
+        """(K,) for each of the given tiles, the fewest first points, at least ``wanted`` (or the
+        whole tile), that are a uniform subset of it: whole levels (:func:`_tile_sort`), so at
+        most about twice ``wanted``."""
+        if self._tile_levels is None:
+            self._tile_levels = tile_level_counts(self.points_world, self.tile_start)
+        counts = self._tile_levels[tiles]
+        deepest = (counts >= np.asarray(wanted, np.int64)[:, None]).sum(axis=1) - 1
+        return counts[np.arange(len(tiles)), np.maximum(deepest, 0)]
 
     def tile_heights(self, tiles: NDArray[np.int64]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """(K,) float32 lowest and highest z (world, metres) of the given tiles' points
@@ -750,15 +761,33 @@ def aggregate_scene(scene: Scene, params: AggregateParams | None = None) -> Lida
     )
 
 
+#: Thinning levels of the map's points: a point's level is k with probability 2^-(k + 1) (the last
+#: level takes the rest), from a hash of its coordinates (:func:`point_levels`).
+LEVELS = 16
+
+
+def point_levels(points: NDArray[np.float32]) -> NDArray[np.uint8]:
+    """(N,) uint8 level of each point, 0 to ``LEVELS - 1``: the number of trailing one bits of a
+    hash of its float32 coordinates, so a point's level depends on where it is, not on its place
+    in an array, and the points of levels >= k are a uniform 2^-k subset of any region."""
+    bits = np.ascontiguousarray(points, np.float32).view(np.uint32).astype(np.uint64)
+    h = _mix64((bits[:, 0] ^ (bits[:, 1] << np.uint64(21)) ^ (bits[:, 2] << np.uint64(42))).view(np.int64))
+    level = np.zeros(len(points), np.uint8)
+    for k in range(LEVELS - 1):
+        level += ((h >> np.uint64(k)) & np.uint64(1)).astype(bool) & (level == k)
+    return level
+
+
 def _tile_sort(
     points: NDArray[np.float32],
 ) -> tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.int64]]:
     """Points sorted by tile, the sorted occupied tile keys and their start offsets.
 
-    Within a tile the points come in a pseudo-random order (a hash of their position in the
-    tile-sorted array), so any prefix of a tile is a uniform subset of it: the projection takes a far
-    tile's first points rather than every k-th, which on a saturated voxel grid sorted by key
-    would keep whole rows and drop the rows between them."""
+    Within a tile the points come by decreasing :func:`point_levels`, each level in the order they
+    came (the map's voxel order, which keeps neighbours near each other in memory): the tile's
+    first points up to a level boundary are a uniform subset of it (:meth:`LidarMap.uniform_takes`),
+    so the projection takes a far tile's first points rather than every k-th, which on a saturated
+    voxel grid sorted by key would keep whole rows and drop the rows between them."""
     tiles = np.floor(points[:, :2] / TILE_M).astype(np.int64)
     keys = _tile_key(tiles[:, 0], tiles[:, 1])
     del tiles
@@ -769,11 +798,27 @@ def _tile_sort(
     del keys
     points = points[order]
     del order
-    # Tile by tile, so the shuffle's temporaries stay the size of a tile, not of the map.
+    # Tile by tile, so the temporaries stay the size of a tile, not of the map.
     for a, b in zip(start[:-1].tolist(), start[1:].tolist(), strict=True):
         if b - a > 1:
-            points[a:b] = points[a:b][np.argsort(_mix64(np.arange(a, b, dtype=np.int64)))]
+            by_level = np.argsort(LEVELS - 1 - point_levels(points[a:b]), kind="stable")
+            points[a:b] = points[a:b][by_level]
     return points, unique, start
+
+
+def tile_level_counts(points: NDArray[np.float32], start: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(T, LEVELS + 1) int64: entry [t, k] counts tile t's points of level >= k (the first ones in
+    the tile, :func:`_tile_sort`); [t, 0] is the tile's size and [t, LEVELS] is 0."""
+    counts = np.zeros((len(start) - 1, LEVELS + 1), np.int64)
+    if len(start) < 2 or start[-1] == 0:
+        return counts
+    level = point_levels(points)
+    tile = np.repeat(np.arange(len(start) - 1), np.diff(start))
+    np.add.at(counts, (tile, level.astype(np.int64)), 1)
+    del tile, level
+    counts[:, :LEVELS] = np.cumsum(counts[:, :LEVELS][:, ::-1], axis=1)[:, ::-1]
+    counts[:, LEVELS] = 0
+    return counts
 
 
 def _mix64(x: NDArray[np.int64]) -> NDArray[np.uint64]:

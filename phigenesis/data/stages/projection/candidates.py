@@ -306,7 +306,7 @@ def static_points_per_camera(
                 params.thin_points_per_cell,
             )
             budget[seen] = np.maximum(budget[seen], need)
-        take = np.minimum(take, budget)
+        take = lidar_map.uniform_takes(tiles[used], np.minimum(take, budget))
     points, counts = lidar_map.points_and_counts_of_tiles(tiles[used], take=take)
     if frame.lidar is not None and len(frame.lidar):
         sensor = geometry.transform_points(
