@@ -812,10 +812,8 @@ def tile_level_counts(points: NDArray[np.float32], start: NDArray[np.int64]) -> 
     counts = np.zeros((len(start) - 1, LEVELS + 1), np.int64)
     if len(start) < 2 or start[-1] == 0:
         return counts
-    level = point_levels(points)
-    tile = np.repeat(np.arange(len(start) - 1), np.diff(start))
-    np.add.at(counts, (tile, level.astype(np.int64)), 1)
-    del tile, level
+    for t, (a, b) in enumerate(zip(start[:-1].tolist(), start[1:].tolist(), strict=True)):
+        counts[t, :LEVELS] = np.bincount(point_levels(points[a:b]), minlength=LEVELS)
     counts[:, :LEVELS] = np.cumsum(counts[:, :LEVELS][:, ::-1], axis=1)[:, ::-1]
     counts[:, LEVELS] = 0
     return counts
