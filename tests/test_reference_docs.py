@@ -241,4 +241,6 @@ def test_configs_md_documents_every_registered_stage(generated: dict[str, str]):
     get_stage("aggregate_lidar")
     assert len(STAGES) >= 10
     for name in STAGES:
-        assert f"\n### {name}\n" in generated["configs.md"], name
+        fn = getattr(STAGES[name], "__wrapped__", STAGES[name])
+        if fn.__module__.startswith("phigenesis.data.stages"):  # not stages other tests register
+            assert f"\n### {name}\n" in generated["configs.md"], name

@@ -461,7 +461,9 @@ def config_groups() -> list[ConfigGroup]:
     shard_words = f"int in {range_words(shard)}, default {shard.default}: a shard's size limit in bytes"
     stages, notes = [], {}
     shown: dict[type, str] = {}
-    for name in sorted(STAGES):
+    # Only the toolkit's own stages: a plugin (or a test) registering more must not change the docs.
+    builtin = sorted(n for n in STAGES if _is_builtin_stage(STAGES[n]))
+    for name in builtin:
         params = STAGE_PARAMS[name]
         fn = getattr(STAGES[name], "__wrapped__", STAGES[name])
         note = summary(fn)
@@ -473,7 +475,7 @@ def config_groups() -> list[ConfigGroup]:
         shown.setdefault(params, name)
         stages.append((name, params))
         notes[name] = note.strip()
-    stage_names = sorted(STAGES)
+    stage_names = builtin
     family = {
         Stage1Config: "stage1",
         VideoVAEConfig: "vae",
@@ -724,6 +726,12 @@ def reference_files(
 def _tidy(text: str) -> str:
     """One blank line between blocks, one newline at the end."""
     return re.sub(r"\n{3,}", "\n\n", text).strip("\n") + "\n"
+
+
+def _is_builtin_stage(stage: object) -> bool:
+    """Whether a registered stage function is one of the toolkit's (defined in phigenesis.data.stages)."""
+    fn = getattr(stage, "__wrapped__", stage)
+    return getattr(fn, "__module__", "").startswith("phigenesis.data.stages")
 
 
 def write_reference(out_dir: str | Path = REFERENCE_DIR) -> list[Path]:
