@@ -243,22 +243,17 @@ class LidarMap:
         return np.concatenate(parts), np.repeat(np.arange(len(tiles)), counts)
 
     def points_and_counts_of_tiles(
-        self,
-        tiles: NDArray[np.int64],
-        stride: NDArray[np.int64] | None = None,
-        take: NDArray[np.int64] | None = None,
+        self, tiles: NDArray[np.int64], take: NDArray[np.int64] | None = None
     ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
         """:meth:`points_of_tiles`' points with, instead of a label per point, the (K,) number
         taken from each tile (each tile's points are contiguous, in ``tiles``' order). ``take``:
-        at most this many of each tile's points, its first ones (a uniform subset: tiles hold
-        their points in a hashed order, :func:`_tile_sort`), after the ``stride``."""
-        if stride is None:
-            stride = np.ones(len(tiles), np.int64)
+        at most this many of each tile's points, its first ones (whole levels are a uniform
+        subset: :func:`_tile_sort`, :meth:`uniform_takes`); None: every point."""
         if take is None:
             take = self.tile_counts(tiles)
         parts = [
-            self.points_world[self.tile_start[i] : self.tile_start[i + 1] : int(k)][: int(n)]
-            for i, k, n in zip(tiles, stride, take, strict=True)
+            self.points_world[self.tile_start[i] : self.tile_start[i] + int(n)]
+            for i, n in zip(tiles, np.minimum(take, self.tile_counts(tiles)), strict=True)
         ]
         counts = np.array([len(p) for p in parts], np.int64)
         if counts.sum() == 0:
